@@ -1,0 +1,1 @@
+"""Multi-agent learners (MADDPG, BiCNet): networks, replay buffer, training, checkpoints."""

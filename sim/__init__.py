@@ -1,0 +1,37 @@
+"""The shared, batched AGV simulator: physics, scenarios, rewards, metrics, rendering.
+
+Heavy or optional pieces (PettingZoo, matplotlib) are imported on first use.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sim.core import AGVEnv, SimState, StepContext, make_env
+from sim.rewards import REWARDS, make_reward
+from sim.scenarios import SCENARIOS, Scenario, get_scenario, scenario_names
+from sim.world import Physics, World
+
+__all__ = [
+    "AGVEnv", "SimState", "StepContext", "make_env", "REWARDS", "make_reward", "SCENARIOS",
+    "Scenario", "get_scenario", "scenario_names", "Physics", "World",
+    "evaluate", "Metrics", "pettingzoo_env", "ipf_field", "render_scene", "render_episode",
+]
+
+_LAZY = {
+    "evaluate": "sim.evaluate",
+    "Metrics": "sim.evaluate",
+    "pettingzoo_env": "sim.pettingzoo_env",
+    "ipf_field": "sim.ipf",
+    "render_scene": "sim.render",
+    "render_episode": "sim.render",
+    "render_field": "sim.render",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'sim' has no attribute {name!r}")

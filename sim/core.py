@@ -1,0 +1,481 @@
+"""The batched AGV environment: B environments of N AGVs and M tasks, stepped in torch.
+
+Physics follow ``mpe2`` (dt, damping, sensitivity, soft contacts, its integration order); on
+top of that come walls at the world bounds, rectangular shelves, task claiming and parking (see
+``docs/simulator.md`` for where and why this differs from MPE). Every tensor has a leading batch
+dimension and no Python loop runs over agents or environments on the step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sim.world import World
+
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.rewards import RewardFn
+    from sim.scenarios import Scenario
+
+__all__ = ["AGVEnv", "SimState", "StepContext", "make_env"]
+
+
+@dataclass
+class SimState:
+    """The changing state of B environments (views of the env's tensors, not copies)."""
+
+    agent_pos: Tensor  # (B, N, 2) world units
+    agent_vel: Tensor  # (B, N, 2) world units per second
+    task_pos: Tensor  # (B, M, 2)
+    task_claimed: Tensor  # (B, M) bool
+    agent_task: Tensor  # (B, N) int64, task held by the AGV or -1
+    steps: Tensor  # (B,) int64, steps taken in the current episode
+    done: Tensor  # (B,) bool
+
+
+@dataclass
+class StepContext:
+    """What a reward function may read about the step just taken.
+
+    Distances are computed once by the environment and shared by every reward term.
+    """
+
+    prev_agent_pos: Tensor  # (B, N, 2) positions before the step
+    prev_task_claimed: Tensor  # (B, M) bool, claims before the step
+    prev_agent_task: Tensor  # (B, N) int64, tasks held before the step
+    active: Tensor  # (B,) bool, environments that were running during the step
+    agent_task_dist: Tensor  # (B, N, M) distances after the step
+    collisions_per_agent: Tensor  # (B, N) float, overlapping discs per AGV after the step
+    collision_pairs: Tensor  # (B,) float, overlapping pairs after the step
+    team_reward: Tensor  # (B,) float, the paper's R_t (0 where inactive)
+
+
+def _softplus_margin(x: Tensor, margin: float) -> Tensor:
+    """``margin * log(1 + exp(x / margin))``, as ``np.logaddexp(0, x / k) * k`` in MPE."""
+    return torch.logaddexp(torch.zeros_like(x), x / margin) * margin
+
+
+class AGVEnv:
+    """B parallel AGV task-allocation environments.
+
+    Parameters
+    ----------
+    scenario : Scenario or str
+        The scenario (see :func:`sim.scenarios.get_scenario`), e.g. ``"3v3"``.
+    num_envs : int
+        Number B of parallel environments.
+    reward : str or RewardFn
+        ``"minidist"``, ``"greedy"``, ``"ipf"`` or a callable ``(env, ctx) -> {term: (B, N)}``.
+    seed : int, optional
+        Seed of the environment's ``torch.Generator``; every random draw comes from it.
+    device : str or torch.device
+        Where the state lives (default CPU).
+
+    Notes
+    -----
+    The step does not reset finished environments: a finished environment is frozen (zero
+    reward, ``done`` stays True) until :meth:`reset` is called for it, so evaluation can run
+    every episode to its end and training can reset exactly the finished ones.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario | str,
+        num_envs: int = 1,
+        reward: str | RewardFn = "minidist",
+        seed: int | None = None,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        from sim.rewards import make_reward
+        from sim.scenarios import get_scenario
+
+        if isinstance(scenario, str):
+            scenario = get_scenario(scenario)
+        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        self.scenario = scenario
+        self.world: World = scenario.world
+        self.num_envs = int(num_envs)
+        self.num_agents = scenario.num_agents
+        self.num_tasks = scenario.num_tasks
+        self.max_steps = scenario.max_steps
+        self.device = torch.device(device)
+        self.dtype = torch.float32
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(0 if seed is None else int(seed))
+        self.reward_fn = make_reward(reward)
+        self.k_tasks = scenario.k_tasks
+        self.k_agents = scenario.k_agents
+        self.obs_dim = 5 + 3 * self.k_tasks + 5 * self.k_agents
+        self.state_dim = 5 * self.num_agents + 3 * self.num_tasks
+        B, N, M = self.num_envs, self.num_agents, self.num_tasks
+        z = dict(device=self.device, dtype=self.dtype)
+        self.agent_pos = torch.zeros(B, N, 2, **z)
+        self.agent_vel = torch.zeros(B, N, 2, **z)
+        self.task_pos = torch.zeros(B, M, 2, **z)
+        self.task_claimed = torch.zeros(B, M, dtype=torch.bool, device=self.device)
+        self.agent_task = torch.full((B, N), -1, dtype=torch.long, device=self.device)
+        self.steps = torch.zeros(B, dtype=torch.long, device=self.device)
+        self.done = torch.zeros(B, dtype=torch.bool, device=self.device)
+        self._eye = torch.eye(N, dtype=torch.bool, device=self.device)
+        self._triu = torch.triu(torch.ones(N, N, dtype=torch.bool, device=self.device), 1)
+        self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    @property
+    def state(self) -> SimState:
+        """The current state (views, not copies)."""
+        return SimState(
+            self.agent_pos, self.agent_vel, self.task_pos, self.task_claimed,
+            self.agent_task, self.steps, self.done,
+        )
+
+    def _env_index(self, env_ids: Any) -> Tensor:
+        if env_ids is None:
+            return torch.arange(self.num_envs, device=self.device)
+        idx = torch.as_tensor(env_ids, device=self.device)
+        if idx.dtype == torch.bool:
+            if idx.shape != (self.num_envs,):
+                raise ValueError(
+                    f"a boolean env mask must have shape ({self.num_envs},), got {tuple(idx.shape)}"
+                )
+            return idx.nonzero().flatten()
+        idx = idx.long().flatten()
+        if idx.numel() and (idx.min() < 0 or idx.max() >= self.num_envs):
+            raise ValueError(f"env ids must lie in [0, {self.num_envs}), got {idx.tolist()}")
+        return idx
+
+    def reset(self, env_ids: Any = None, seed: int | None = None) -> Tensor:
+        """Start new episodes in all environments or in some.
+
+        Parameters
+        ----------
+        env_ids : array-like of int or bool mask (B,), optional
+            Environments to reset; all when omitted.
+        seed : int, optional
+            Re-seed the generator first (same seed, same scenes).
+
+        Returns
+        -------
+        Tensor, shape (B, N, O)
+            Observations of all environments.
+        """
+        if seed is not None:
+            self.generator.manual_seed(int(seed))
+        idx = self._env_index(env_ids)
+        if idx.numel():
+            agents, tasks = self.scenario.spawn(len(idx), self.generator, self.device)
+            self.set_state(agents, tasks, env_ids=idx)
+        return self.observe()
+
+    def set_state(
+        self,
+        agent_pos: Tensor | np.ndarray,
+        task_pos: Tensor | np.ndarray,
+        agent_vel: Tensor | np.ndarray | None = None,
+        env_ids: Any = None,
+    ) -> None:
+        """Place AGVs and tasks by hand (new episode in those environments).
+
+        Parameters
+        ----------
+        agent_pos : (K, N, 2) positions, K = number of selected environments
+        task_pos : (K, M, 2)
+        agent_vel : (K, N, 2), optional, default zero
+        env_ids : which environments (default all)
+
+        Raises
+        ------
+        ValueError
+            On a wrong shape, non-finite values, or positions outside the world or inside a shelf.
+        """
+        idx = self._env_index(env_ids)
+        K, N, M = len(idx), self.num_agents, self.num_tasks
+        z = dict(device=self.device, dtype=self.dtype)
+        a = torch.as_tensor(agent_pos, **z)
+        t = torch.as_tensor(task_pos, **z)
+        v = torch.zeros(K, N, 2, **z) if agent_vel is None else torch.as_tensor(agent_vel, **z)
+        for name, x, shape in (("agent_pos", a, (K, N, 2)), ("task_pos", t, (K, M, 2)),
+                               ("agent_vel", v, (K, N, 2))):
+            if tuple(x.shape) != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {tuple(x.shape)}")
+            if not torch.isfinite(x).all():
+                raise ValueError(f"{name} contains NaN or infinite values")
+        for name, x in (("agent_pos", a), ("task_pos", t)):
+            self.world.check_positions(x.reshape(-1, 2).double().cpu().numpy(), name)
+        self.agent_pos[idx] = a
+        self.agent_vel[idx] = v
+        self.task_pos[idx] = t
+        self.task_claimed[idx] = False
+        self.agent_task[idx] = -1
+        self.steps[idx] = 0
+        self.done[idx] = False
+        self._pair = None
+
+    # ------------------------------------------------------------------ geometry
+    def _pairwise(self) -> tuple[Tensor, Tensor]:
+        """Pairwise AGV offsets ``p_i - p_j`` (B, N, N, 2) and distances (B, N, N), cached."""
+        if self._pair is None:
+            delta = self.agent_pos.unsqueeze(2) - self.agent_pos.unsqueeze(1)
+            dist = torch.linalg.vector_norm(delta, dim=-1)
+            self._pair = (delta, dist)
+        return self._pair
+
+    def _contact_forces(self, delta: Tensor, dist: Tensor) -> Tensor:
+        ph = self.world.physics
+        dist_min = 2.0 * self.world.agent_radius
+        penetration = _softplus_margin(dist_min - dist, ph.contact_margin)
+        scale = (ph.contact_force * penetration / dist.clamp_min(1e-12)).masked_fill(self._eye, 0.0)
+        return (delta * scale.unsqueeze(-1)).sum(dim=2)
+
+    def _collide_obstacles(self, pos: Tensor, vel: Tensor) -> tuple[Tensor, Tensor]:
+        """Push discs out of shelves and cancel the velocity into them."""
+        r = self.world.agent_radius
+        lo = self._obstacles[:, :2]  # (K, 2)
+        hi = self._obstacles[:, 2:]
+        p = pos.unsqueeze(2)  # (B, N, 1, 2)
+        closest = torch.minimum(torch.maximum(p, lo), hi)  # (B, N, K, 2)
+        d = p - closest
+        dist = torch.linalg.vector_norm(d, dim=-1)  # (B, N, K)
+        # Centre inside a shelf: leave through the nearest face.
+        to_face = torch.cat([p - lo, hi - p], dim=-1)  # (B, N, K, 4): left, bottom, right, top
+        face = to_face.argmin(dim=-1)
+        normals = torch.tensor(
+            [[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]], device=pos.device, dtype=pos.dtype
+        )
+        inside = dist <= 1e-9
+        normal = torch.where(
+            inside.unsqueeze(-1), normals[face], d / dist.clamp_min(1e-9).unsqueeze(-1)
+        )
+        depth = torch.where(inside, to_face.gather(-1, face.unsqueeze(-1)).squeeze(-1) + r, r - dist)
+        hit = depth > 0
+        push = (normal * (depth * hit).unsqueeze(-1)).sum(dim=2)
+        inward = (vel.unsqueeze(2) * normal).sum(-1).clamp_max(0.0) * hit  # (B, N, K)
+        vel = vel - (normal * inward.unsqueeze(-1)).sum(dim=2)
+        return pos + push, vel
+
+    def _collide_walls(self, pos: Tensor, vel: Tensor) -> tuple[Tensor, Tensor]:
+        r = self.world.agent_radius
+        xmin, ymin, xmax, ymax = self.world.bounds
+        lo = torch.tensor([xmin + r, ymin + r], device=pos.device, dtype=pos.dtype)
+        hi = torch.tensor([xmax - r, ymax - r], device=pos.device, dtype=pos.dtype)
+        clamped = torch.minimum(torch.maximum(pos, lo), hi)
+        hit_lo = pos < lo
+        hit_hi = pos > hi
+        vel = torch.where((hit_lo & (vel < 0)) | (hit_hi & (vel > 0)), torch.zeros_like(vel), vel)
+        return clamped, vel
+
+    # ------------------------------------------------------------------ step
+    def _check_actions(self, actions: Any) -> Tensor:
+        a = torch.as_tensor(actions, device=self.device, dtype=self.dtype)
+        expected = (self.num_envs, self.num_agents, 2)
+        if tuple(a.shape) != expected:
+            raise ValueError(
+                f"actions must have shape (B, N, 2) = {expected}, got {tuple(a.shape)}"
+            )
+        if not torch.isfinite(a).all():
+            raise ValueError("actions contain NaN or infinite values; expected finite values")
+        return a.clamp(-1.0, 1.0)
+
+    def step(self, actions: Tensor | np.ndarray) -> tuple[Tensor, Tensor, Tensor, dict]:
+        """Advance every running environment by one step.
+
+        Parameters
+        ----------
+        actions : Tensor, shape (B, N, 2)
+            Accelerations in [-1, 1] (values outside are clipped); ignored for parked AGVs.
+
+        Returns
+        -------
+        obs : Tensor, shape (B, N, O)
+        reward : Tensor, shape (B, N)
+            The chosen reward's sum of terms; 0 in environments that were already done.
+        done : Tensor, shape (B,) bool
+            True once every task is claimed or the step limit is reached.
+        info : dict
+            ``reward_terms`` {name: (B, N)}, ``team_reward`` (B,) the paper's R_t,
+            ``claimed_now`` (B, M) bool, ``agent_task`` (B, N), ``collision_pairs`` (B,),
+            ``collisions_per_agent`` (B, N), ``active`` (B,) bool.
+        """
+        actions = self._check_actions(actions)
+        ph = self.world.physics
+        active = ~self.done
+        prev_pos = self.agent_pos.clone()
+        prev_claimed = self.task_claimed.clone()
+        prev_task = self.agent_task.clone()
+        movable = (self.agent_task < 0) & active.unsqueeze(1)  # (B, N)
+
+        # MPE physics: force from the action and soft contacts, then integrate.
+        force = actions * ph.sensitivity
+        if ph.contact_force > 0 and self.num_agents > 1:
+            force = force + self._contact_forces(*self._pairwise())
+        m = movable.unsqueeze(-1)
+        pos = self.agent_pos + self.agent_vel * (ph.dt * m)
+        vel = self.agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
+        if ph.max_speed is not None:
+            speed = torch.linalg.vector_norm(vel, dim=-1, keepdim=True)
+            vel = vel * (ph.max_speed / speed.clamp_min(ph.max_speed))
+        vel = torch.where(m, vel, self.agent_vel)
+        if self.world.has_obstacles:
+            pos, vel = self._collide_obstacles(pos, vel)
+        if self.world.walls:
+            pos, vel = self._collide_walls(pos, vel)
+        pos = torch.where(m, pos, self.agent_pos)
+        self.agent_pos = pos
+        self.agent_vel = vel
+        self._pair = None
+
+        # Task claiming: an idle AGV within the capture radius takes the task and parks.
+        dist = torch.cdist(self.agent_pos, self.task_pos)  # (B, N, M)
+        claimed_now = self._claim(dist, active)
+        self.steps = self.steps + active.long()
+        self.done = self.done | self.task_claimed.all(dim=1) | (self.steps >= self.max_steps)
+
+        # Collisions (discs overlapping) and the paper's team reward R_t.
+        _, pair_dist = self._pairwise()
+        overlap = (pair_dist < 2.0 * self.world.agent_radius) & ~self._eye
+        per_agent = overlap.sum(dim=2).to(self.dtype)
+        pairs = (overlap & self._triu).sum(dim=(1, 2)).to(self.dtype)
+        nearest = dist.min(dim=1).values.sum(dim=1) if self.num_tasks else pairs * 0
+        team = torch.where(active, -nearest - pairs, torch.zeros_like(pairs))
+        ctx = StepContext(prev_pos, prev_claimed, prev_task, active, dist, per_agent, pairs, team)
+        terms = self.reward_fn(self, ctx)
+        reward = torch.zeros(self.num_envs, self.num_agents, device=self.device, dtype=self.dtype)
+        for value in terms.values():
+            reward = reward + value
+        reward = reward * active.unsqueeze(1)
+        info = {
+            "reward_terms": terms,
+            "team_reward": team,
+            "claimed_now": claimed_now,
+            "agent_task": self.agent_task,
+            "collision_pairs": pairs * active,
+            "collisions_per_agent": per_agent * active.unsqueeze(1),
+            "active": active,
+        }
+        return self.observe(), reward, self.done.clone(), info
+
+    def _claim(self, dist: Tensor, active: Tensor) -> Tensor:
+        """Resolve claims in one round: each task goes to its nearest eligible AGV, and an AGV
+        that wins several takes its nearest (the others wait for the next step)."""
+        eligible = (
+            (self.agent_task < 0).unsqueeze(2)
+            & ~self.task_claimed.unsqueeze(1)
+            & (dist <= self.world.capture_radius)
+            & active.view(-1, 1, 1)
+        )
+        inf = torch.full_like(dist, float("inf"))
+        d_el = torch.where(eligible, dist, inf)
+        best_agent = d_el.argmin(dim=1, keepdim=True)  # (B, 1, M)
+        agents = torch.arange(self.num_agents, device=self.device).view(1, -1, 1)
+        won = eligible & (agents == best_agent)
+        d_won = torch.where(won, dist, inf)
+        min_d, best_task = d_won.min(dim=2)  # (B, N)
+        takes = torch.isfinite(min_d)
+        self.agent_task = torch.where(takes, best_task, self.agent_task)
+        self.agent_vel = self.agent_vel * (~takes).unsqueeze(-1)
+        onehot = torch.nn.functional.one_hot(best_task, self.num_tasks).bool() & takes.unsqueeze(-1)
+        claimed_now = onehot.any(dim=1)
+        self.task_claimed = self.task_claimed | claimed_now
+        return claimed_now
+
+    # ------------------------------------------------------------------ observations
+    def observe(self) -> Tensor:
+        """Local observations, (B, N, O) with O = 5 + 3 K_tasks + 5 K_agents.
+
+        Per AGV: own velocity (2) and position (2); for each of the K nearest unclaimed tasks
+        within the sensing range its relative position (2) and a mask bit; for each of the K
+        nearest other AGVs in range its relative position (2), velocity (2) and a mask bit;
+        finally whether the AGV holds a task (1). Missing entries are zero with mask 0.
+        """
+        B, N = self.num_envs, self.num_agents
+        pos, vel = self.agent_pos, self.agent_vel
+        rng = self.scenario.sensing_range
+        parts = [vel, pos]
+        if self.k_tasks:
+            rel_t = self.task_pos.unsqueeze(1) - pos.unsqueeze(2)  # (B, N, M, 2)
+            d_t = torch.linalg.vector_norm(rel_t, dim=-1)
+            d_t = d_t.masked_fill(self.task_claimed.unsqueeze(1) | (d_t > rng), float("inf"))
+            parts.append(self._nearest(rel_t, d_t, self.k_tasks))
+        if self.k_agents:
+            delta, d_a = self._pairwise()
+            rel_a = -delta  # p_j - p_i
+            d_a = d_a.masked_fill(self._eye | (d_a > rng), float("inf"))
+            feats = torch.cat([rel_a, vel.unsqueeze(1).expand(B, N, N, 2)], dim=-1)
+            parts.append(self._nearest(feats, d_a, self.k_agents))
+        parts.append((self.agent_task >= 0).to(self.dtype).unsqueeze(-1))
+        return torch.cat(parts, dim=-1)
+
+    @staticmethod
+    def _nearest(feats: Tensor, dist: Tensor, k: int) -> Tensor:
+        """Features of the k nearest finite-distance entries, zero-padded, with a mask bit."""
+        B, N, C, F = feats.shape
+        kk = min(k, C)
+        d_k, idx = torch.topk(dist, kk, dim=2, largest=False, sorted=True)
+        picked = feats.gather(2, idx.unsqueeze(-1).expand(B, N, kk, F))
+        mask = torch.isfinite(d_k).unsqueeze(-1)
+        out = torch.cat([picked * mask, mask.to(feats.dtype)], dim=-1)
+        if kk < k:
+            out = torch.cat([out, out.new_zeros(B, N, k - kk, F + 1)], dim=2)
+        return out.reshape(B, N, k * (F + 1))
+
+    def global_state(self) -> Tensor:
+        """Global state for centralized critics, (B, 5 N + 3 M): every AGV's position,
+        velocity and holding bit, every task's position and claimed bit."""
+        B = self.num_envs
+        agents = torch.cat(
+            [self.agent_pos, self.agent_vel, (self.agent_task >= 0).to(self.dtype).unsqueeze(-1)],
+            dim=-1,
+        )
+        tasks = torch.cat([self.task_pos, self.task_claimed.to(self.dtype).unsqueeze(-1)], dim=-1)
+        return torch.cat([agents.reshape(B, -1), tasks.reshape(B, -1)], dim=-1)
+
+
+def make_env(
+    scenario: Scenario | str = "3v3",
+    num_envs: int = 1,
+    reward: str | RewardFn = "minidist",
+    seed: int | None = None,
+    device: str | torch.device = "cpu",
+    **scenario_options: Any,
+) -> AGVEnv:
+    """Build a batched AGV environment.
+
+    Parameters
+    ----------
+    scenario : str or Scenario
+        A registry name (``"3v3"``, ``"6v6"``, any ``"NvM"``, ``"warehouse"``) or a Scenario.
+    num_envs : int
+        Number of parallel environments B.
+    reward : str or callable
+        ``"minidist"``, ``"greedy"`` or ``"ipf"``.
+    seed : int, optional
+        Seed of the environment's generator.
+    **scenario_options
+        Overrides for the scenario (e.g. ``max_steps=50``, ``sensing_range=1.0``).
+
+    Returns
+    -------
+    AGVEnv
+
+    Examples
+    --------
+    >>> import sim, torch
+    >>> env = sim.make_env("3v3", num_envs=4, seed=0)
+    >>> obs = env.reset()
+    >>> obs.shape
+    torch.Size([4, 3, 24])
+    >>> obs, reward, done, info = env.step(torch.zeros(4, 3, 2))
+    >>> reward.shape, done.shape
+    (torch.Size([4, 3]), torch.Size([4]))
+    """
+    from sim.scenarios import get_scenario
+
+    if isinstance(scenario, str) or scenario_options:
+        scenario = get_scenario(scenario, **scenario_options)
+    return AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=seed, device=device)

@@ -1,0 +1,92 @@
+"""Reward functions, chosen by name in :func:`sim.make_env`.
+
+A reward is a small callable ``reward(env, ctx) -> {term_name: (B, N) tensor}``; the
+environment sums the terms into the per-agent reward and reports each term in
+``info["reward_terms"]`` so that shaping can be audited. ``ctx`` is a
+:class:`sim.core.StepContext` holding the distances and collisions the environment already
+computed for the step.
+
+- ``minidist`` (global): every AGV gets the paper's R_t = -(sum over tasks of the distance to
+  the nearest AGV) - (number of overlapping AGV pairs).
+- ``greedy`` (individual): each idle AGV gets the distance it closed to its nearest unclaimed
+  task during the step, minus the number of AGVs it overlaps.
+- ``ipf``: r_IPF + r_g + r_c, the paper's information potential field reward (``sim.ipf``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Protocol
+
+import torch
+from torch import Tensor
+
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.core import AGVEnv, StepContext
+
+__all__ = ["RewardFn", "MiniDist", "Greedy", "REWARDS", "make_reward"]
+
+
+class RewardFn(Protocol):
+    """``reward(env, ctx) -> {term: (B, N)}``; terms are summed into the agent's reward."""
+
+    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]: ...
+
+
+class MiniDist:
+    """The paper's global MiniDist reward: every AGV receives the team reward R_t."""
+
+    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
+        n = env.num_agents
+        pairs = ctx.collision_pairs.unsqueeze(1).expand(-1, n)
+        dist = (ctx.team_reward.unsqueeze(1) + ctx.collision_pairs.unsqueeze(1)).expand(-1, n)
+        return {"distance": dist, "collision": -pairs}
+
+
+class Greedy:
+    """The individual Greedy reward: progress towards the AGV's own nearest unclaimed task.
+
+    For an AGV idle before the step, ``d_before - d_after`` where both distances are to the
+    nearest task that was unclaimed before the step (so reaching and claiming a task is
+    rewarded, not punished); 0 for parked AGVs. Minus the AGV's own overlaps.
+    """
+
+    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
+        inf = torch.tensor(float("inf"), device=ctx.agent_task_dist.device)
+        open_tasks = ~ctx.prev_task_claimed.unsqueeze(1)  # (B, 1, M)
+        d_before = torch.cdist(ctx.prev_agent_pos, env.task_pos)
+        d_before = torch.where(open_tasks, d_before, inf)
+        nearest_before, target = d_before.min(dim=2)  # (B, N)
+        d_after = ctx.agent_task_dist.gather(2, target.unsqueeze(-1)).squeeze(-1)
+        idle = (ctx.prev_agent_task < 0) & torch.isfinite(nearest_before)
+        progress = torch.where(idle, nearest_before - d_after, torch.zeros_like(d_after))
+        return {"progress": progress, "collision": -ctx.collisions_per_agent}
+
+
+def _ipf() -> RewardFn:
+    from sim.ipf import IPFReward
+
+    return IPFReward()
+
+
+REWARDS: dict[str, Callable[[], RewardFn]] = {
+    "minidist": MiniDist,
+    "greedy": Greedy,
+    "ipf": _ipf,
+}
+"""Registered rewards by name."""
+
+
+def make_reward(reward: str | RewardFn) -> RewardFn:
+    """Return the reward callable for a name, or the callable itself.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name; the message lists the known ones.
+    """
+    if callable(reward) and not isinstance(reward, str):
+        return reward
+    if reward not in REWARDS:
+        raise ValueError(f"unknown reward {reward!r}; expected one of {sorted(REWARDS)}")
+    return REWARDS[reward]()
