@@ -252,7 +252,8 @@ class AGVEnv:
         normal = torch.where(
             inside.unsqueeze(-1), normals[face], d / dist.clamp_min(1e-9).unsqueeze(-1)
         )
-        depth = torch.where(inside, to_face.gather(-1, face.unsqueeze(-1)).squeeze(-1) + r, r - dist)
+        face_depth = to_face.gather(-1, face.unsqueeze(-1)).squeeze(-1)
+        depth = torch.where(inside, face_depth + r, r - dist)
         hit = depth > 0
         push = (normal * (depth * hit).unsqueeze(-1)).sum(dim=2)
         inward = (vel.unsqueeze(2) * normal).sum(-1).clamp_max(0.0) * hit  # (B, N, K)
