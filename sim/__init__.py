@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 from sim.core import AGVEnv, SimState, StepContext, make_env
+from sim.evaluate import Metrics, evaluate
 from sim.rewards import REWARDS, make_reward
 from sim.scenarios import SCENARIOS, Scenario, get_scenario, scenario_names
 from sim.world import Physics, World
@@ -19,9 +20,7 @@ __all__ = [
 ]
 
 _LAZY = {
-    "evaluate": "sim.evaluate",
-    "Metrics": "sim.evaluate",
-    "pettingzoo_env": "sim.pettingzoo_env",
+    "pettingzoo_env": "sim.parallel_env",
     "ipf_field": "sim.ipf",
     "render_scene": "sim.render",
     "render_episode": "sim.render",

@@ -1,0 +1,56 @@
+"""Scripted controllers on local observations: simple decentralized baselines and test drivers."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from sim.world import Physics
+
+__all__ = ["NearestTaskController", "RandomController"]
+
+
+class NearestTaskController:
+    """Each AGV drives at its nearest visible unclaimed task, reading only its observation.
+
+    A proportional velocity command towards the task, converted to the MPE acceleration
+    action. No coordination: two AGVs may chase the same task (the weakest sensible policy).
+
+    Parameters
+    ----------
+    physics : Physics
+        The simulator constants used to turn a velocity command into an action.
+    gain : float
+        Desired velocity per unit distance (1/s).
+    max_speed : float
+        Cap on the commanded speed.
+    """
+
+    def __init__(self, physics: Physics | None = None, gain: float = 4.0,
+                 max_speed: float = 1.2) -> None:
+        self.physics = physics or Physics()
+        self.gain = gain
+        self.max_speed = max_speed
+
+    def act(self, obs: Tensor) -> Tensor:
+        """Actions (B, N, 2) from observations (B, N, O)."""
+        ph = self.physics
+        vel = obs[..., 0:2]
+        rel = obs[..., 4:6] * obs[..., 6:7]  # nearest task, zero when none is visible
+        v_cmd = rel * self.gain
+        speed = torch.linalg.vector_norm(v_cmd, dim=-1, keepdim=True)
+        v_cmd = v_cmd * (self.max_speed / speed.clamp_min(self.max_speed))
+        action = (v_cmd - vel * (1.0 - ph.damping)) / (ph.sensitivity * ph.dt / ph.mass)
+        return action.clamp(-1.0, 1.0)
+
+
+class RandomController:
+    """Uniform random actions in [-1, 1]^2 from an explicit generator."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def act(self, obs: Tensor) -> Tensor:
+        """Actions (B, N, 2)."""
+        shape = (*obs.shape[:2], 2)
+        return torch.rand(shape, generator=self.generator, dtype=obs.dtype) * 2.0 - 1.0
