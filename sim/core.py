@@ -197,9 +197,9 @@ class AGVEnv:
         idx = self._env_index(env_ids)
         K, N, M = len(idx), self.num_agents, self.num_tasks
         z = dict(device=self.device, dtype=self.dtype)
-        a = torch.as_tensor(agent_pos, **z)
-        t = torch.as_tensor(task_pos, **z)
-        v = torch.zeros(K, N, 2, **z) if agent_vel is None else torch.as_tensor(agent_vel, **z)
+        a = torch.as_tensor(agent_pos, **z).clone()
+        t = torch.as_tensor(task_pos, **z).clone()
+        v = torch.zeros(K, N, 2, **z) if agent_vel is None else torch.as_tensor(agent_vel, **z).clone()
         for name, x, shape in (("agent_pos", a, (K, N, 2)), ("task_pos", t, (K, M, 2)),
                                ("agent_vel", v, (K, N, 2))):
             if tuple(x.shape) != shape:

@@ -1,0 +1,737 @@
+"""The information potential field (IPF) of the paper, exactly, and fast.
+
+The field
+---------
+The world is covered by a regular grid of ``H x W`` cells (cell size about ``resolution``
+world units, default 0.05 so an AGV of radius 0.15 spans six cells across). The grid is a graph:
+one node per cell, edges between 4-neighbours (``networkx.grid_2d_graph``). Three kinds of node
+have a fixed value:
+
+- *boundary* nodes (the outermost ring of cells) and *obstacle* nodes (cells whose centre lies
+  in a shelf, edges included) are fixed at 0;
+- for AGV ``i``: the cell of every unclaimed task is fixed at ``+5`` and the cell of every other
+  AGV at ``-3`` (the *sources*). AGV ``i``'s own cell is not a source of its own field, and
+  claimed tasks are not sources. Parked AGVs are AGVs: they stay sources at ``-3``.
+
+Every other node is harmonic, ``Phi(u) = (1 / d(u)) * sum of Phi over N(u)`` with ``d(u) = 4``
+(every free node lies inside the boundary ring, so it has four neighbours in the graph): the
+fixed point of the paper's Jacobi iteration. ``r_IPF`` for AGV ``i`` is ``Phi_i`` at AGV ``i``'s
+cell (nearest cell, no interpolation).
+
+Cell rule: a point maps to the cell that contains it, which is the cell with the nearest centre
+(``floor((x - xmin) / dx)``, clipped to the grid).
+
+Two solvers
+-----------
+- :func:`jacobi_field`, the reference: the paper's synchronous Jacobi iteration on the graph,
+  run until a guaranteed bound on the max-abs error is below ``tol``.
+- the exact fast solver (:meth:`IPFGrid.fields` for whole fields, :meth:`IPFGrid.agent_potentials`
+  for the reward). Let ``L = 4 I - A`` be the graph Laplacian restricted to the ``F`` free nodes
+  (every node not fixed at 0) and ``G = L^{-1}`` its Dirichlet Green's function, computed once per
+  world and resolution. With sources ``S`` at values ``v``, the field is ``Phi = G[:, S] w`` with
+  ``G[S, S] w = v``: it is zero on fixed nodes, takes the value ``v`` on ``S`` and is harmonic
+  elsewhere because ``L Phi = w`` vanishes off ``S``. For the reward every AGV needs its field only
+  at its own cell, and AGV ``i``'s sources are the scene's sources ``T`` minus ``i`` itself. With
+  ``K = G[T, T]`` and ``P = K^{-1}``, the Schur-complement identity gives
+  ``Phi_i(cell_i) = K[i, T'] K[T', T']^{-1} v_T' = -(sum_{j != i} P_ij v_j) / P_ii``, so one small
+  ``(N + M) x (N + M)`` inverse per environment serves all N AGVs.
+
+Colliding sources
+-----------------
+Sources that share a cell with the same value merge exactly (a Dirichlet value is a value, not a
+charge). Sources that share a cell with different values mean the grid is too coarse:
+:func:`ipf_field` raises :class:`ValueError`; the batched reward applies a deterministic rule
+instead: *the AGV wins*, the cell is fixed at ``-3`` (an AGV standing on a task is serving it).
+A source whose cell is fixed at 0 (a boundary ring or shelf cell): :func:`ipf_field` raises; the
+reward ignores it (0 wins). Neither happens in the shipped scenarios at the default resolution,
+since AGVs and tasks spawn at least one AGV radius from walls and shelves.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sim.world import World
+
+if TYPE_CHECKING:  # pragma: no cover
+    import networkx as nx
+    from matplotlib.figure import Figure
+
+    from sim.core import AGVEnv, StepContext
+
+__all__ = [
+    "TASK_VALUE",
+    "AGENT_VALUE",
+    "DEFAULT_RESOLUTION",
+    "MAX_GREEN_BYTES",
+    "IPFGrid",
+    "IPFField",
+    "IPFReward",
+    "ipf_grid",
+    "ipf_field",
+    "jacobi_field",
+    "plot_field",
+]
+
+TASK_VALUE = 5.0
+"""Potential of an unclaimed task's cell."""
+AGENT_VALUE = -3.0
+"""Potential of another AGV's cell."""
+DEFAULT_RESOLUTION = 0.05
+"""Default cell size in world units (40 x 40 cells on the MPE box, an AGV spans 6 cells)."""
+MAX_GREEN_BYTES = 1 << 30
+"""Largest dense Green's function (``F^2 * 8`` bytes) a grid may build: 1 GiB."""
+
+
+class IPFGrid:
+    """The grid graph of one world at one resolution, and its Green's function.
+
+    Build it with :func:`ipf_grid` (cached per world and resolution) rather than directly.
+
+    Parameters
+    ----------
+    world : World
+        Bounds and shelves.
+    resolution : float
+        Requested cell size in world units; the grid has ``W = round(width / resolution)`` and
+        ``H = round(height / resolution)`` cells, so the actual sizes ``dx``, ``dy`` tile the
+        world exactly.
+    max_bytes : int
+        Refuse (``ValueError``) grids whose dense Green's function ``F^2 * 8`` bytes exceeds this.
+
+    Attributes
+    ----------
+    shape : tuple of int
+        ``(H, W)``.
+    x : np.ndarray, shape (W,)
+        Cell-centre x coordinates.
+    y : np.ndarray, shape (H,)
+        Cell-centre y coordinates.
+    fixed : np.ndarray of bool, shape (H, W)
+        Nodes fixed at 0: the boundary ring and the cells whose centre lies in a shelf.
+    obstacle : np.ndarray of bool, shape (H, W)
+        The shelf cells alone.
+    free_index : np.ndarray of int64, shape (H * W,)
+        Index of each cell among the F free (not fixed) cells, ``-1`` for fixed cells.
+    num_free : int
+        F.
+    """
+
+    def __init__(
+        self, world: World, resolution: float = DEFAULT_RESOLUTION, max_bytes: int = MAX_GREEN_BYTES
+    ) -> None:
+        if not (isinstance(resolution, (int, float)) and math.isfinite(resolution)
+                and resolution > 0):
+            raise ValueError(f"resolution must be a positive cell size, got {resolution!r}")
+        self.world = world
+        self.resolution = float(resolution)
+        width, height = world.size
+        W, H = int(round(width / resolution)), int(round(height / resolution))
+        if W < 3 or H < 3:
+            raise ValueError(
+                f"resolution {resolution} gives a {H} x {W} grid on a {width:g} x {height:g} "
+                "world; at least 3 x 3 cells are needed (one free cell inside the boundary "
+                f"ring); use resolution <= {min(width, height) / 3:.4g}"
+            )
+        self.shape = (H, W)
+        xmin, ymin, _, _ = world.bounds
+        self.dx, self.dy = width / W, height / H
+        self.x = xmin + (np.arange(W) + 0.5) * self.dx
+        self.y = ymin + (np.arange(H) + 0.5) * self.dy
+        fixed = np.zeros((H, W), dtype=bool)
+        fixed[0, :] = fixed[-1, :] = fixed[:, 0] = fixed[:, -1] = True
+        obstacle = np.zeros((H, W), dtype=bool)
+        cx, cy = np.meshgrid(self.x, self.y)  # (H, W)
+        for x0, y0, x1, y1 in world.obstacles:
+            obstacle |= (cx >= x0) & (cx <= x1) & (cy >= y0) & (cy <= y1)
+        self.obstacle = obstacle
+        self.fixed = fixed | obstacle
+        free = ~self.fixed.ravel()
+        self.num_free = int(free.sum())
+        if self.num_free == 0:
+            raise ValueError(
+                f"the {H} x {W} grid at resolution {resolution} has no free cell; use a finer one"
+            )
+        need = self.num_free**2 * 8
+        if need > max_bytes:
+            scale = math.sqrt(need / max_bytes) * 1.05
+            raise ValueError(
+                f"resolution {resolution} gives {self.num_free} free cells on this "
+                f"{width:g} x {height:g} world; its Green's function would need "
+                f"{need / 2**20:.0f} MiB (limit {max_bytes / 2**20:.0f} MiB); "
+                f"use resolution >= {resolution * scale:.3g} or raise max_bytes"
+            )
+        self.free_index = np.full(H * W, -1, dtype=np.int64)
+        self.free_index[free] = np.arange(self.num_free)
+        self._green: np.ndarray | None = None
+        self._torch: dict[tuple[torch.device, torch.dtype], tuple[Tensor, Tensor]] = {}
+
+    # ------------------------------------------------------------------ the graph
+    @functools.cached_property
+    def graph(self) -> nx.Graph:
+        """The grid graph: nodes ``(row, col)`` with attribute ``fixed`` (bool)."""
+        import networkx as nx
+
+        H, W = self.shape
+        g = nx.grid_2d_graph(H, W)
+        nx.set_node_attributes(g, {(r, c): bool(self.fixed[r, c]) for r, c in g.nodes}, "fixed")
+        return g
+
+    @functools.cached_property
+    def adjacency(self) -> Any:
+        """Sparse ``(H W, H W)`` adjacency matrix of :attr:`graph`, nodes in row-major order."""
+        import networkx as nx
+
+        H, W = self.shape
+        order = [(r, c) for r in range(H) for c in range(W)]
+        return nx.to_scipy_sparse_array(self.graph, nodelist=order, format="csr", dtype=float)
+
+    def laplacian(self) -> Any:
+        """The Dirichlet Laplacian ``L = D - A`` restricted to the free nodes, sparse (F, F)."""
+        import scipy.sparse as sp
+
+        adj = self.adjacency
+        degree = np.asarray(adj.sum(axis=1)).ravel()
+        lap = sp.diags(degree) - adj
+        free = self.free_index >= 0
+        return sp.csc_matrix(lap[free][:, free])
+
+    # ------------------------------------------------------------------ Green's function
+    @property
+    def green(self) -> np.ndarray:
+        """The Dirichlet Green's function ``G = L^{-1}``, dense float64 (F, F), built on first use."""
+        if self._green is None:
+            from scipy.sparse.linalg import splu
+
+            lu = splu(self.laplacian(), permc_spec="COLAMD")
+            green = lu.solve(np.eye(self.num_free))
+            self._green = 0.5 * (green + green.T)  # symmetric up to rounding; make it exact
+        return self._green
+
+    def _tables(self, device: torch.device) -> tuple[Tensor, Tensor]:
+        """``G`` padded with a zero row and column (index F stands for a fixed cell), and the
+        free-index table with fixed cells mapped to F, as float64/int64 tensors on ``device``."""
+        key = (device, torch.float64)
+        if key not in self._torch:
+            F = self.num_free
+            padded = np.zeros((F + 1, F + 1))
+            padded[:F, :F] = self.green
+            index = np.where(self.free_index >= 0, self.free_index, F)
+            self._torch[key] = (
+                torch.from_numpy(padded).to(device),
+                torch.from_numpy(index).to(device),
+            )
+        return self._torch[key]
+
+    # ------------------------------------------------------------------ cells
+    def cell_of(self, points: Tensor | np.ndarray) -> Tensor:
+        """Flat row-major index of the cell holding each point (the nearest cell centre).
+
+        Parameters
+        ----------
+        points : Tensor or np.ndarray, shape (..., 2)
+            World coordinates; points outside the world go to the nearest border cell.
+
+        Returns
+        -------
+        Tensor of int64, shape (...)
+        """
+        p = torch.as_tensor(points)
+        H, W = self.shape
+        xmin, ymin, _, _ = self.world.bounds
+        col = torch.floor((p[..., 0].double() - xmin) / self.dx).long().clamp(0, W - 1)
+        row = torch.floor((p[..., 1].double() - ymin) / self.dy).long().clamp(0, H - 1)
+        return row * W + col
+
+    # ------------------------------------------------------------------ fast solvers
+    def fields(self, source_cells: Tensor, source_values: Tensor,
+               source_mask: Tensor | None = None) -> Tensor:
+        """Exact fields for a batch of source sets (the fast solver, whole grid).
+
+        Parameters
+        ----------
+        source_cells : Tensor of int64, shape (K, S)
+            Flat cell indices (see :meth:`cell_of`).
+        source_values : Tensor, shape (K, S)
+            Fixed value of each source.
+        source_mask : Tensor of bool, shape (K, S), optional
+            Which sources take part (default all).
+
+        Returns
+        -------
+        Tensor of float64, shape (K, H, W)
+            The converged field of each source set. Sources on fixed cells are ignored and
+            colliding sources follow the module's rule (earlier wins, so list AGVs first).
+        """
+        cells = torch.as_tensor(source_cells).long()
+        device = cells.device
+        values = torch.as_tensor(source_values, device=device).double()
+        mask = (torch.ones_like(cells, dtype=torch.bool) if source_mask is None
+                else torch.as_tensor(source_mask, device=device).bool())
+        green, index = self._tables(device)
+        F = self.num_free
+        fidx = index[cells]  # (K, S)
+        kept = _dedupe(cells, mask & (fidx < F))
+        eye = torch.eye(cells.shape[1], dtype=torch.float64, device=device)
+        gss = green[fidx.unsqueeze(-1), fidx.unsqueeze(-2)]
+        both = kept.unsqueeze(-1) & kept.unsqueeze(-2)
+        gss = torch.where(both, gss, eye)
+        weights = torch.linalg.solve(gss, (values * kept).unsqueeze(-1))  # (K, S, 1)
+        free_field = green[:F].index_select(1, fidx.flatten()).view(F, *fidx.shape)  # (F, K, S)
+        free_field = torch.einsum("fks,ks->kf", free_field, weights.squeeze(-1) * kept)
+        H, W = self.shape
+        out = torch.zeros(cells.shape[0], H * W, dtype=torch.float64, device=device)
+        out[:, torch.from_numpy(self.free_index >= 0).to(device)] = free_field
+        return out.view(-1, H, W)
+
+    def agent_potentials(
+        self,
+        agent_pos: Tensor,
+        task_pos: Tensor,
+        task_open: Tensor | None = None,
+        task_value: float = TASK_VALUE,
+        agent_value: float = AGENT_VALUE,
+    ) -> Tensor:
+        """``r_IPF`` of every AGV in every environment: its own field at its own cell.
+
+        Exact (the converged Jacobi fixed point up to float64 rounding), batched, no Python loop
+        over environments or AGVs: one ``(N + M) x (N + M)`` Cholesky inverse per environment.
+
+        Parameters
+        ----------
+        agent_pos : Tensor, shape (B, N, 2)
+        task_pos : Tensor, shape (B, M, 2)
+        task_open : Tensor of bool, shape (B, M), optional
+            Unclaimed tasks (default all); claimed ones are not sources.
+        task_value, agent_value : float
+            The fixed potentials (+5 and -3 in the paper).
+
+        Returns
+        -------
+        Tensor, shape (B, N), dtype of ``agent_pos``
+            ``Phi_i(cell of AGV i)``. Where AGV i's cell holds one of its sources the value is
+            that source's (AGV wins over task); on a fixed cell it is 0.
+        """
+        B, N, _ = agent_pos.shape
+        M = task_pos.shape[1]
+        device = agent_pos.device
+        green, index = self._tables(device)
+        F = self.num_free
+        cells = self.cell_of(torch.cat([agent_pos, task_pos], dim=1))  # (B, T)
+        T = N + M
+        fidx = index[cells]
+        on_free = fidx < F
+        candidate = on_free.clone()
+        if task_open is not None:
+            candidate[:, N:] &= task_open
+        values = torch.cat([
+            torch.full((N,), agent_value, dtype=torch.float64, device=device),
+            torch.full((M,), task_value, dtype=torch.float64, device=device),
+        ])
+        same = cells.unsqueeze(-1) == cells.unsqueeze(-2)  # (B, T, T)
+        kept = _dedupe(cells, candidate, same)
+        both = kept.unsqueeze(-1) & kept.unsqueeze(-2)
+        eye = torch.eye(T, dtype=torch.float64, device=device)
+        gram = torch.where(both, green[fidx.unsqueeze(-1), fidx.unsqueeze(-2)], eye)
+        chol, _ = torch.linalg.cholesky_ex(gram)
+        prec = torch.cholesky_inverse(chol)[:, :N]  # (B, N, T) rows of P = K^-1 for the AGVs
+        v = values * kept  # (B, T)
+        p_ii = torch.diagonal(prec[:, :, :N], dim1=-2, dim2=-1)  # (B, N)
+        phi = -((prec * v.unsqueeze(1)).sum(-1) - p_ii * v[:, :N]) / p_ii
+        # AGV i's own cell shared with one of its sources: that source's value (AGV wins).
+        not_self = ~torch.eye(N, T, dtype=torch.bool, device=device)
+        coincide = same[:, :N] & candidate.unsqueeze(1) & not_self  # (B, N, T)
+        phi = torch.where(coincide[..., N:].any(-1), task_value, phi)
+        phi = torch.where(coincide[..., :N].any(-1), agent_value, phi)
+        phi = torch.where(on_free[:, :N], phi, 0.0)
+        return phi.to(agent_pos.dtype)
+
+
+def _dedupe(cells: Tensor, candidate: Tensor, same: Tensor | None = None) -> Tensor:
+    """Keep each candidate source unless an earlier candidate shares its cell.
+
+    Parameters
+    ----------
+    cells : Tensor of int64, shape (K, S)
+    candidate : Tensor of bool, shape (K, S)
+    same : Tensor of bool, shape (K, S, S), optional
+        ``cells[:, j] == cells[:, k]``, if already computed.
+
+    Returns
+    -------
+    Tensor of bool, shape (K, S)
+    """
+    if same is None:
+        same = cells.unsqueeze(-1) == cells.unsqueeze(-2)
+    S = cells.shape[1]
+    earlier = torch.ones(S, S, dtype=torch.bool, device=cells.device).tril(-1)  # [k, j]: j < k
+    shadowed = (same & earlier & candidate.unsqueeze(-2)).any(-1)
+    return candidate & ~shadowed
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_grid(
+    bounds: tuple[float, ...], obstacles: bytes, num_obstacles: int, resolution: float,
+    max_bytes: int,
+) -> IPFGrid:
+    obs = np.frombuffer(obstacles, dtype=np.float64).reshape(num_obstacles, 4)
+    return IPFGrid(World(bounds=bounds, obstacles=obs.copy()), resolution, max_bytes)
+
+
+def ipf_grid(
+    world: World | None = None, resolution: float = DEFAULT_RESOLUTION,
+    max_bytes: int = MAX_GREEN_BYTES,
+) -> IPFGrid:
+    """The (cached) grid of a world at a resolution.
+
+    The cache key is the world's bounds and shelves (not the AGV size or physics, which the
+    grid does not depend on), the resolution and the memory limit; 8 grids are kept.
+
+    Raises
+    ------
+    ValueError
+        For a resolution that gives fewer than 3 x 3 cells, or one whose Green's function
+        would exceed ``max_bytes`` (the message names a resolution that fits).
+    """
+    world = World() if world is None else world
+    obs = np.ascontiguousarray(world.obstacles, dtype=np.float64)
+    return _cached_grid(tuple(world.bounds), obs.tobytes(), len(obs), float(resolution),
+                        int(max_bytes))
+
+
+# ---------------------------------------------------------------------- the reference
+def jacobi_field(
+    grid: IPFGrid,
+    source_cells: np.ndarray,
+    source_values: np.ndarray,
+    tol: float = 1e-9,
+    max_iter: int = 1_000_000,
+) -> np.ndarray:
+    """The paper's Jacobi iteration, run to a guaranteed tolerance (the reference solver).
+
+    Starting from 0 everywhere except the sources, every node that is neither fixed at 0 nor a
+    source is replaced, all at once, by the mean of its graph neighbours,
+    ``Phi^{k+1}(u) = (1 / d(u)) * sum_{v in N(u)} Phi^k(v)``, until the max-abs distance to the
+    converged field is provably below ``tol``.
+
+    The bound: the iteration matrix ``J`` (``A / 4`` on the updated nodes) is symmetric with
+    spectral radius ``rho <= (cos(pi / (W - 1)) + cos(pi / (H - 1))) / 2`` (that of the empty
+    box; fixing more nodes only lowers it), so the error after a step of size ``delta`` obeys
+    ``max|e| <= ||e||_2 <= rho / (1 - rho) * ||delta||_2``. Iteration stops when that is below
+    ``tol``.
+
+    Parameters
+    ----------
+    grid : IPFGrid
+    source_cells : np.ndarray of int, shape (S,)
+        Flat cell indices of the sources (:meth:`IPFGrid.cell_of`); must be distinct free cells.
+    source_values : np.ndarray, shape (S,)
+    tol : float
+        Guaranteed max-abs error of the result.
+    max_iter : int
+
+    Returns
+    -------
+    np.ndarray of float64, shape (H, W)
+
+    Raises
+    ------
+    ValueError
+        If a source lies on a fixed cell or two sources share a cell.
+    RuntimeError
+        If ``max_iter`` iterations do not reach ``tol``.
+    """
+    cells = np.asarray(source_cells, dtype=np.int64).ravel()
+    values = np.asarray(source_values, dtype=np.float64).ravel()
+    if cells.shape != values.shape:
+        raise ValueError(f"source_cells {cells.shape} and source_values {values.shape} differ")
+    if np.any(grid.free_index[cells] < 0):
+        raise ValueError("a source lies on a cell fixed at 0 (boundary ring or shelf)")
+    if len(np.unique(cells)) != len(cells):
+        raise ValueError("two sources share a cell")
+    H, W = grid.shape
+    adjacency = grid.adjacency
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    update = ~grid.fixed.ravel()
+    update[cells] = False
+    phi = np.zeros(H * W)
+    phi[cells] = values
+    rho = 0.5 * (math.cos(math.pi / (W - 1)) + math.cos(math.pi / (H - 1)))
+    bound = rho / (1.0 - rho)
+    for _ in range(max_iter):
+        mean = (adjacency @ phi) / degree
+        delta = np.where(update, mean - phi, 0.0)
+        phi = phi + delta
+        if bound * np.linalg.norm(delta) < tol:
+            return phi.reshape(H, W)
+    raise RuntimeError(f"Jacobi iteration did not reach tol={tol} in {max_iter} iterations")
+
+
+# ---------------------------------------------------------------------- the public field
+@dataclass(frozen=True)
+class IPFField:
+    """One AGV's information potential field.
+
+    Attributes
+    ----------
+    values : np.ndarray, shape (H, W)
+        Potentials at the cell centres (row = y, column = x).
+    x : np.ndarray, shape (W,)
+        Cell-centre x coordinates.
+    y : np.ndarray, shape (H,)
+        Cell-centre y coordinates.
+    agent : int
+        Whose field it is.
+    value_at_agent : float
+        ``r_IPF`` of that AGV: the field at its own cell.
+    world : World
+    """
+
+    values: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    agent: int
+    value_at_agent: float
+    world: World
+
+
+def _scene_sources(
+    grid: IPFGrid, agents: np.ndarray, tasks: np.ndarray, agent: int, claimed: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cells and values of AGV ``agent``'s sources, validated (user-facing path)."""
+    others = np.delete(np.arange(len(agents)), agent)
+    open_tasks = np.flatnonzero(~claimed)
+    points = np.concatenate([agents[others], tasks[open_tasks]])
+    values = np.concatenate([np.full(len(others), AGENT_VALUE), np.full(len(open_tasks),
+                                                                         TASK_VALUE)])
+    names = [f"AGV {i}" for i in others] + [f"task {j}" for j in open_tasks]
+    cells = grid.cell_of(points).numpy()
+    W = grid.shape[1]
+    for name, point, cell in zip(names, points, cells, strict=True):
+        if grid.free_index[cell] < 0:
+            what = "a shelf" if grid.obstacle.ravel()[cell] else "the boundary ring"
+            raise ValueError(
+                f"{name} at ({point[0]:.4g}, {point[1]:.4g}) falls on grid cell "
+                f"(row {cell // W}, col {cell % W}), which is {what} and fixed at 0; move it "
+                f"into the free floor or use a finer resolution (now {grid.resolution:g})"
+            )
+    order = np.argsort(cells, kind="stable")
+    keep = np.ones(len(cells), dtype=bool)
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        if cells[a] != cells[b]:
+            continue
+        if values[a] != values[b]:
+            dist = float(np.linalg.norm(points[a] - points[b]))
+            raise ValueError(
+                f"the grid is too coarse to separate {names[a]} and {names[b]} "
+                f"({dist:.3g} apart): both fall on cell (row {cells[a] // W}, col {cells[a] % W}) "
+                f"at resolution {grid.resolution:g}; use resolution <= {dist / 1.5:.3g}"
+            )
+        keep[b] = False  # same value on the same cell: one Dirichlet condition
+    return cells[keep], values[keep]
+
+
+def ipf_field(
+    agents: np.ndarray,
+    tasks: np.ndarray,
+    agent: int = 0,
+    world: World | None = None,
+    resolution: float = DEFAULT_RESOLUTION,
+    claimed: np.ndarray | None = None,
+    method: str = "fast",
+) -> IPFField:
+    """AGV ``agent``'s information potential field, for plots and checks.
+
+    Parameters
+    ----------
+    agents : array-like, shape (N, 2)
+        AGV positions in world units.
+    tasks : array-like, shape (M, 2)
+        Task positions.
+    agent : int
+        Whose field: that AGV is not a source, every other AGV is (``-3``).
+    world : World, optional
+        Default ``sim.World()`` (the box ``[-1, 1]^2``).
+    resolution : float
+        Cell size in world units (default 0.05).
+    claimed : array-like of bool, shape (M,), optional
+        Claimed tasks, which are not sources (default none claimed).
+    method : {"fast", "jacobi"}
+        The exact Green's-function solver or the paper's Jacobi iteration (tol 1e-9).
+
+    Returns
+    -------
+    IPFField
+        ``values`` (H, W) at cell centres ``x`` (W,), ``y`` (H,).
+
+    Raises
+    ------
+    ValueError
+        On bad shapes or positions (outside the world, inside a shelf), a source on a cell
+        fixed at 0, two sources of different value on one cell (grid too coarse), or a grid
+        that would need too much memory; each message says what would work.
+
+    Examples
+    --------
+    >>> import numpy as np, sim
+    >>> f = sim.ipf_field(np.array([[-0.5, 0.0], [0.5, 0.0]]), np.array([[0.0, 0.5]]), agent=0)
+    >>> f.values.shape, float(f.values.max()) <= 5.0
+    ((40, 40), True)
+    """
+    world = World() if world is None else world
+    agents = world.check_positions(agents, "agents")
+    tasks = world.check_positions(np.asarray(tasks, dtype=np.float64).reshape(-1, 2), "tasks")
+    if len(agents) == 0:
+        raise ValueError("agents must hold at least one AGV, got shape (0, 2)")
+    if not (isinstance(agent, (int, np.integer)) and 0 <= agent < len(agents)):
+        raise ValueError(f"agent must be an index in [0, {len(agents)}), got {agent!r}")
+    claimed = (np.zeros(len(tasks), dtype=bool) if claimed is None
+               else np.asarray(claimed, dtype=bool).ravel())
+    if claimed.shape != (len(tasks),):
+        raise ValueError(f"claimed must have shape ({len(tasks)},), got {claimed.shape}")
+    grid = ipf_grid(world, resolution)
+    cells, values = _scene_sources(grid, agents, tasks, int(agent), claimed)
+    if method == "fast":
+        field = grid.fields(torch.from_numpy(cells)[None], torch.from_numpy(values)[None])
+        phi = field[0].numpy()
+    elif method == "jacobi":
+        phi = jacobi_field(grid, cells, values)
+    else:
+        raise ValueError(f"method must be 'fast' or 'jacobi', got {method!r}")
+    own = int(grid.cell_of(agents[agent]))
+    return IPFField(phi, grid.x.copy(), grid.y.copy(), int(agent), float(phi.ravel()[own]), world)
+
+
+# ---------------------------------------------------------------------- the reward
+class IPFReward:
+    """The paper's IPF reward ``r = r_IPF + r_g + r_c``, per AGV, with each term reported.
+
+    Terms (each ``(B, N)``, zero in environments that were already done):
+
+    - ``"ipf"``: ``r_IPF``, AGV i's own field at its own cell, from the state after the step
+      (claimed tasks have left the field; parked AGVs stay sources at -3, and a parked AGV
+      still receives its field value). Exact, via :meth:`IPFGrid.agent_potentials`.
+    - ``"goal"``: ``r_g = -sum over tasks of the distance to the nearest AGV`` (all tasks, as in
+      the paper's R_t), shared by every AGV.
+    - ``"collision"``: ``r_c = -1`` if AGV i's disc overlaps any other AGV's (centres closer
+      than two radii, the environment's collision rule), else 0.
+
+    Parameters
+    ----------
+    resolution : float
+        Grid cell size (default 0.05).
+    task_value, agent_value : float
+        The fixed potentials (+5, -3 in the paper).
+    """
+
+    def __init__(
+        self,
+        resolution: float = DEFAULT_RESOLUTION,
+        task_value: float = TASK_VALUE,
+        agent_value: float = AGENT_VALUE,
+    ) -> None:
+        self.resolution = resolution
+        self.task_value = task_value
+        self.agent_value = agent_value
+
+    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
+        grid = ipf_grid(env.world, self.resolution)
+        n = env.num_agents
+        active = ctx.active.unsqueeze(1)
+        potential = grid.agent_potentials(
+            env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value, self.agent_value
+        )
+        goal = (ctx.team_reward + ctx.collision_pairs).unsqueeze(1).expand(-1, n)
+        collision = -(ctx.collisions_per_agent > 0).to(potential.dtype)
+        zero = torch.zeros((), dtype=potential.dtype, device=potential.device)
+        return {
+            "ipf": torch.where(active, potential, zero),
+            "goal": torch.where(active, goal, zero),
+            "collision": torch.where(active, collision, zero),
+        }
+
+
+# ---------------------------------------------------------------------- the picture
+def plot_field(
+    field: IPFField,
+    agents: np.ndarray,
+    tasks: np.ndarray,
+    agent: int | None = None,
+    ax: Any = None,
+    path: str | None = None,
+    claimed: np.ndarray | None = None,
+) -> Figure:
+    """A heatmap of one AGV's field with the tasks and AGVs marked (the paper's Figs. 3, 4).
+
+    Parameters
+    ----------
+    field : IPFField
+        From :func:`ipf_field`.
+    agents : array-like, shape (N, 2)
+    tasks : array-like, shape (M, 2)
+    agent : int, optional
+        The AGV whose field it is (default ``field.agent``), drawn highlighted.
+    ax : matplotlib Axes, optional
+        Draw into it; a new figure otherwise.
+    path : str, optional
+        Save the figure there.
+    claimed : array-like of bool, shape (M,), optional
+        Claimed tasks, drawn hollow.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import TwoSlopeNorm
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle, Rectangle
+
+    agents = np.asarray(agents, dtype=np.float64).reshape(-1, 2)
+    tasks = np.asarray(tasks, dtype=np.float64).reshape(-1, 2)
+    agent = field.agent if agent is None else int(agent)
+    claimed = (np.zeros(len(tasks), dtype=bool) if claimed is None
+               else np.asarray(claimed, dtype=bool))
+    world = field.world
+    if ax is None:  # a bare Agg figure: no pyplot, no global backend switch
+        fig = Figure(figsize=(5.0, 5.0 * world.size[1] / world.size[0] + 0.4))
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure
+    xmin, ymin, xmax, ymax = world.bounds
+    image = ax.imshow(
+        field.values, origin="lower", extent=(xmin, xmax, ymin, ymax), cmap="RdBu_r",
+        norm=TwoSlopeNorm(vcenter=0.0, vmin=AGENT_VALUE, vmax=TASK_VALUE), interpolation="nearest",
+    )
+    ax.contour(field.x, field.y, field.values, levels=[-2, -1, -0.25, 0.25, 0.5, 1, 2, 3, 4],
+               colors="k", linewidths=0.4, alpha=0.5)
+    for x0, y0, x1, y1 in world.obstacles:
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, color="0.35", zorder=2))
+    r = world.agent_radius
+    for i, (px, py) in enumerate(agents):
+        me = i == agent
+        ax.add_patch(Circle((px, py), r, fill=me, facecolor="gold" if me else "none",
+                            edgecolor="k", linewidth=1.5 if me else 1.0, zorder=3))
+        ax.annotate(str(i), (px, py), ha="center", va="center", fontsize=8, zorder=4)
+    if len(tasks):
+        ax.scatter(*tasks[~claimed].T, marker="*", s=140, c="yellow", edgecolors="k", zorder=4,
+                   label="task (+5)")
+        if claimed.any():
+            ax.scatter(*tasks[claimed].T, marker="*", s=140, facecolors="none", edgecolors="k",
+                       zorder=4, label="claimed task")
+    ax.set_xlim(xmin, xmax)
+    ax.set_ylim(ymin, ymax)
+    ax.set_aspect("equal")
+    ax.set_title(f"IPF of AGV {agent} (r_IPF = {field.value_at_agent:.3f})")
+    fig.colorbar(image, ax=ax, shrink=0.8, label="potential")
+    if path is not None:
+        fig.savefig(path, dpi=120, bbox_inches="tight")
+    return fig

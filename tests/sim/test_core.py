@@ -1,0 +1,189 @@
+"""The batched step: batch-versus-loop, determinism, bounds, claiming, bad input."""
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import sim
+from sim.controllers import NearestTaskController, RandomController
+
+
+def _rollout(env: sim.AGVEnv, actions: torch.Tensor) -> list[torch.Tensor]:
+    out = []
+    for a in actions:
+        env.step(a)
+        out.append(torch.cat([env.agent_pos, env.agent_vel], -1).clone())
+    return out
+
+
+@pytest.mark.parametrize("scenario", ["3v3", "6v6", "warehouse"])
+def test_batch_equals_loop(scenario: str) -> None:
+    B, T = 5, 20
+    env = sim.make_env(scenario, num_envs=B, seed=3)
+    n = env.num_agents
+    start_a, start_t = env.agent_pos.clone(), env.task_pos.clone()
+    gen = torch.Generator().manual_seed(0)
+    actions = torch.rand(T, B, n, 2, generator=gen) * 2 - 1
+    batched = _rollout(env, actions)
+    for b in range(B):
+        single = sim.make_env(scenario, num_envs=1, seed=99)
+        single.set_state(start_a[b : b + 1], start_t[b : b + 1])
+        traj = _rollout(single, actions[:, b : b + 1])
+        for t in range(T):
+            torch.testing.assert_close(traj[t][0], batched[t][b], atol=1e-6, rtol=0)
+
+
+def test_same_seed_same_trajectories() -> None:
+    trajs = []
+    for _ in range(2):
+        env = sim.make_env("6v6", num_envs=8, seed=42)
+        ctrl = RandomController(seed=7)
+        obs = env.reset()
+        rec = []
+        for _ in range(25):
+            obs, r, d, _ = env.step(ctrl.act(obs))
+            rec.append((env.agent_pos.clone(), r.clone()))
+        trajs.append(rec)
+    for (p1, r1), (p2, r2) in zip(*trajs, strict=True):
+        assert torch.equal(p1, p2) and torch.equal(r1, r2)
+    other = sim.make_env("6v6", num_envs=8, seed=43)
+    assert not torch.equal(other.agent_pos, sim.make_env("6v6", num_envs=8, seed=42).agent_pos)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(0.5, 1.0))
+def test_agvs_stay_inside_walls_and_out_of_shelves(seed: int, scale: float) -> None:
+    env = sim.make_env("warehouse", num_envs=16, seed=seed)
+    gen = torch.Generator().manual_seed(seed)
+    world = env.world
+    for _ in range(60):
+        a = (torch.rand(16, env.num_agents, 2, generator=gen) * 2 - 1) * scale
+        env.step(torch.sign(a))  # full throttle, the hardest case for the walls
+        pos = env.agent_pos.reshape(-1, 2).double().numpy()
+        assert torch.isfinite(env.agent_pos).all()
+        assert (world.wall_distance(pos) >= world.agent_radius - 1e-5).all()
+        assert (world.obstacle_distance(pos) >= world.agent_radius - 1e-4).all()
+
+
+def test_walls_hold_at_full_speed() -> None:
+    env = sim.make_env("3v3", num_envs=4, seed=0)
+    for _ in range(25):
+        env.step(torch.ones(4, 3, 2))
+    assert (env.agent_pos <= 1 - 0.15 + 1e-6).all()
+
+
+def test_claiming_rules() -> None:
+    env = sim.make_env("3v3", num_envs=1, seed=0)
+    # AGV 0 and AGV 1 both next to task 0; AGV 0 is nearer and wins it.
+    agents = torch.tensor([[[0.0, 0.05], [0.0, -0.08], [-0.8, -0.8]]])
+    tasks = torch.tensor([[[0.0, 0.0], [0.7, 0.7], [-0.7, 0.7]]])
+    env.set_state(agents, tasks)
+    obs, _, done, info = env.step(torch.zeros(1, 3, 2))
+    assert env.agent_task[0].tolist() == [0, -1, -1]
+    assert info["claimed_now"][0].tolist() == [True, False, False]
+    assert not done[0]
+    assert torch.all(env.agent_vel[0, 0] == 0)
+    # A claimed task leaves the observations: AGV 1's nearest task is now task 1 or 2.
+    rel = obs[0, 1, 4:6]
+    assert torch.allclose(rel, tasks[0, 1] - env.agent_pos[0, 1], atol=1e-6) or torch.allclose(
+        rel, tasks[0, 2] - env.agent_pos[0, 1], atol=1e-6
+    )
+    visible = obs[0, 1, 4 : 4 + 9].reshape(3, 3)[:, 2]
+    assert visible.tolist() == [1.0, 1.0, 0.0]
+    # A parked AGV ignores actions and holds one task.
+    pos0 = env.agent_pos[0, 0].clone()
+    env.set_state(env.agent_pos, env.task_pos)  # a fresh episode from here ...
+    env.task_pos[0, 1] = env.agent_pos[0, 0] + torch.tensor([0.5, 0.0])
+    env.step(torch.zeros(1, 3, 2))
+    assert env.agent_task[0, 0] == 0
+    for _ in range(5):
+        env.step(torch.ones(1, 3, 2))
+    assert torch.equal(env.agent_pos[0, 0], pos0)
+    assert env.agent_task[0, 0] == 0  # one task per AGV, never a second
+
+
+def test_episode_ends_when_all_tasks_claimed() -> None:
+    env = sim.make_env("3v3", num_envs=64, seed=1)
+    ctrl = NearestTaskController(env.world.physics)
+    obs = env.reset()
+    done = torch.zeros(64, dtype=torch.bool)
+    for _ in range(25):
+        obs, r, done, _ = env.step(ctrl.act(obs))
+    finished = env.task_claimed.all(1)
+    assert finished.any()
+    assert torch.all(env.steps[finished] < 25) or torch.all(done[finished])
+    # A finished episode is frozen: another step changes nothing and rewards zero.
+    before = env.agent_pos.clone()
+    _, r, done2, _ = env.step(torch.ones(64, 3, 2))
+    assert torch.equal(env.agent_pos[done], before[done])
+    assert torch.all(r[done] == 0)
+    assert torch.equal(done2, done)
+
+
+def test_observation_padding_and_any_n() -> None:
+    for name in ["1v1", "2v5", "10v4", "20v20"]:
+        env = sim.make_env(name, num_envs=3, seed=0)
+        obs = env.reset()
+        assert obs.shape == (3, env.num_agents, env.obs_dim)
+        assert torch.isfinite(obs).all()
+        assert env.global_state().shape == (3, env.state_dim)
+
+
+def test_partial_reset_touches_only_selected() -> None:
+    env = sim.make_env("3v3", num_envs=4, seed=0)
+    before = env.agent_pos.clone()
+    env.reset(env_ids=torch.tensor([False, True, False, True]))
+    assert torch.equal(env.agent_pos[[0, 2]], before[[0, 2]])
+    assert not torch.equal(env.agent_pos[[1, 3]], before[[1, 3]])
+
+
+def test_spawn_spacing() -> None:
+    for name in ["3v3", "6v6", "warehouse", "12v12"]:
+        env = sim.make_env(name, num_envs=256, seed=5)
+        w = env.world
+        da = torch.cdist(env.agent_pos, env.agent_pos) + torch.eye(env.num_agents) * 9
+        dt = torch.cdist(env.task_pos, env.task_pos) + torch.eye(env.num_tasks) * 9
+        assert da.min() >= 2 * w.agent_radius - 1e-5
+        assert dt.min() >= w.task_spacing - 1e-5
+        pts = torch.cat([env.agent_pos, env.task_pos], 1).reshape(-1, 2).double().numpy()
+        assert w.is_free(pts, w.agent_radius - 1e-5).all()
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (torch.zeros(2, 3), "shape"),
+        (torch.zeros(2, 4, 2), "shape"),
+        (torch.full((2, 3, 2), float("nan")), "NaN"),
+        (torch.full((2, 3, 2), float("inf")), "NaN or infinite"),
+    ],
+)
+def test_bad_actions(bad: torch.Tensor, match: str) -> None:
+    env = sim.make_env("3v3", num_envs=2, seed=0)
+    with pytest.raises(ValueError, match=match):
+        env.step(bad)
+
+
+def test_bad_world_and_scenario() -> None:
+    with pytest.raises(ValueError, match="agent_radius"):
+        sim.World(agent_radius=0.0)
+    with pytest.raises(ValueError, match="do not enclose"):
+        sim.World(bounds=(1, 1, -1, -1))
+    with pytest.raises(ValueError, match="no room"):
+        sim.make_env(sim.Scenario("full", sim.World(obstacles=np.array([[-0.9, -0.9, 0.9, 0.9]])),
+                                  3, 3))
+    with pytest.raises(ValueError, match="unknown scenario"):
+        sim.make_env("7x7")
+    with pytest.raises(ValueError, match="unknown reward"):
+        sim.make_env("3v3", reward="nope")
+    with pytest.raises(ValueError, match="unknown scenario option"):
+        sim.make_env("3v3", max_step=3)
+    env = sim.make_env("warehouse", num_envs=1)
+    shelf = env.world.obstacles[0]
+    inside = [(shelf[0] + shelf[2]) / 2, (shelf[1] + shelf[3]) / 2]
+    with pytest.raises(ValueError, match="inside a shelf"):
+        env.set_state(torch.tensor([[inside] + [[0.0, -1.4]] * 5]), env.task_pos)
+    with pytest.raises(ValueError, match="outside the world"):
+        env.set_state(env.agent_pos + 10, env.task_pos)
