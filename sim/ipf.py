@@ -170,8 +170,8 @@ class IPFGrid:
             )
         self.free_index = np.full(H * W, -1, dtype=np.int64)
         self.free_index[free] = np.arange(self.num_free)
-        self._green: np.ndarray | None = None
-        self._torch: dict[tuple[torch.device, torch.dtype], tuple[Tensor, Tensor]] = {}
+        self._green: Tensor | None = None
+        self._torch: dict[torch.device, tuple[Tensor, Tensor]] = {}
 
     # ------------------------------------------------------------------ the graph
     @functools.cached_property
@@ -206,29 +206,36 @@ class IPFGrid:
     # ------------------------------------------------------------------ Green's function
     @property
     def green(self) -> np.ndarray:
-        """The Dirichlet Green's function ``G = L^{-1}``, dense float64 (F, F), built on first use."""
-        if self._green is None:
-            from scipy.sparse.linalg import splu
+        """The Dirichlet Green's function ``G = L^{-1}``, dense float64 (F, F), built on first use
+        (a read-only view)."""
+        view = self._padded_green()[: self.num_free, : self.num_free].numpy()
+        view.setflags(write=False)
+        return view
 
-            lu = splu(self.laplacian(), permc_spec="COLAMD")
-            green = lu.solve(np.eye(self.num_free))
-            self._green = 0.5 * (green + green.T)  # symmetric up to rounding; make it exact
+    def _padded_green(self) -> Tensor:
+        """``G`` with an extra zero row and column (index F stands for any fixed cell), CPU."""
+        if self._green is None:
+            # Dense Cholesky of the SPD Laplacian, then G = L^{-1} by one multi-RHS solve:
+            # BLAS-3 work, much faster here than F sparse triangular solves.
+            F = self.num_free
+            lap = torch.from_numpy(self.laplacian().toarray())
+            chol = torch.linalg.cholesky(lap)
+            del lap
+            padded = torch.zeros(F + 1, F + 1, dtype=torch.float64)
+            padded[:F, :F] = torch.cholesky_solve(torch.eye(F, dtype=torch.float64), chol)
+            del chol
+            padded[:F, :F] += padded[:F, :F].T.clone()  # symmetric up to rounding; make it exact
+            padded[:F, :F] *= 0.5
+            self._green = padded
         return self._green
 
     def _tables(self, device: torch.device) -> tuple[Tensor, Tensor]:
-        """``G`` padded with a zero row and column (index F stands for a fixed cell), and the
-        free-index table with fixed cells mapped to F, as float64/int64 tensors on ``device``."""
-        key = (device, torch.float64)
-        if key not in self._torch:
+        """The padded ``G`` and the cell -> free-index table (fixed cells -> F) on ``device``."""
+        if device not in self._torch:
             F = self.num_free
-            padded = np.zeros((F + 1, F + 1))
-            padded[:F, :F] = self.green
-            index = np.where(self.free_index >= 0, self.free_index, F)
-            self._torch[key] = (
-                torch.from_numpy(padded).to(device),
-                torch.from_numpy(index).to(device),
-            )
-        return self._torch[key]
+            index = torch.from_numpy(np.where(self.free_index >= 0, self.free_index, F))
+            self._torch[device] = (self._padded_green().to(device), index.to(device))
+        return self._torch[device]
 
     # ------------------------------------------------------------------ cells
     def cell_of(self, points: Tensor | np.ndarray) -> Tensor:
