@@ -170,7 +170,7 @@ class AGVEnv:
         idx = self._env_index(env_ids)
         if idx.numel():
             agents, tasks = self.scenario.spawn(len(idx), self.generator, self.device)
-            self.set_state(agents, tasks, env_ids=idx)
+            self._place(idx, agents, tasks, torch.zeros_like(agents))
         return self.observe()
 
     def set_state(
@@ -199,7 +199,8 @@ class AGVEnv:
         z = dict(device=self.device, dtype=self.dtype)
         a = torch.as_tensor(agent_pos, **z).clone()
         t = torch.as_tensor(task_pos, **z).clone()
-        v = torch.zeros(K, N, 2, **z) if agent_vel is None else torch.as_tensor(agent_vel, **z).clone()
+        v = torch.zeros(K, N, 2, **z) if agent_vel is None else torch.as_tensor(agent_vel, **z)
+        v = v.clone()
         for name, x, shape in (("agent_pos", a, (K, N, 2)), ("task_pos", t, (K, M, 2)),
                                ("agent_vel", v, (K, N, 2))):
             if tuple(x.shape) != shape:
@@ -208,6 +209,10 @@ class AGVEnv:
                 raise ValueError(f"{name} contains NaN or infinite values")
         for name, x in (("agent_pos", a), ("task_pos", t)):
             self.world.check_positions(x.reshape(-1, 2).double().cpu().numpy(), name)
+        self._place(idx, a, t, v)
+
+    def _place(self, idx: Tensor, a: Tensor, t: Tensor, v: Tensor) -> None:
+        """Start episodes in environments ``idx`` from checked positions."""
         self.agent_pos[idx] = a
         self.agent_vel[idx] = v
         self.task_pos[idx] = t
@@ -216,6 +221,7 @@ class AGVEnv:
         self.steps[idx] = 0
         self.done[idx] = False
         self._pair = None
+        self._task_rel = None
 
     # ------------------------------------------------------------------ geometry
     def _pairwise(self) -> tuple[Tensor, Tensor]:
@@ -225,6 +231,13 @@ class AGVEnv:
             dist = torch.linalg.vector_norm(delta, dim=-1)
             self._pair = (delta, dist)
         return self._pair
+
+    def _task_offsets(self) -> tuple[Tensor, Tensor]:
+        """Task offsets ``t_j - p_i`` (B, N, M, 2) and distances (B, N, M), cached."""
+        if self._task_rel is None:
+            rel = self.task_pos.unsqueeze(1) - self.agent_pos.unsqueeze(2)
+            self._task_rel = (rel, torch.linalg.vector_norm(rel, dim=-1))
+        return self._task_rel
 
     def _contact_forces(self, delta: Tensor, dist: Tensor) -> Tensor:
         ph = self.world.physics
@@ -330,9 +343,10 @@ class AGVEnv:
         self.agent_pos = pos
         self.agent_vel = vel
         self._pair = None
+        self._task_rel = None
 
         # Task claiming: an idle AGV within the capture radius takes the task and parks.
-        dist = torch.cdist(self.agent_pos, self.task_pos)  # (B, N, M)
+        _, dist = self._task_offsets()  # (B, N, M)
         claimed_now = self._claim(dist, active)
         self.steps = self.steps + active.long()
         self.done = self.done | self.task_claimed.all(dim=1) | (self.steps >= self.max_steps)
@@ -365,18 +379,18 @@ class AGVEnv:
         """Resolve claims in one round: each task goes to its nearest eligible AGV, and an AGV
         that wins several takes its nearest (the others wait for the next step)."""
         eligible = (
-            (self.agent_task < 0).unsqueeze(2)
+            (dist <= self.world.capture_radius)
+            & (self.agent_task < 0).unsqueeze(2)
             & ~self.task_claimed.unsqueeze(1)
-            & (dist <= self.world.capture_radius)
             & active.view(-1, 1, 1)
         )
+        if not bool(eligible.any()):
+            return torch.zeros_like(self.task_claimed)
         inf = torch.full_like(dist, float("inf"))
-        d_el = torch.where(eligible, dist, inf)
-        best_agent = d_el.argmin(dim=1, keepdim=True)  # (B, 1, M)
+        best_agent = torch.where(eligible, dist, inf).min(dim=1, keepdim=True).indices  # (B,1,M)
         agents = torch.arange(self.num_agents, device=self.device).view(1, -1, 1)
         won = eligible & (agents == best_agent)
-        d_won = torch.where(won, dist, inf)
-        min_d, best_task = d_won.min(dim=2)  # (B, N)
+        min_d, best_task = torch.where(won, dist, inf).min(dim=2)  # (B, N)
         takes = torch.isfinite(min_d)
         self.agent_task = torch.where(takes, best_task, self.agent_task)
         self.agent_vel = self.agent_vel * (~takes).unsqueeze(-1)
@@ -395,35 +409,36 @@ class AGVEnv:
         finally whether the AGV holds a task (1). Missing entries are zero with mask 0.
         """
         B, N = self.num_envs, self.num_agents
-        pos, vel = self.agent_pos, self.agent_vel
         rng = self.scenario.sensing_range
-        parts = [vel, pos]
+        parts = [self.agent_vel, self.agent_pos]
         if self.k_tasks:
-            rel_t = self.task_pos.unsqueeze(1) - pos.unsqueeze(2)  # (B, N, M, 2)
-            d_t = torch.linalg.vector_norm(rel_t, dim=-1)
-            d_t = d_t.masked_fill(self.task_claimed.unsqueeze(1) | (d_t > rng), float("inf"))
-            parts.append(self._nearest(rel_t, d_t, self.k_tasks))
+            rel_t, d_t = self._task_offsets()
+            hidden = self.task_claimed.unsqueeze(1) | (d_t > rng)
+            feats = torch.cat([rel_t, torch.ones_like(d_t).unsqueeze(-1)], dim=-1)
+            parts.append(self._nearest(feats, d_t.masked_fill(hidden, float("inf")), self.k_tasks))
         if self.k_agents:
             delta, d_a = self._pairwise()
-            rel_a = -delta  # p_j - p_i
+            vel_j = self.agent_vel.unsqueeze(1).expand(B, N, N, 2)
+            feats = torch.cat([-delta, vel_j, torch.ones_like(d_a).unsqueeze(-1)], dim=-1)
             d_a = d_a.masked_fill(self._eye | (d_a > rng), float("inf"))
-            feats = torch.cat([rel_a, vel.unsqueeze(1).expand(B, N, N, 2)], dim=-1)
             parts.append(self._nearest(feats, d_a, self.k_agents))
         parts.append((self.agent_task >= 0).to(self.dtype).unsqueeze(-1))
         return torch.cat(parts, dim=-1)
 
     @staticmethod
     def _nearest(feats: Tensor, dist: Tensor, k: int) -> Tensor:
-        """Features of the k nearest finite-distance entries, zero-padded, with a mask bit."""
+        """Features (B, N, C, F) of the k nearest finite-distance entries, flattened to
+        (B, N, k F), zeroed where missing (the last feature is the mask bit, 1 when present).
+        A full sort is used: it is faster than ``topk`` for the small C of these scenes."""
         B, N, C, F = feats.shape
+        d_sorted, idx = torch.sort(dist, dim=-1)
         kk = min(k, C)
-        d_k, idx = torch.topk(dist, kk, dim=2, largest=False, sorted=True)
+        d_sorted, idx = d_sorted[..., :kk], idx[..., :kk]
         picked = feats.gather(2, idx.unsqueeze(-1).expand(B, N, kk, F))
-        mask = torch.isfinite(d_k).unsqueeze(-1)
-        out = torch.cat([picked * mask, mask.to(feats.dtype)], dim=-1)
+        picked = picked * torch.isfinite(d_sorted).unsqueeze(-1)
         if kk < k:
-            out = torch.cat([out, out.new_zeros(B, N, k - kk, F + 1)], dim=2)
-        return out.reshape(B, N, k * (F + 1))
+            picked = torch.cat([picked, picked.new_zeros(B, N, k - kk, F)], dim=2)
+        return picked.reshape(B, N, k * F)
 
     def global_state(self) -> Tensor:
         """Global state for centralized critics, (B, 5 N + 3 M): every AGV's position,

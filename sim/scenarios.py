@@ -26,17 +26,17 @@ __all__ = ["Scenario", "SCENARIOS", "get_scenario", "warehouse_world", "scenario
 Sampler = Callable[[int, int, torch.Generator, torch.device], Tensor]
 """``sampler(B, C, generator, device) -> (B, C, 2)`` candidate positions."""
 
-_CANDIDATES = 48
-_ROUNDS = 40
+_CANDIDATES = 16
+_ROUNDS = 100
 
 
 def _uniform_sampler(world: World, margin: float) -> Sampler:
     xmin, ymin, xmax, ymax = world.bounds
-    lo = torch.tensor([xmin + margin, ymin + margin], dtype=torch.float64)
-    span = torch.tensor([xmax - xmin - 2 * margin, ymax - ymin - 2 * margin], dtype=torch.float64)
+    lo = torch.tensor([xmin + margin, ymin + margin])
+    span = torch.tensor([xmax - xmin - 2 * margin, ymax - ymin - 2 * margin])
 
     def sample(B: int, C: int, gen: torch.Generator, device: torch.device) -> Tensor:
-        u = torch.rand(B, C, 2, generator=gen, device=device, dtype=torch.float64)
+        u = torch.rand(B, C, 2, generator=gen, device=device)
         return lo.to(device) + u * span.to(device)
 
     return sample
@@ -126,41 +126,40 @@ class Scenario:
         """
         w = self.world
         agent_sampler, task_sampler = self._samplers()
-        obstacles = torch.tensor(np.array(w.obstacles), dtype=torch.float64, device=device)
+        obstacles = torch.tensor(np.array(w.obstacles), dtype=torch.float32, device=device)
         r, cap = w.agent_radius, w.capture_radius
-        # (sampler, spacing to own kind, spacing to the other kind)
-        plan = [(agent_sampler, 2 * r, cap + 1e-3, True)] * self.num_agents
-        plan += [(task_sampler, w.task_spacing, cap + 1e-3, False)] * self.num_tasks
-        placed_a: list[Tensor] = []
-        placed_t: list[Tensor] = []
-        for sampler, own_gap, cross_gap, is_agent in plan:
-            same, other = (placed_a, placed_t) if is_agent else (placed_t, placed_a)
-            out = torch.empty(B, 2, dtype=torch.float64, device=device)
-            todo = torch.arange(B, device=device)
+        n, m = self.num_agents, self.num_tasks
+        # Entities are placed one at a time (agents, then tasks), each for all B scenes at once.
+        # gap[k, j]: minimum distance between entity k and an earlier entity j.
+        kinds = torch.tensor([True] * n + [False] * m, device=device)
+        same = kinds.unsqueeze(1) == kinds.unsqueeze(0)
+        own_gap = torch.where(kinds, 2 * r, w.task_spacing).unsqueeze(1)
+        gap = torch.where(same, own_gap, torch.tensor(cap + 1e-3, device=device)) ** 2
+        placed = torch.zeros(B, n + m, 2, dtype=torch.float32, device=device)
+        rows = torch.arange(B, device=device)
+        for k in range(n + m):
+            sampler = agent_sampler if k < n else task_sampler
+            todo = rows
             for _ in range(_ROUNDS):
-                cand = sampler(len(todo), _CANDIDATES, gen, device)  # (b, C, 2)
+                cand = sampler(len(todo), _CANDIDATES, gen, device).float()  # (b, C, 2)
                 ok = _clear_of_obstacles(cand, obstacles, r)
-                for group, gap in ((same, own_gap), (other, cross_gap)):
-                    if group:
-                        prev = torch.stack(group, dim=1)[todo]  # (b, k, 2)
-                        d = torch.cdist(cand, prev)
-                        ok &= (d >= gap).all(dim=2)
-                first = ok.float().argmax(dim=1)
+                if k:
+                    prev = placed[todo, :k]  # (b, k, 2)
+                    d2 = ((cand.unsqueeze(2) - prev.unsqueeze(1)) ** 2).sum(-1)  # (b, C, k)
+                    ok &= (d2 >= gap[k, :k]).all(dim=2)
                 found = ok.any(dim=1)
+                first = ok.to(torch.uint8).argmax(dim=1)
                 chosen = cand[torch.arange(len(todo), device=device), first]
-                out[todo[found]] = chosen[found]
+                placed[todo[found], k] = chosen[found]
                 todo = todo[~found]
                 if not len(todo):
                     break
             else:
                 raise RuntimeError(
-                    f"could not place {self.num_agents} AGVs and {self.num_tasks} tasks with the "
-                    "required spacing after many tries; the floor is too crowded"
+                    f"could not place {n} AGVs and {m} tasks with the required spacing after "
+                    "many tries; the floor is too crowded"
                 )
-            same.append(out)
-        agents = torch.stack(placed_a, dim=1).float()
-        tasks = torch.stack(placed_t, dim=1).float()
-        return agents, tasks
+        return placed[:, :n].contiguous(), placed[:, n:].contiguous()
 
     def with_options(self, **options: Any) -> Scenario:
         """A copy with some fields replaced (e.g. ``max_steps``)."""
@@ -231,13 +230,13 @@ def warehouse_world(
 
 def _shelf_face_sampler(world: World, offset: float) -> Sampler:
     """Candidates on the long faces of the shelves, ``offset`` out from the face."""
-    shelves = torch.tensor(np.array(world.obstacles), dtype=torch.float64)
+    shelves = torch.tensor(np.array(world.obstacles))
 
     def sample(B: int, C: int, gen: torch.Generator, device: torch.device) -> Tensor:
         s = shelves.to(device)
         pick = torch.randint(len(s), (B, C), generator=gen, device=device)
         side = torch.randint(2, (B, C), generator=gen, device=device)
-        u = torch.rand(B, C, generator=gen, device=device, dtype=torch.float64)
+        u = torch.rand(B, C, generator=gen, device=device)
         rect = s[pick]  # (B, C, 4)
         x = rect[..., 0] + u * (rect[..., 2] - rect[..., 0])
         y = torch.where(side == 0, rect[..., 1] - offset, rect[..., 3] + offset)
@@ -249,11 +248,11 @@ def _shelf_face_sampler(world: World, offset: float) -> Sampler:
 def _depot_sampler(world: World, depot: float) -> Sampler:
     r = world.agent_radius
     xmin, ymin, xmax, _ = world.bounds
-    lo = torch.tensor([xmin + r, ymin + r], dtype=torch.float64)
-    span = torch.tensor([xmax - xmin - 2 * r, depot - 2 * r], dtype=torch.float64)
+    lo = torch.tensor([xmin + r, ymin + r])
+    span = torch.tensor([xmax - xmin - 2 * r, depot - 2 * r])
 
     def sample(B: int, C: int, gen: torch.Generator, device: torch.device) -> Tensor:
-        u = torch.rand(B, C, 2, generator=gen, device=device, dtype=torch.float64)
+        u = torch.rand(B, C, 2, generator=gen, device=device)
         return lo.to(device) + u * span.to(device)
 
     return sample
