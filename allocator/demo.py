@@ -48,7 +48,9 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     lines = [head, "|" + "---|" * 10]
     for r in rows:
         paper = PAPER_TABLES.get(r["scenario"], {}).get(r["method"])
-        pr, pw, pt = (f"{paper[0]:.2%}", f"{paper[1]:.1f}", f"{paper[2]:.1f}") if paper else ("-",) * 3
+        pr, pw, pt = ("-", "-", "-")
+        if paper:
+            pr, pw, pt = f"{paper[0]:.2%}", f"{paper[1]:.1f}", f"{paper[2]:.1f}"
         lines.append(
             f"| {r['scenario']} | {r['method']} | {r['response_rate']:.2%} | {pr} "
             f"| {r['avg_reward']:.1f} | {pw} | {r['avg_time']:.1f} | {pt} "

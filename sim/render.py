@@ -147,10 +147,11 @@ def render_scene(
     plt = _plt()
     w, h = env.world.size
     fig, ax = plt.subplots(figsize=(5 * w / max(w, h) + 0.5, 5 * h / max(w, h) + 0.5))
+    e = env_index
     draw_scene(
-        ax, env.world, env.agent_pos[env_index].cpu().numpy(), env.task_pos[env_index].cpu().numpy(),
-        env.task_claimed[env_index].cpu().numpy(), env.agent_task[env_index].cpu().numpy(),
-        trails, title or f"{env.scenario.name}  step {int(env.steps[env_index])}",
+        ax, env.world, env.agent_pos[e].cpu().numpy(), env.task_pos[e].cpu().numpy(),
+        env.task_claimed[e].cpu().numpy(), env.agent_task[e].cpu().numpy(),
+        trails, title or f"{env.scenario.name}  step {int(env.steps[e])}",
     )
     fig.tight_layout()
     if path is not None:
