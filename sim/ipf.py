@@ -328,37 +328,66 @@ class IPFGrid:
         """
         B, N, _ = agent_pos.shape
         M = task_pos.shape[1]
+        T = N + M
         device = agent_pos.device
         green, index = self._tables(device)
         F = self.num_free
-        cells = self.cell_of(torch.cat([agent_pos, task_pos], dim=1))  # (B, T)
-        T = N + M
+        cells = self.cell_of(torch.cat([agent_pos, task_pos], dim=1))  # (B, T), AGVs first
         fidx = index[cells]
-        on_free = fidx < F
-        candidate = on_free.clone()
+        candidate = fidx < F
         if task_open is not None:
             candidate[:, N:] &= task_open
-        values = torch.cat([
-            torch.full((N,), agent_value, dtype=torch.float64, device=device),
-            torch.full((M,), task_value, dtype=torch.float64, device=device),
-        ])
-        same = cells.unsqueeze(-1) == cells.unsqueeze(-2)  # (B, T, T)
-        kept = _dedupe(cells, candidate, same)
-        both = kept.unsqueeze(-1) & kept.unsqueeze(-2)
-        eye = torch.eye(T, dtype=torch.float64, device=device)
-        gram = torch.where(both, green[fidx.unsqueeze(-1), fidx.unsqueeze(-2)], eye)
+        # Colliding sources (two candidates on one cell) are rare; find them cheaply and pay
+        # for the (B, T, T) dedupe only when there are some.
+        spread = torch.where(candidate, cells, -1 - self._arange(T, device))
+        ordered = spread.sort(dim=1).values
+        collide = bool((ordered[:, 1:] == ordered[:, :-1]).any())
+        if collide:
+            same = cells.unsqueeze(-1) == cells.unsqueeze(-2)  # (B, T, T)
+            kept = _dedupe(cells, candidate, same)
+        else:
+            kept = candidate
+        # K = G[T, T] over the kept sources; a dropped source reads the zero row and column F
+        # of the padded G and gets a 1 on the diagonal, which decouples it (and a dropped AGV
+        # gets Phi = 0 - 0 / 1 = 0, right for an AGV on a fixed cell).
+        fidx_kept = torch.where(kept, fidx, F)
+        flat = (fidx_kept.unsqueeze(-1) * (F + 1) + fidx_kept.unsqueeze(-2)).view(-1)
+        gram = green.view(-1).index_select(0, flat).view(B, T, T)
+        gram.diagonal(dim1=-2, dim2=-1).add_(~kept)
+        values = self._values(N, M, agent_value, task_value, device) * kept  # (B, T)
+        # With K = C C^T and Y = C^{-1} [e_1 .. e_N, v]: P_ii = |Y_i|^2, (P v)_i = Y_i . Y_v, and
+        # Phi_i = -(sum_{j != i} P_ij v_j) / P_ii = v_i - (P v)_i / P_ii.
         chol, _ = torch.linalg.cholesky_ex(gram)
-        prec = torch.cholesky_inverse(chol)[:, :N]  # (B, N, T) rows of P = K^-1 for the AGVs
-        v = values * kept  # (B, T)
-        p_ii = torch.diagonal(prec[:, :, :N], dim1=-2, dim2=-1)  # (B, N)
-        phi = -((prec * v.unsqueeze(1)).sum(-1) - p_ii * v[:, :N]) / p_ii
-        # AGV i's own cell shared with one of its sources: that source's value (AGV wins).
-        not_self = ~torch.eye(N, T, dtype=torch.bool, device=device)
-        coincide = same[:, :N] & candidate.unsqueeze(1) & not_self  # (B, N, T)
-        phi = torch.where(coincide[..., N:].any(-1), task_value, phi)
-        phi = torch.where(coincide[..., :N].any(-1), agent_value, phi)
-        phi = torch.where(on_free[:, :N], phi, 0.0)
+        rhs = torch.cat([self._eye(T, device)[:, :N].expand(B, T, N), values.unsqueeze(-1)], -1)
+        y = torch.linalg.solve_triangular(chol, rhs, upper=False)  # (B, T, N + 1)
+        y_agents, y_values = y[..., :N], y[..., N:]
+        p_ii = (y_agents * y_agents).sum(1)  # (B, N)
+        p_v = (y_agents * y_values).sum(1)
+        phi = values[:, :N] - p_v / p_ii
+        if collide:
+            # AGV i's own cell shared with one of its sources: that source's value (AGV wins).
+            not_self = ~self._eye(T, device, torch.bool)[:N]
+            coincide = same[:, :N] & candidate.unsqueeze(1) & not_self  # (B, N, T)
+            phi = torch.where(coincide[..., N:].any(-1), task_value, phi)
+            phi = torch.where(coincide[..., :N].any(-1), agent_value, phi)
         return phi.to(agent_pos.dtype)
+
+    @staticmethod
+    @functools.lru_cache(maxsize=16)
+    def _arange(n: int, device: torch.device) -> Tensor:
+        return torch.arange(n, device=device)
+
+    @staticmethod
+    @functools.lru_cache(maxsize=16)
+    def _values(n: int, m: int, agent_value: float, task_value: float,
+                device: torch.device) -> Tensor:
+        return torch.cat([torch.full((n,), agent_value, dtype=torch.float64, device=device),
+                          torch.full((m,), task_value, dtype=torch.float64, device=device)])
+
+    @staticmethod
+    @functools.lru_cache(maxsize=16)
+    def _eye(n: int, device: torch.device, dtype: torch.dtype = torch.float64) -> Tensor:
+        return torch.eye(n, dtype=dtype, device=device)
 
 
 def _dedupe(cells: Tensor, candidate: Tensor, same: Tensor | None = None) -> Tensor:
@@ -377,10 +406,14 @@ def _dedupe(cells: Tensor, candidate: Tensor, same: Tensor | None = None) -> Ten
     """
     if same is None:
         same = cells.unsqueeze(-1) == cells.unsqueeze(-2)
-    S = cells.shape[1]
-    earlier = torch.ones(S, S, dtype=torch.bool, device=cells.device).tril(-1)  # [k, j]: j < k
-    shadowed = (same & earlier & candidate.unsqueeze(-2)).any(-1)
+    earlier = _earlier(cells.shape[1], cells.device)  # [k, j]: j < k
+    shadowed = (same & (earlier & candidate.unsqueeze(-2))).any(-1)
     return candidate & ~shadowed
+
+
+@functools.lru_cache(maxsize=16)
+def _earlier(n: int, device: torch.device) -> Tensor:
+    return torch.ones(n, n, dtype=torch.bool, device=device).tril(-1)
 
 
 @functools.lru_cache(maxsize=8)

@@ -7,10 +7,15 @@ environment sums the terms into the per-agent reward and reports each term in
 computed for the step.
 
 - ``minidist`` (global): every AGV gets the paper's R_t = -(sum over tasks of the distance to
-  the nearest AGV) - (number of overlapping AGV pairs).
+  the nearest AGV) - (number of overlapping AGV pairs). Terms ``distance``, ``collision``.
 - ``greedy`` (individual): each idle AGV gets the distance it closed to its nearest unclaimed
-  task during the step, minus the number of AGVs it overlaps.
-- ``ipf``: r_IPF + r_g + r_c, the paper's information potential field reward (``sim.ipf``).
+  task during the step, minus the number of AGVs it overlaps. Terms ``progress``,
+  ``collision``.
+- ``ipf``: r_IPF + r_g + r_c, the paper's information potential field reward
+  (:class:`sim.ipf.IPFReward`). Terms ``ipf``, ``goal``, ``collision``.
+
+Every term is a (B, N) tensor and is zero in environments that were already done before the
+step (the environment zeroes their summed reward too, so the reported terms add up to it).
 """
 
 from __future__ import annotations
@@ -33,22 +38,35 @@ class RewardFn(Protocol):
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]: ...
 
 
+def _active_only(terms: dict[str, Tensor], active: Tensor) -> dict[str, Tensor]:
+    """Zero every (B, N) term in environments that were not running during the step."""
+    keep = active.unsqueeze(1)
+    return {name: torch.where(keep, value, torch.zeros_like(value))
+            for name, value in terms.items()}
+
+
 class MiniDist:
-    """The paper's global MiniDist reward: every AGV receives the team reward R_t."""
+    """The paper's global MiniDist reward: every AGV receives the team reward R_t.
+
+    Terms, each (B, N) and equal across the AGVs of an environment:
+    ``distance`` = -(sum over all M tasks of the distance to the nearest AGV, after the step)
+    and ``collision`` = -(number of AGV pairs whose discs overlap).
+    """
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
         n = env.num_agents
         pairs = ctx.collision_pairs.unsqueeze(1).expand(-1, n)
         dist = (ctx.team_reward.unsqueeze(1) + ctx.collision_pairs.unsqueeze(1)).expand(-1, n)
-        return {"distance": dist, "collision": -pairs}
+        return _active_only({"distance": dist, "collision": -pairs}, ctx.active)
 
 
 class Greedy:
     """The individual Greedy reward: progress towards the AGV's own nearest unclaimed task.
 
-    For an AGV idle before the step, ``d_before - d_after`` where both distances are to the
-    nearest task that was unclaimed before the step (so reaching and claiming a task is
-    rewarded, not punished); 0 for parked AGVs. Minus the AGV's own overlaps.
+    Terms, each (B, N): ``progress``, for an AGV idle before the step, ``d_before - d_after``
+    where both distances are to the task that was its nearest unclaimed one before the step
+    (so reaching and claiming a task is rewarded, not punished), and 0 for parked AGVs or when
+    no task was open; ``collision`` = -(number of other AGVs whose discs overlap its own).
     """
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
@@ -60,7 +78,8 @@ class Greedy:
         d_after = ctx.agent_task_dist.gather(2, target.unsqueeze(-1)).squeeze(-1)
         idle = (ctx.prev_agent_task < 0) & torch.isfinite(nearest_before)
         progress = torch.where(idle, nearest_before - d_after, torch.zeros_like(d_after))
-        return {"progress": progress, "collision": -ctx.collisions_per_agent}
+        terms = {"progress": progress, "collision": -ctx.collisions_per_agent}
+        return _active_only(terms, ctx.active)
 
 
 def _ipf() -> RewardFn:
