@@ -54,11 +54,6 @@ class StepContext:
     team_reward: Tensor  # (B,) float, the paper's R_t (0 where inactive)
 
 
-def _softplus_margin(x: Tensor, margin: float) -> Tensor:
-    """``margin * log(1 + exp(x / margin))``, as ``np.logaddexp(0, x / k) * k`` in MPE."""
-    return torch.logaddexp(torch.zeros_like(x), x / margin) * margin
-
-
 class AGVEnv:
     """B parallel AGV task-allocation environments.
 
@@ -239,12 +234,17 @@ class AGVEnv:
             self._task_rel = (rel, torch.linalg.vector_norm(rel, dim=-1))
         return self._task_rel
 
-    def _contact_forces(self, delta: Tensor, dist: Tensor) -> Tensor:
+    def _contact_forces(self, dist: Tensor) -> Tensor:
+        """MPE's soft contact force on every AGV, (B, N, 2).
+
+        ``f_i = sum_j c * k * softplus((2r - d_ij) / k) * (p_i - p_j) / d_ij``, computed as
+        ``p_i * sum_j s_ij - sum_j s_ij p_j`` with one batched matmul.
+        """
         ph = self.world.physics
         dist_min = 2.0 * self.world.agent_radius
-        penetration = _softplus_margin(dist_min - dist, ph.contact_margin)
+        penetration = torch.nn.functional.softplus(dist_min - dist, beta=1.0 / ph.contact_margin)
         scale = (ph.contact_force * penetration / dist.clamp_min(1e-12)).masked_fill(self._eye, 0.0)
-        return (delta * scale.unsqueeze(-1)).sum(dim=2)
+        return self.agent_pos * scale.sum(dim=2, keepdim=True) - torch.bmm(scale, self.agent_pos)
 
     def _collide_obstacles(self, pos: Tensor, vel: Tensor) -> tuple[Tensor, Tensor]:
         """Push discs out of shelves and cancel the velocity into them."""
@@ -327,7 +327,7 @@ class AGVEnv:
         # MPE physics: force from the action and soft contacts, then integrate.
         force = actions * ph.sensitivity
         if ph.contact_force > 0 and self.num_agents > 1:
-            force = force + self._contact_forces(*self._pairwise())
+            force = force + self._contact_forces(self._pairwise()[1])
         m = movable.unsqueeze(-1)
         pos = self.agent_pos + self.agent_vel * (ph.dt * m)
         vel = self.agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)

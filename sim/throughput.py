@@ -58,7 +58,7 @@ def physics_only_steps_per_second(scenario: str, num_envs: int, steps: int = 100
 
     def step() -> None:
         env._pair = None
-        force = actions * ph.sensitivity + env._contact_forces(*env._pairwise())
+        force = actions * ph.sensitivity + env._contact_forces(env._pairwise()[1])
         pos = env.agent_pos + env.agent_vel * ph.dt
         vel = env.agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
         env.agent_pos, env.agent_vel = env._collide_walls(pos, vel)
