@@ -14,7 +14,8 @@ import numpy as np
 import sim
 from allocator.paper import PAPER_TABLES
 from sim.controllers import NearestTaskController
-from sim.render import _plt, atomic_save
+from sim.io import atomic_save, atomic_write_text
+from sim.render import _plt
 
 __all__ = ["run_demo", "available_methods", "format_table"]
 
@@ -95,7 +96,7 @@ def run_demo(args: argparse.Namespace) -> int:
     table = format_table(rows)
     print()
     print(table)
-    atomic_save(lambda p: Path(p).write_text(table + "\n"), out / "table.md")
+    atomic_write_text(out / "table.md", table + "\n")
     for scenario in ("3v3", "6v6"):
         _claims_figure(results, scenario, out / f"claims_per_episode_{scenario}.png")
     for scenario in ("3v3", "6v6"):

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sim.render import atomic_save
+from sim.io import atomic_write_text
 from sim.throughput import physics_only_steps_per_second, steps_per_second
 
 RESULTS = Path(__file__).parent / "results"
@@ -120,7 +120,7 @@ def main() -> None:
     ]
     text = "\n".join(lines) + "\n"
     out = RESULTS / "sim_throughput.md"
-    atomic_save(lambda p: Path(p).write_text(text), out)
+    atomic_write_text(out, text)
     print(text)
 
 

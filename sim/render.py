@@ -6,12 +6,12 @@ matplotlib is imported on first use with the Agg backend, so nothing here needs 
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sim.io import atomic_save
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -20,7 +20,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from sim.core import AGVEnv
 
-__all__ = ["draw_scene", "render_scene", "render_episode", "atomic_save"]
+__all__ = ["draw_scene", "render_scene", "render_episode"]
 
 _AGENT_COLORS = "tab:blue"
 _TASK_COLOR = "tab:orange"
@@ -33,30 +33,6 @@ def _plt() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def atomic_save(save: Any, path: str | os.PathLike[str]) -> Path:
-    """Write a file through ``save(tmp_path)`` then rename it into place (no half-written file).
-
-    Parameters
-    ----------
-    save : callable
-        Called with a temporary path in the target directory; must write the file there.
-    path : str or Path
-        Final destination; its parent directories are created.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        save(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def draw_scene(
