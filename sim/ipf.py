@@ -657,8 +657,11 @@ class IPFReward:
     Terms (each ``(B, N)``, zero in environments that were already done):
 
     - ``"ipf"``: ``r_IPF``, AGV i's own field at its own cell, from the state after the step
-      (claimed tasks have left the field; parked AGVs stay sources at -3, and a parked AGV
-      still receives its field value). Exact, via :meth:`IPFGrid.agent_potentials`.
+      (claimed tasks have left the field; parked AGVs stay sources at -3). Exact, via
+      :meth:`IPFGrid.agent_potentials`. A parked AGV stands on the task it serves and receives
+      that task's value (+5), as an AGV on a target does in the paper: otherwise claiming
+      a task (which removes its +5 from the field) would pay less than hovering just outside
+      the capture radius, and learners learn to hover.
     - ``"goal"``: ``r_g = -sum over tasks of the distance to the nearest AGV`` (all tasks, as in
       the paper's R_t), shared by every AGV.
     - ``"collision"``: ``r_c = -1`` if AGV i's disc overlaps any other AGV's (centres closer
@@ -689,6 +692,8 @@ class IPFReward:
         potential = grid.agent_potentials(
             env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value, self.agent_value
         )
+        potential = torch.where(env.agent_task >= 0, potential.new_tensor(self.task_value),
+                                potential)
         goal = (ctx.team_reward + ctx.collision_pairs).unsqueeze(1).expand(-1, n)
         collision = -(ctx.collisions_per_agent > 0).to(potential.dtype)
         zero = torch.zeros((), dtype=potential.dtype, device=potential.device)
