@@ -1,0 +1,217 @@
+"""Learned, decentralized allocators: trained MADDPG / BiCNet policies behind the Allocator API.
+
+``allocator.make("bicnet-ipf", scenario="3v3")`` loads the weights shipped in
+``allocator/weights/3v3/bicnet-ipf.safetensors`` (or ``checkpoint=`` any policy file written by
+``agv train``). There is no central planner: :meth:`LearnedAllocator.assign` places the AGVs
+and tasks in the simulator, lets every AGV act on its own observation until the episode ends,
+and reports the assignment that emerged (which AGV claimed which task) with the trajectories.
+As a controller (``reset`` / ``act``) it runs in :func:`sim.evaluate` like any other allocator.
+
+Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidist, greedy, ipf}.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from allocator.base import Assignment, check_inputs
+
+if TYPE_CHECKING:  # pragma: no cover
+    from torch import Tensor
+
+    from learners.policy import LearnedPolicy
+    from sim.world import World
+
+__all__ = [
+    "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "register_all",
+]
+
+ALGOS = ("maddpg", "bicnet")
+REWARDS = ("minidist", "greedy", "ipf")
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+
+class MissingWeightsError(FileNotFoundError, ValueError):
+    """No trained weights for this allocator and scenario (a FileNotFoundError and a
+    ValueError, so callers that catch either see it)."""
+
+
+def weights_path(algo: str, reward: str, scenario: str) -> Path:
+    """Where the package keeps the weights of ``<algo>-<reward>`` for a scenario."""
+    return WEIGHTS_DIR / scenario / f"{algo}-{reward}.safetensors"
+
+
+class LearnedAllocator:
+    """A trained decentralized policy used as an allocator and as a controller.
+
+    Parameters
+    ----------
+    scenario : str
+        The scenario the policy was trained for (e.g. ``"3v3"``); selects the shipped weights
+        and is checked against the checkpoint.
+    checkpoint : path-like, optional
+        A policy file (``.safetensors`` or its ``.json``) or a run folder from ``agv train``,
+        instead of the shipped weights.
+    max_steps : int, optional
+        Step limit of :meth:`assign`'s rollout (default: the scenario's).
+
+    Raises
+    ------
+    MissingWeightsError
+        If no checkpoint is given and no weights ship for this scenario (the message names the
+        file and the ``agv train`` command that creates it).
+    ValueError
+        If the checkpoint was trained for another algorithm, reward or scenario, or is
+        truncated or corrupted.
+    """
+
+    name = "learned"
+    algo = ""
+    reward = ""
+
+    def __init__(
+        self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
+        max_steps: int | None = None,
+    ) -> None:
+        from learners.policy import LearnedPolicy
+        from sim.scenarios import get_scenario
+
+        self.scenario = get_scenario(scenario)
+        if checkpoint is None:
+            path = weights_path(self.algo, self.reward, self.scenario.name)
+            if not path.is_file():
+                raise MissingWeightsError(
+                    f"no trained weights for {self.name!r} on scenario {self.scenario.name!r}: "
+                    f"expected {path}. Create them with `agv train --algo {self.algo} --reward "
+                    f"{self.reward} --scenario {self.scenario.name} --export {path}`, or pass "
+                    "checkpoint=<a policy .safetensors file>"
+                )
+            checkpoint = path
+        self.checkpoint = Path(checkpoint)
+        self.policy: LearnedPolicy = LearnedPolicy.load(
+            checkpoint, algo=self.algo, reward=self.reward, scenario=self.scenario.name)
+        self.max_steps = max_steps
+        self.last_trajectories: np.ndarray | None = None
+        """(T + 1, N, 2) positions of every AGV during the last :meth:`assign` rollout."""
+
+    # ------------------------------------------------------------------ controller
+    def reset(self, env: Any) -> None:
+        """Nothing to plan: every AGV decides from its own observation at every step."""
+
+    def act(self, obs: Tensor) -> Tensor:
+        """Deterministic actions of the trained policy, (B, N, O) -> (B, N, 2)."""
+        return self.policy.act(obs)
+
+    # ------------------------------------------------------------------ allocator
+    def _scene_scenario(self, n: int, m: int, world: World | None) -> Any:
+        """The trained scenario's sensing and step limit on a scene of N AGVs and M tasks."""
+        from sim.scenarios import Scenario
+
+        base = self.scenario
+        if self.policy.algo == "maddpg" and n != self.policy.num_agents:
+            raise ValueError(f"{self.name} (MADDPG) has one actor per AGV and was trained for "
+                             f"N={self.policy.num_agents}; got {n} agents")
+        if n == base.num_agents and m == base.num_tasks and world is None:
+            scn = base
+        else:
+            scn = Scenario(name=base.name, world=world or base.world, num_agents=n,
+                           num_tasks=m, max_steps=base.max_steps, k_tasks=base.k_tasks,
+                           k_agents=base.k_agents, sensing_range=base.sensing_range,
+                           agent_sampler=base.agent_sampler, task_sampler=base.task_sampler)
+        if self.max_steps is not None:
+            scn = scn.with_options(max_steps=int(self.max_steps))
+        return scn
+
+    def assign(
+        self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
+    ) -> Assignment:
+        """Run the decentralized policy from the given positions and report who claimed what.
+
+        Parameters
+        ----------
+        agents : array-like, shape (N, 2)
+            AGV positions (world units), at rest.
+        tasks : array-like, shape (M, 2)
+            Task positions.
+        world : World, optional
+            The floor (default: the trained scenario's); positions must lie inside it.
+
+        Returns
+        -------
+        Assignment
+            ``task_of_agent`` / ``agent_of_task`` from the claims at the end of the episode
+            (-1 where an AGV claimed nothing or a task was not reached within the step limit),
+            ``cost`` the distance travelled by all AGVs, ``paths`` the trajectory (T_i + 1, 2)
+            of each serving AGV up to its claim (None for idle AGVs), ``unserved`` the reason
+            for every unserved task. ``last_trajectories`` holds every AGV's full trajectory.
+
+        Raises
+        ------
+        ValueError
+            On bad input; for MADDPG, on an N other than the trained one.
+        """
+        import torch
+
+        from sim.core import AGVEnv
+
+        agents, tasks = check_inputs(agents, tasks, world)
+        n, m = len(agents), len(tasks)
+        env = AGVEnv(self._scene_scenario(n, m, world), num_envs=1, reward="minidist", seed=0)
+        env.set_state(agents[None], tasks[None])
+        obs = env.observe()
+        frames = [env.agent_pos[0].clone()]
+        while not bool(env.done.all()):
+            obs, _, _, _ = env.step(self.policy.act(obs))
+            frames.append(env.agent_pos[0].clone())
+        traj = torch.stack(frames).double().numpy()  # (T + 1, N, 2)
+        self.last_trajectories = traj
+        task_of_agent = env.agent_task[0].numpy().astype(np.int64)
+        agent_of_task = np.full(m, -1, dtype=np.int64)
+        served = np.flatnonzero(task_of_agent >= 0)
+        agent_of_task[task_of_agent[served]] = served
+        steps = np.linalg.norm(np.diff(traj, axis=0), axis=-1)  # (T, N)
+        paths: list[np.ndarray | None] = []
+        for i in range(n):
+            if task_of_agent[i] < 0:
+                paths.append(None)
+                continue
+            moving = np.flatnonzero(steps[:, i] > 0)
+            end = int(moving[-1]) + 2 if len(moving) else 1
+            paths.append(traj[:end, i])
+        limit = env.max_steps
+        unserved = {int(j): (f"not claimed within the step limit ({limit} steps)"
+                             if m <= n else "no AGV left or not reached within the step limit")
+                    for j in np.flatnonzero(agent_of_task < 0)}
+        return Assignment(task_of_agent, agent_of_task, float(steps.sum()), paths=paths,
+                          unserved=unserved, method=self.name)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(scenario={self.scenario.name!r}, "
+                f"checkpoint={str(self.checkpoint)!r})")
+
+
+def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:
+    name = f"{algo}-{reward}"
+    pretty = {"maddpg": "MADDPG", "bicnet": "BiCNet"}[algo]
+    cls_name = f"{pretty}{reward.capitalize()}Allocator"
+    doc = (f"The trained {pretty} policy with the {reward} reward (registry name {name!r}); "
+           "see :class:`LearnedAllocator`.")
+    return type(cls_name, (LearnedAllocator,),
+                {"name": name, "algo": algo, "reward": reward, "__doc__": doc,
+                 "__module__": __name__})
+
+
+LEARNED: dict[str, type[LearnedAllocator]] = {
+    f"{a}-{r}": _make_class(a, r) for a in ALGOS for r in REWARDS
+}
+"""The learned allocator classes by registry name."""
+globals().update({cls.__name__: cls for cls in LEARNED.values()})
+
+
+def register_all(registry: dict[str, type]) -> None:
+    """Add every learned allocator to ``registry`` (``allocator.ALLOCATORS``)."""
+    registry.update(LEARNED)

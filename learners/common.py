@@ -1,0 +1,140 @@
+"""What MADDPG and BiCNet share: the actor-critic skeleton, target networks, exploration,
+parked-AGV masks and the flat tensor form of their state for checkpoints."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from learners.buffer import Batch
+
+__all__ = ["ActorCritic", "movable_mask", "soft_update_"]
+
+
+def movable_mask(obs: Tensor) -> Tensor:
+    """1.0 for AGVs that still move, 0.0 for parked ones, shape (B, N, 1).
+
+    The last observation feature is the "holds a task" bit (see ``sim.core.AGVEnv.observe``);
+    a parked AGV ignores its action, so its action is zeroed and carries no actor loss.
+    """
+    return 1.0 - obs[..., -1:]
+
+
+@torch.no_grad()
+def soft_update_(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """Polyak averaging ``target <- (1 - tau) target + tau source``, in place."""
+    for t, s in zip(target.parameters(), source.parameters(), strict=True):
+        t.lerp_(s, tau)
+
+
+class ActorCritic(nn.Module):
+    """Base of the deterministic actor-critic learners.
+
+    Subclasses build ``self.actor`` and ``self.critic`` (targets are deep copies), the two Adam
+    optimizers, and implement :meth:`policy` and :meth:`update`.
+    """
+
+    name: ClassVar[str] = ""
+    actor: nn.Module
+    critic: nn.Module
+
+    def __init__(self, obs_dim: int, state_dim: int, num_agents: int, config: Any) -> None:
+        super().__init__()
+        self.obs_dim, self.state_dim, self.num_agents = obs_dim, state_dim, num_agents
+        self.config = config
+        self.updates = 0
+
+    def _finish_init(self) -> None:
+        """Create the target networks and the optimizers (call at the end of ``__init__``)."""
+        cfg = self.config
+        self.target_actor = copy.deepcopy(self.actor).requires_grad_(False)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+
+    # ------------------------------------------------------------------ acting
+    def policy(self, obs: Tensor, target: bool = False) -> Tensor:
+        """Deterministic actions in [-1, 1], (B, N, O) -> (B, N, 2)."""
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def act(self, obs: Tensor) -> Tensor:
+        """Deterministic actions for evaluation, (B, N, O) -> (B, N, 2)."""
+        return self.policy(obs)
+
+    @torch.no_grad()
+    def explore(self, obs: Tensor, noise_std: float, generator: torch.Generator) -> Tensor:
+        """Actions with Gaussian exploration noise, clipped to [-1, 1], zero for parked AGVs.
+
+        Parameters
+        ----------
+        obs : Tensor, shape (B, N, O)
+        noise_std : float
+            Standard deviation of the noise added to each action component.
+        generator : torch.Generator
+            Source of the noise.
+
+        Returns
+        -------
+        Tensor, shape (B, N, 2)
+        """
+        a = self.policy(obs)
+        noise = torch.randn(a.shape, generator=generator, dtype=a.dtype, device=a.device)
+        return (a + noise_std * noise).clamp(-1.0, 1.0) * movable_mask(obs)
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One gradient step of the critic(s), then of the actor(s), then the soft update."""
+        raise NotImplementedError
+
+    def _soft_update(self) -> None:
+        soft_update_(self.target_actor, self.actor, self.config.tau)
+        soft_update_(self.target_critic, self.critic, self.config.tau)
+
+    # ------------------------------------------------------------------ state as flat tensors
+    def policy_tensors(self) -> dict[str, Tensor]:
+        """The actor's weights only: what a deployed policy needs."""
+        return {f"actor.{k}": v.detach().contiguous() for k, v in self.actor.state_dict().items()}
+
+    def load_policy_tensors(self, tensors: dict[str, Tensor]) -> None:
+        """Load :meth:`policy_tensors` output (strict: every key must match)."""
+        sd = {k[len("actor."):]: v for k, v in tensors.items() if k.startswith("actor.")}
+        self.actor.load_state_dict(sd, strict=True)
+        self.target_actor.load_state_dict(sd, strict=True)
+
+    def training_tensors(self) -> dict[str, Tensor]:
+        """Networks, target networks and Adam moments, flat, for a safetensors checkpoint."""
+        out: dict[str, Tensor] = {}
+        for prefix, module in (("actor", self.actor), ("critic", self.critic),
+                               ("target_actor", self.target_actor),
+                               ("target_critic", self.target_critic)):
+            for k, v in module.state_dict().items():
+                out[f"{prefix}.{k}"] = v.detach().clone().contiguous()
+        for prefix, opt in (("actor_optimizer", self.actor_optimizer),
+                            ("critic_optimizer", self.critic_optimizer)):
+            for i, st in opt.state_dict()["state"].items():
+                for k, v in st.items():
+                    out[f"{prefix}.{i}.{k}"] = torch.as_tensor(v).detach().clone().contiguous()
+        out["updates"] = torch.tensor(self.updates, dtype=torch.int64)
+        return out
+
+    def load_training_tensors(self, tensors: dict[str, Tensor]) -> None:
+        """Restore :meth:`training_tensors` output exactly."""
+        for prefix, module in (("actor", self.actor), ("critic", self.critic),
+                               ("target_actor", self.target_actor),
+                               ("target_critic", self.target_critic)):
+            sd = {k[len(prefix) + 1:]: v for k, v in tensors.items()
+                  if k.startswith(prefix + ".") }
+            module.load_state_dict(sd, strict=True)
+        for prefix, opt in (("actor_optimizer", self.actor_optimizer),
+                            ("critic_optimizer", self.critic_optimizer)):
+            state: dict[int, dict[str, Tensor]] = {}
+            for k, v in tensors.items():
+                if k.startswith(prefix + "."):
+                    _, i, name = k.split(".", 2)
+                    state.setdefault(int(i), {})[name] = v.clone()
+            opt.load_state_dict({"state": state,
+                                 "param_groups": opt.state_dict()["param_groups"]})
+        self.updates = int(tensors["updates"])

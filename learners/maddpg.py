@@ -1,0 +1,182 @@
+"""MADDPG (Lowe et al., 2017) with continuous actions, agents' networks stacked.
+
+Each AGV i has an actor mu_i(o_i) on its local observation and a centralized critic
+Q_i(x, a_1, ..., a_N) on the global state and every action. The N actors are one
+:class:`~learners.networks.StackedMLP` (weights (N, in, out)) and so are the N critics, so a
+forward pass of all of them is one batched matmul per layer. Updates follow the paper's
+equations:
+
+* critic:  y_i = r_i + gamma (1 - terminal) Q'_i(x', mu'_1(o'_1), ..., mu'_N(o'_N)),
+  L_i = E[(Q_i(x, a) - y_i)^2];
+* actor:   grad J(mu_i) = E[grad mu_i(o_i) grad_{a_i} Q_i(x, a_1, ..., a_i = mu_i(o_i), ..., a_N)],
+  the other agents' actions taken from the replay buffer as in Lowe et al.;
+* targets: soft updates with rate tau; gradients clipped per agent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from learners.buffer import Batch
+from learners.common import ActorCritic, movable_mask
+from learners.networks import StackedMLP, clip_grad_norm_per_agent_
+
+__all__ = ["MADDPGConfig", "MADDPG"]
+
+
+@dataclass
+class MADDPGConfig:
+    """Hyperparameters of MADDPG (defaults tuned on ``3v3``; see ``docs/learners.md``)."""
+
+    hidden: int = 128
+    """Width of the two hidden layers of every actor and critic (three FC layers)."""
+    layers: int = 3
+    """Fully connected layers per actor and per critic (the paper: three)."""
+    actor_lr: float = 1e-3
+    """Adam learning rate of the actors."""
+    critic_lr: float = 1e-3
+    """Adam learning rate of the critics."""
+    gamma: float = 0.95
+    """Discount factor."""
+    tau: float = 0.01
+    """Soft target update rate: target <- (1 - tau) target + tau online, after every update."""
+    batch_size: int = 1024
+    """Transitions per gradient update."""
+    buffer_size: int = 200_000
+    """Replay buffer capacity in joint transitions."""
+    num_envs: int = 32
+    """Parallel environments stepped together while collecting."""
+    updates_per_step: int = 1
+    """Gradient updates after every vectorized step (num_envs transitions)."""
+    learning_starts: int = 4096
+    """Transitions collected with the untrained policy before the first update."""
+    noise_start: float = 0.5
+    """Initial standard deviation of the Gaussian exploration noise."""
+    noise_end: float = 0.05
+    """Final standard deviation of the exploration noise."""
+    noise_decay_episodes: int = 3000
+    """Episodes over which the noise decays linearly from noise_start to noise_end."""
+    grad_clip: float = 0.5
+    """Per-agent gradient norm limit for actors and critics (Lowe et al.: 0.5)."""
+    action_l2: float = 1e-3
+    """Weight of the penalty on the actors' pre-tanh outputs (Lowe et al.'s regularizer)."""
+    reward_scale: float = 1.0
+    """Factor applied to rewards before they are stored."""
+    mask_parked: bool = True
+    """Zero the actions and the actor loss of parked AGVs (their actions are ignored)."""
+    critic_input: str = "obs"
+    """What the centralized critics see besides all actions: ``"obs"`` (every agent's local
+    observation, the paper's x = [o_1, ..., o_N]), ``"state"`` (the simulator's global state)
+    or ``"state+obs"`` (both)."""
+
+
+class MADDPG(ActorCritic):
+    """N actors and N centralized critics, trained together with batched matmuls.
+
+    Parameters
+    ----------
+    obs_dim : int
+        Local observation size O.
+    state_dim : int
+        Global state size S.
+    num_agents : int
+        N.
+    config : MADDPGConfig
+    """
+
+    name = "maddpg"
+
+    def __init__(
+        self, obs_dim: int, state_dim: int, num_agents: int, config: MADDPGConfig | None = None
+    ) -> None:
+        config = config or MADDPGConfig()
+        super().__init__(obs_dim, state_dim, num_agents, config)
+        n, h = num_agents, config.hidden
+        sizes = {"obs": n * obs_dim, "state": state_dim, "state+obs": state_dim + n * obs_dim}
+        if config.critic_input not in sizes:
+            raise ValueError(f"critic_input must be one of {sorted(sizes)}, got "
+                             f"{config.critic_input!r}")
+        self.actor = StackedMLP(n, obs_dim, 2, h, config.layers)
+        self.critic = StackedMLP(n, sizes[config.critic_input] + 2 * n, 1, h, config.layers)
+        self._finish_init()
+        self.register_buffer("_eye", torch.eye(n, dtype=torch.bool).view(n, n, 1, 1),
+                             persistent=False)
+
+    def _actor_out(self, obs: Tensor, target: bool = False) -> Tensor:
+        """Pre-tanh actor outputs, (B, N, O) -> (N, B, 2)."""
+        net = self.target_actor if target else self.actor
+        return net(obs.transpose(0, 1))
+
+    def policy(self, obs: Tensor, target: bool = False) -> Tensor:
+        """Deterministic actions, (B, N, O) -> (B, N, 2), zero for parked AGVs."""
+        a = torch.tanh(self._actor_out(obs, target)).transpose(0, 1)
+        return a * movable_mask(obs) if self.config.mask_parked else a
+
+    def critic_features(self, obs: Tensor, state: Tensor) -> Tensor:
+        """What the critics see besides the actions, (B, N, O), (B, S) -> (B, C)."""
+        parts = {"obs": [obs.flatten(1)], "state": [state],
+                 "state+obs": [state, obs.flatten(1)]}[self.config.critic_input]
+        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+
+    def q_values(self, features: Tensor, action: Tensor, target: bool = False) -> Tensor:
+        """Every critic on the same joint action: (B, C), (B, N, 2) -> (B, N)."""
+        net = self.target_critic if target else self.critic
+        x = torch.cat([features, action.reshape(action.shape[0], -1)], dim=-1)
+        return net(x).squeeze(-1).transpose(0, 1)
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One MADDPG update of all agents from a sampled batch.
+
+        Parameters
+        ----------
+        batch : Batch
+            obs (B, N, O), state (B, S), action (B, N, 2), reward (B, N), next_obs,
+            next_state, terminal (B,).
+
+        Returns
+        -------
+        dict
+            ``critic_loss``, ``actor_loss`` (sums over agents) and ``q`` (mean Q).
+        """
+        cfg = self.config
+        n, bsz = self.num_agents, batch.obs.shape[0]
+        # Critics: one TD step each, all N in one batched forward.
+        with torch.no_grad():
+            next_action = self.policy(batch.next_obs, target=True)
+            next_features = self.critic_features(batch.next_obs, batch.next_state)
+            q_next = self.q_values(next_features, next_action, target=True)
+            y = batch.reward + cfg.gamma * (1.0 - batch.terminal).unsqueeze(1) * q_next
+        features = self.critic_features(batch.obs, batch.state)
+        q = self.q_values(features, batch.action)
+        critic_loss = (q - y).pow(2).mean(0).sum()
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        clip_grad_norm_per_agent_(list(self.critic.parameters()), cfg.grad_clip)
+        self.critic_optimizer.step()
+
+        # Actors: critic i sees mu_i(o_i) in slot i and the buffer's actions elsewhere.
+        pre = self._actor_out(batch.obs)  # (N, B, 2)
+        movable = movable_mask(batch.obs).transpose(0, 1)  # (N, B, 1)
+        mu = torch.tanh(pre) * (movable if cfg.mask_parked else 1.0)
+        taken = batch.action.transpose(0, 1)  # (N, B, 2)
+        joint = torch.where(self._eye, mu.unsqueeze(0), taken.unsqueeze(0))  # (N_i, N_j, B, 2)
+        joint = joint.permute(0, 2, 1, 3).reshape(n, bsz, 2 * n)
+        x = torch.cat([features.unsqueeze(0).expand(n, -1, -1), joint], dim=-1)
+        q_pi = self.critic(x).squeeze(-1)  # (N, B)
+        weight = movable.squeeze(-1) if cfg.mask_parked else torch.ones_like(q_pi)
+        actor_loss = -(q_pi * weight).mean(1).sum()
+        reg = cfg.action_l2 * (pre.pow(2).mean(dim=(1, 2))).sum()
+        actor_params = list(self.actor.parameters())
+        grads = torch.autograd.grad(actor_loss + reg, actor_params)
+        for p, g in zip(actor_params, grads, strict=True):
+            p.grad = g
+        clip_grad_norm_per_agent_(actor_params, cfg.grad_clip)
+        self.actor_optimizer.step()
+
+        self._soft_update()
+        self.updates += 1
+        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(),
+                "q": q.mean().item()}

@@ -1,0 +1,117 @@
+"""A trained, deterministic policy loaded from a checkpoint, usable as a ``sim`` controller."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from learners.algorithms import check_algo, make_learner
+from learners.checkpoint import load_checkpoint, resolve_checkpoint_path
+from learners.common import ActorCritic
+
+__all__ = ["LearnedPolicy", "load_policy"]
+
+
+class LearnedPolicy:
+    """The actor of a trained learner: ``act(obs)`` maps (B, N, O) observations to (B, N, 2)
+    deterministic actions (no exploration noise).
+
+    Parameters
+    ----------
+    learner : ActorCritic
+        A MADDPG or BiCNet learner holding trained actor weights.
+    metadata : dict
+        The checkpoint's metadata (algorithm, reward, scenario, sizes, config, ...).
+
+    Attributes
+    ----------
+    algo, reward, scenario : str
+    num_agents, obs_dim : int
+    """
+
+    def __init__(self, learner: ActorCritic, metadata: dict[str, Any]) -> None:
+        self.learner = learner.eval()
+        self.metadata = metadata
+        self.algo: str = metadata["algo"]
+        self.reward: str = metadata["reward"]
+        self.scenario: str = metadata["scenario"]
+        self.num_agents: int = int(metadata["num_agents"])
+        self.obs_dim: int = int(metadata["obs_dim"])
+
+    @classmethod
+    def load(
+        cls, path: str | os.PathLike[str], *, algo: str | None = None,
+        reward: str | None = None, scenario: str | None = None, obs_dim: int | None = None,
+    ) -> LearnedPolicy:
+        """Load a policy (or training) checkpoint, checking what it was trained for.
+
+        Parameters
+        ----------
+        path : path-like
+            ``.safetensors`` file, its ``.json`` sidecar, or a run folder (its latest policy).
+        algo, reward, scenario, obs_dim : optional
+            Expected values; a mismatch raises a ValueError naming the field.
+
+        Raises
+        ------
+        FileNotFoundError, ValueError
+            See :func:`learners.checkpoint.load_checkpoint`.
+        """
+        p = Path(path)
+        if p.is_dir():
+            p = p / "policy.safetensors"
+        if algo is not None:
+            check_algo(algo)
+        tensors, meta = load_checkpoint(p, algo=algo, reward=reward, scenario=scenario,
+                                        obs_dim=obs_dim)
+        learner = make_learner(meta["algo"], int(meta["obs_dim"]), int(meta["state_dim"]),
+                               int(meta["num_agents"]), dict(meta["config"]))
+        try:
+            learner.load_policy_tensors({k: v for k, v in tensors.items()
+                                         if k.startswith("actor.")})
+        except RuntimeError as err:
+            raise ValueError(f"checkpoint {resolve_checkpoint_path(p)} does not hold the actor "
+                             f"its metadata describes: {err}") from None
+        return cls(learner, meta)
+
+    @torch.no_grad()
+    def act(self, obs: Tensor) -> Tensor:
+        """Deterministic actions.
+
+        Parameters
+        ----------
+        obs : Tensor, shape (B, N, O)
+
+        Returns
+        -------
+        Tensor, shape (B, N, 2), in [-1, 1]
+
+        Raises
+        ------
+        ValueError
+            If O differs from the training observation size, or (MADDPG) N differs.
+        """
+        obs = torch.as_tensor(obs, dtype=torch.float32)
+        if obs.dim() != 3 or obs.shape[-1] != self.obs_dim:
+            raise ValueError(f"observations must have shape (B, N, {self.obs_dim}) for this "
+                             f"{self.algo} policy (trained on {self.scenario}), got "
+                             f"{tuple(obs.shape)}")
+        if self.algo == "maddpg" and obs.shape[1] != self.num_agents:
+            raise ValueError(f"this MADDPG policy has one actor per AGV for N={self.num_agents} "
+                             f"(trained on {self.scenario}), got observations of N={obs.shape[1]}")
+        return self.learner.act(obs)
+
+    __call__ = act
+
+    def __repr__(self) -> str:
+        return (f"LearnedPolicy(algo={self.algo!r}, reward={self.reward!r}, "
+                f"scenario={self.scenario!r}, episodes={self.metadata.get('episodes')})")
+
+
+def load_policy(path: str | os.PathLike[str], **expected: Any) -> LearnedPolicy:
+    """Shorthand for :meth:`LearnedPolicy.load`."""
+    return LearnedPolicy.load(path, **expected)

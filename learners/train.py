@@ -1,0 +1,495 @@
+"""The training loop: collect, store, sample, update, soft-update; evaluate; log; checkpoint.
+
+:func:`train` runs one learner on B parallel environments. Every iteration it
+
+1. **collects** one vectorized step with the exploring policy (Gaussian noise, decaying
+   linearly with the number of finished episodes),
+2. **stores** the B joint transitions in the replay buffer, then resets the environments that
+   finished (their final transition is stored first: the simulator freezes finished
+   environments until they are reset),
+3. **samples** ``updates_per_step`` batches and **updates** the critics and actors, each update
+   ending with the **soft update** of the target networks.
+
+Episodes end when every task is claimed (a true terminal: no bootstrap) or at the step limit (a
+time-limit truncation: the observations hold no clock, so the state is not terminal and the
+target bootstraps from the next state).
+
+At episode milestones it writes a CSV row (``progress.csv``: the curves of the paper's Fig. 9),
+evaluates the greedy policy with the paper's metrics (``sim.evaluate``), and writes checkpoints:
+``checkpoint.safetensors`` (everything needed to resume bit-for-bit: networks, optimizers,
+replay buffer, environments mid-episode, random generators, counters) and
+``policy.safetensors`` / ``best.safetensors`` (the actor alone, latest and best evaluated).
+A run killed at any point resumes from its last checkpoint with ``resume=True`` and then
+computes exactly what the uninterrupted run would have; SIGINT / SIGTERM stop at the end of the
+current iteration and write a checkpoint first.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+import sim
+from learners.algorithms import REWARD_NAMES, check_algo, make_config, make_learner
+from learners.buffer import Batch, ReplayBuffer
+from learners.checkpoint import (
+    _atomic_write_bytes,
+    code_version,
+    load_checkpoint,
+    resolve_checkpoint_path,
+    save_checkpoint,
+)
+from learners.common import ActorCritic
+
+__all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS"]
+
+CSV_COLUMNS = [
+    "episode", "env_steps", "updates", "seconds", "noise_std",
+    "train_response_rate", "train_return", "critic_loss", "actor_loss", "q",
+    "eval_response_rate", "eval_avg_reward", "eval_avg_time", "eval_collisions",
+    "eval_finished_rate",
+]
+"""Columns of ``progress.csv``; per-term reward columns ``train_term_<name>`` follow."""
+
+_ENV_FIELDS = ("agent_pos", "agent_vel", "task_pos", "task_claimed", "agent_task", "steps", "done")
+_RECENT = 100  # finished training episodes in the running response rate
+
+
+@dataclass
+class TrainConfig:
+    """What to train and how to run it; the learner's hyperparameters are in its own config
+    (:class:`~learners.maddpg.MADDPGConfig`, :class:`~learners.bicnet.BiCNetConfig`)."""
+
+    algo: str = "maddpg"
+    """Learning algorithm: ``maddpg`` or ``bicnet``."""
+    reward: str = "ipf"
+    """Reward: ``minidist``, ``greedy`` or ``ipf``."""
+    scenario: str = "3v3"
+    """Scenario name for ``sim.make_env`` (``3v3``, ``6v6``, ``1v1``, ...)."""
+    episodes: int = 5000
+    """Training episodes (summed over the parallel environments) after which training stops."""
+    seed: int = 0
+    """Seed of the networks' initialization, the environments, the noise and the sampling."""
+    run_dir: str | None = None
+    """Folder for the log and checkpoints; default ``runs/<algo>-<reward>-<scenario>-s<seed>``."""
+    eval_every: int = 500
+    """Evaluate the deterministic policy every this many episodes (0: only at the end)."""
+    eval_episodes: int = 300
+    """Test episodes per evaluation (the paper: 300)."""
+    eval_seed: int = 12345
+    """Seed of the evaluation scenes (the same scenes at every evaluation)."""
+    log_every: int = 100
+    """Write a CSV row every this many episodes."""
+    checkpoint_every: int = 1000
+    """Write a resumable checkpoint every this many episodes (and always at the end)."""
+    stop_response: float | None = None
+    """Stop early once an evaluation reaches this task response rate (None: never)."""
+    threads: int = 1
+    """torch intra-op threads (1 is fastest and steadiest on a shared 2-core machine)."""
+    progress: bool = True
+    """Show a tqdm progress bar with the running task response rate."""
+
+    def resolved_run_dir(self) -> Path:
+        """``run_dir`` or its default."""
+        return Path(self.run_dir or default_run_dir(self.algo, self.reward, self.scenario,
+                                                    self.seed))
+
+    def validate(self) -> None:
+        """Raise a ValueError naming the first bad field."""
+        check_algo(self.algo)
+        if self.reward not in REWARD_NAMES:
+            raise ValueError(f"unknown reward {self.reward!r}; expected one of "
+                             f"{list(REWARD_NAMES)}")
+        sim.get_scenario(self.scenario)
+        for name in ("episodes", "eval_episodes", "log_every", "checkpoint_every", "threads"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        if self.eval_every < 0:
+            raise ValueError(f"eval_every must be >= 0, got {self.eval_every!r}")
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` returns."""
+
+    run_dir: Path
+    """The run folder (log and checkpoints)."""
+    learner: ActorCritic
+    """The trained learner."""
+    episodes: int
+    """Training episodes finished."""
+    env_steps: int
+    """Environment steps taken (agent-steps / N), summed over the parallel environments."""
+    updates: int
+    """Gradient updates done."""
+    seconds: float
+    """Wall-clock training time, summed over resumed segments."""
+    last_eval: dict[str, float] = field(default_factory=dict)
+    """Metrics of the last evaluation."""
+    best_response_rate: float = -1.0
+    """Best evaluated task response rate."""
+    interrupted: bool = False
+    """True if a signal stopped the run before its episode budget."""
+
+
+def default_run_dir(algo: str, reward: str, scenario: str, seed: int) -> str:
+    """``runs/<algo>-<reward>-<scenario>-s<seed>``."""
+    return os.path.join("runs", f"{algo}-{reward}-{scenario}-s{seed}")
+
+
+def _noise_std(cfg: Any, episodes: int) -> float:
+    frac = min(episodes / max(cfg.noise_decay_episodes, 1), 1.0)
+    return cfg.noise_start + frac * (cfg.noise_end - cfg.noise_start)
+
+
+def _crossed(before: int, now: int, every: int) -> bool:
+    return every > 0 and now // every > before // every
+
+
+class _StopRequest:
+    """Turns SIGINT / SIGTERM into a flag checked between iterations (main thread only)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> _StopRequest:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:  # a second signal: stop now
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+class _CsvLog:
+    """``progress.csv``, appended row by row; on resume, rows past the checkpoint are dropped."""
+
+    def __init__(self, path: Path, columns: list[str], keep_until: int | None) -> None:
+        self.path, self.columns = path, columns
+        rows: list[dict[str, str]] = []
+        if keep_until is not None and path.is_file():
+            with path.open(newline="") as f:
+                rows = [r for r in csv.DictReader(f) if int(r["episode"]) <= keep_until]
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+        _atomic_write_bytes(path, buf.getvalue().encode())
+
+    def write(self, row: dict[str, Any]) -> None:
+        with self.path.open("a", newline="") as f:
+            csv.DictWriter(f, fieldnames=self.columns, extrasaction="ignore").writerow(
+                {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+
+
+def _env_tensors(env: sim.AGVEnv) -> dict[str, Tensor]:
+    out = {f"env.{k}": getattr(env, k).clone() for k in _ENV_FIELDS}
+    out["rng.env"] = env.generator.get_state()
+    return out
+
+
+def _load_env(env: sim.AGVEnv, tensors: dict[str, Tensor]) -> None:
+    """Put B environments back mid-episode exactly as saved."""
+    env.set_state(tensors["env.agent_pos"], tensors["env.task_pos"], tensors["env.agent_vel"])
+    for k in ("task_claimed", "agent_task", "steps", "done"):
+        setattr(env, k, tensors[f"env.{k}"].clone())
+    env.generator.set_state(tensors["rng.env"])
+
+
+def _term_names(scenario: str, reward: str) -> list[str]:
+    env = sim.make_env(scenario, num_envs=1, reward=reward, seed=0)
+    _, _, _, info = env.step(torch.zeros(1, env.num_agents, 2))
+    return sorted(info["reward_terms"])
+
+
+def _metadata(config: TrainConfig, learner: ActorCritic, env: sim.AGVEnv, kind: str,
+              counters: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "kind": kind,
+        "algo": config.algo,
+        "reward": config.reward,
+        "scenario": config.scenario,
+        "seed": config.seed,
+        "num_agents": env.num_agents,
+        "num_tasks": env.num_tasks,
+        "obs_dim": env.obs_dim,
+        "state_dim": env.state_dim,
+        "config": dataclasses.asdict(learner.config),
+        "train_config": dataclasses.asdict(config),
+        "code_version": code_version(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        **counters,
+    }
+
+
+def train(
+    config: TrainConfig,
+    learner_config: Any = None,
+    *,
+    resume: bool = False,
+    on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
+) -> TrainResult:
+    """Train a MADDPG or BiCNet learner.
+
+    Parameters
+    ----------
+    config : TrainConfig
+        What to train (algorithm, reward, scenario, episodes, seed) and where to write.
+    learner_config : MADDPGConfig, BiCNetConfig, dict or None
+        Hyperparameters (a dict overrides the defaults); ignored-but-checked when resuming.
+    resume : bool
+        Continue the run in ``config.run_dir`` from its last checkpoint, up to
+        ``config.episodes``.
+    on_checkpoint : callable, optional
+        Called with the checkpoint's counters after every periodic checkpoint (used by tests to
+        simulate a crash).
+
+    Returns
+    -------
+    TrainResult
+
+    Raises
+    ------
+    ValueError
+        For an unknown algorithm, reward or scenario; when resuming with nothing to resume or
+        with settings that differ from the checkpoint's; when starting a new run in a folder
+        that already holds one.
+    """
+    config.validate()
+    run_dir = config.resolved_run_dir()
+    ckpt_path = run_dir / "checkpoint.safetensors"
+    saved: dict[str, Tensor] | None = None
+    if resume:
+        if not ckpt_path.is_file():
+            raise ValueError(f"nothing to resume: expected a checkpoint at {ckpt_path} (written "
+                             f"by `agv train --run-dir {run_dir}` every --checkpoint-every "
+                             "episodes)")
+        saved, meta = load_checkpoint(ckpt_path, kind="training")
+        for key in ("algo", "reward", "scenario", "seed"):
+            if meta[key] != getattr(config, key):
+                raise ValueError(f"cannot resume {run_dir}: it was trained with {key}="
+                                 f"{meta[key]!r}, this call asks for {getattr(config, key)!r}")
+        learner_cfg = make_config(config.algo, meta["config"])
+        if learner_config is not None:
+            given = (learner_config if isinstance(learner_config, dict)
+                     else dataclasses.asdict(learner_config))
+            diff = {k: v for k, v in given.items() if meta["config"].get(k) != v}
+            if diff:
+                raise ValueError(f"cannot resume {run_dir} with different hyperparameters "
+                                 f"{diff}; the checkpoint has {meta['config']}")
+    else:
+        if ckpt_path.exists():
+            raise ValueError(f"{run_dir} already holds a run ({ckpt_path.name}); continue it "
+                             "with --resume or choose another --run-dir")
+        learner_cfg = (learner_config if learner_config is not None and
+                       not isinstance(learner_config, dict)
+                       else make_config(config.algo, learner_config))
+    cfg = learner_cfg
+
+    # ---------------------------------------------------------------- setup
+    torch.set_num_threads(config.threads)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.manual_seed(config.seed)
+    env = sim.make_env(config.scenario, num_envs=cfg.num_envs, reward=config.reward,
+                       seed=config.seed)
+    learner = make_learner(config.algo, env.obs_dim, env.state_dim, env.num_agents, cfg)
+    buffer = ReplayBuffer(cfg.buffer_size, env.num_agents, env.obs_dim, env.state_dim)
+    noise_gen = torch.Generator().manual_seed(config.seed + 1)
+    sample_gen = torch.Generator().manual_seed(config.seed + 2)
+    terms = _term_names(config.scenario, config.reward)
+    B = env.num_envs
+    counters: dict[str, Any] = {"episodes": 0, "env_steps": 0, "updates": 0, "seconds": 0.0,
+                                "best_response_rate": -1.0, "last_eval": {}}
+    recent: deque[float] = deque(maxlen=_RECENT)  # response rate of recent training episodes
+    recent_return: deque[float] = deque(maxlen=_RECENT)
+    ep_return = torch.zeros(B)  # running episode return (mean over agents), per environment
+    ep_terms = {t: torch.zeros(B) for t in terms}
+    recent_terms: dict[str, deque[float]] = {t: deque(maxlen=_RECENT) for t in terms}
+    if saved is not None:
+        learner.load_training_tensors(saved)
+        buffer.load_state_dict(saved)
+        _load_env(env, saved)
+        noise_gen.set_state(saved["rng.noise"])
+        sample_gen.set_state(saved["rng.sample"])
+        torch.set_rng_state(saved["rng.torch"])
+        ep_return = saved["stats.ep_return"].clone()
+        ep_terms = {t: saved[f"stats.ep_term.{t}"].clone() for t in terms}
+        recent.extend(saved["stats.recent"].tolist())
+        recent_return.extend(saved["stats.recent_return"].tolist())
+        for t in terms:
+            recent_terms[t].extend(saved[f"stats.recent_term.{t}"].tolist())
+        counters.update({k: meta[k] for k in counters})
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config.run_dir = str(run_dir)
+    if not resume:
+        (run_dir / "config.json").write_text(json.dumps(
+            {"train": dataclasses.asdict(config), config.algo: dataclasses.asdict(cfg)},
+            indent=2) + "\n")
+    log = _CsvLog(run_dir / "progress.csv",
+                  CSV_COLUMNS + [f"train_term_{t}" for t in terms],
+                  counters["episodes"] if resume else None)
+    obs, state = env.observe(), env.global_state()
+    losses: dict[str, float] = {}
+
+    def evaluate() -> dict[str, float]:
+        m = sim.evaluate(learner, config.scenario, episodes=config.eval_episodes,
+                         seed=config.eval_seed)
+        counters["last_eval"] = m.as_dict()
+        if m.response_rate > counters["best_response_rate"]:
+            counters["best_response_rate"] = m.response_rate
+            save_checkpoint(run_dir / "best.safetensors", learner.policy_tensors(),
+                            _metadata(config, learner, env, "policy", counters))
+        return m.as_dict()
+
+    def write_checkpoint() -> None:
+        tensors = {**learner.training_tensors(), **buffer.state_dict(), **_env_tensors(env),
+                   "rng.noise": noise_gen.get_state(), "rng.sample": sample_gen.get_state(),
+                   "rng.torch": torch.get_rng_state(),
+                   "stats.ep_return": ep_return, "stats.recent": torch.tensor(list(recent)),
+                   "stats.recent_return": torch.tensor(list(recent_return))}
+        for t in terms:
+            tensors[f"stats.ep_term.{t}"] = ep_terms[t]
+            tensors[f"stats.recent_term.{t}"] = torch.tensor(list(recent_terms[t]))
+        save_checkpoint(ckpt_path, tensors,
+                        _metadata(config, learner, env, "training", counters))
+        save_checkpoint(run_dir / "policy.safetensors", learner.policy_tensors(),
+                        _metadata(config, learner, env, "policy", counters))
+
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=config.episodes, initial=min(counters["episodes"], config.episodes),
+               disable=not config.progress, unit="ep", dynamic_ncols=True,
+               desc=f"{config.algo}-{config.reward} {config.scenario}")
+    start = time.perf_counter() - counters["seconds"]
+    interrupted = False
+    with _StopRequest() as stop:
+        while counters["episodes"] < config.episodes:
+            episodes_before = counters["episodes"]
+            # 1. collect one vectorized step with exploration noise
+            noise_std = _noise_std(cfg, counters["episodes"])
+            action = learner.explore(obs, noise_std, noise_gen)
+            next_obs, reward, done, info = env.step(action)
+            next_state = env.global_state()
+            # every task claimed: terminal; step limit only: truncated, so bootstrap
+            terminal = env.task_claimed.all(dim=1)
+
+            # 2. store the B transitions, then reset the finished environments
+            buffer.add(Batch(obs, state, action, reward * cfg.reward_scale, next_obs,
+                             next_state, terminal.float()))
+            counters["env_steps"] += B
+            ep_return += reward.mean(dim=1)
+            for t in terms:
+                ep_terms[t] += info["reward_terms"][t].mean(dim=1)
+            if bool(done.any()):
+                ids = done.nonzero().flatten()
+                recent.extend(env.task_claimed[ids].float().mean(dim=1).tolist())
+                recent_return.extend(ep_return[ids].tolist())
+                ep_return[ids] = 0.0
+                for t in terms:
+                    recent_terms[t].extend(ep_terms[t][ids].tolist())
+                    ep_terms[t][ids] = 0.0
+                counters["episodes"] += len(ids)
+                obs, state = env.reset(env_ids=done), env.global_state()
+            else:
+                obs, state = next_obs, next_state
+
+            # 3. sample, update critics and actors, soft-update the targets
+            if len(buffer) >= cfg.learning_starts:
+                for _ in range(cfg.updates_per_step):
+                    losses = learner.update(buffer.sample(cfg.batch_size, sample_gen))
+            counters["updates"] = learner.updates
+            counters["seconds"] = time.perf_counter() - start
+
+            # 4. log, evaluate, checkpoint at episode milestones
+            now = counters["episodes"]
+            finished = now >= config.episodes
+            running = sum(recent) / len(recent) if recent else float("nan")
+            row: dict[str, Any] | None = None
+            if _crossed(episodes_before, now, config.log_every) or finished:
+                row = {"episode": now, "env_steps": counters["env_steps"],
+                       "updates": counters["updates"], "seconds": counters["seconds"],
+                       "noise_std": noise_std, "train_response_rate": running,
+                       "train_return": (sum(recent_return) / len(recent_return)
+                                        if recent_return else float("nan")),
+                       **{k: losses.get(k, float("nan"))
+                          for k in ("critic_loss", "actor_loss", "q")},
+                       **{f"train_term_{t}": (sum(v) / len(v) if v else float("nan"))
+                          for t, v in recent_terms.items()}}
+            if _crossed(episodes_before, now, config.eval_every) or finished:
+                metrics = evaluate()
+                row = row or {"episode": now, "env_steps": counters["env_steps"],
+                              "updates": counters["updates"], "seconds": counters["seconds"]}
+                row.update({f"eval_{k}": v for k, v in metrics.items() if k != "episodes"})
+                bar.set_postfix_str(f"resp {running:.2f} eval {metrics['response_rate']:.3f}")
+                if (config.stop_response is not None
+                        and metrics["response_rate"] >= config.stop_response):
+                    finished = True
+            if row is not None:
+                log.write(row)
+            bar.update(min(now, config.episodes) - min(episodes_before, config.episodes))
+            if _crossed(episodes_before, now, 10 * B):
+                bar.set_postfix_str(f"resp {running:.2f} eval "
+                                    f"{counters['last_eval'].get('response_rate', math.nan):.3f}")
+            if stop.requested:
+                interrupted = not finished
+                finished = True
+            if _crossed(episodes_before, now, config.checkpoint_every) or finished:
+                write_checkpoint()
+                if on_checkpoint is not None and not finished:
+                    on_checkpoint(dict(counters))
+            if finished:
+                break
+    bar.close()
+    if interrupted:
+        print(f"interrupted at episode {counters['episodes']}; checkpoint written. Continue with: "
+              f"agv train --resume {run_dir}")
+    return TrainResult(run_dir, learner, counters["episodes"], counters["env_steps"],
+                       counters["updates"], counters["seconds"], counters["last_eval"],
+                       counters["best_response_rate"], interrupted)
+
+
+def load_run_config(run_dir: str | os.PathLike[str]) -> tuple[TrainConfig, dict[str, Any]]:
+    """The TrainConfig and learner config stored in a run's checkpoint (for ``--resume``).
+
+    Raises
+    ------
+    ValueError
+        If the folder holds no checkpoint to resume.
+    """
+    from learners.checkpoint import read_metadata
+
+    path = resolve_checkpoint_path(run_dir)
+    if not path.is_file():
+        raise ValueError(f"nothing to resume: expected a checkpoint at {path} (written by "
+                         f"`agv train --run-dir {run_dir}`)")
+    meta = read_metadata(path)
+    if meta.get("kind") != "training":
+        raise ValueError(f"{path} is a {meta.get('kind')!r} checkpoint; resuming needs the "
+                         "run's checkpoint.safetensors")
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    tc = TrainConfig(**{k: v for k, v in meta["train_config"].items() if k in names})
+    tc.run_dir = str(Path(run_dir) if Path(run_dir).is_dir() else path.parent)
+    return tc, meta["config"]
