@@ -1,0 +1,761 @@
+"""ORCA-style collision avoidance as one batched velocity QP.
+
+Every AGV i picks its next velocity v_i as close as possible to its preferred velocity,
+subject to linear constraints ``l <= a . v_i <= u``:
+
+- the reciprocal ORCA half-planes of its nearest neighbours (RVO2's construction, each AGV
+  taking half the responsibility; parked AGVs are static and the mover takes all of it),
+- half-planes keeping it off points it must not touch (e.g. other AGVs' tasks, which it would
+  otherwise claim in passing), the walls and the nearest shelves,
+- its speed limit, as a regular polygon, and (optionally) the velocities its acceleration
+  limit can reach in one step: ``(1 - damping) v + gain [-1, 1]^2``.
+
+All AGVs of all scenes are solved at once as one sparse block-diagonal OSQP problem whose
+sparsity pattern is fixed (every AGV has the same number of rows, unused ones padded with
+``a = 0`` and infinite bounds), so consecutive steps only update the data and warm start.
+
+When an AGV's constraints conflict, the QP of that AGV is infeasible. Those AGVs are found
+from OSQP's infeasibility certificate and solved again with the "3-D" program of ORCA: the
+velocity that minimises the largest (weighted) violation ``t`` of the soft rows while the speed
+and acceleration limits stay hard. :class:`AvoidanceResult` reports who fell back.
+
+The same QP is written in cvxpy in :func:`solve_reference` (readable, slow); the tests compare
+the two. Build the rows (:meth:`VelocityAvoidance.constraints`) in one step and solve them in
+another (:meth:`VelocityAvoidance.solve_rows`), as Python-RVO2 does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import scipy.sparse as sp
+
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.world import World
+
+__all__ = [
+    "AvoidanceConfig",
+    "AvoidanceResult",
+    "ConstraintRows",
+    "VelocityAvoidance",
+    "orca_halfplanes",
+    "solve_reference",
+    "LeastViolation",
+    "HARD",
+    "AGENT",
+    "WALL",
+    "POINT",
+]
+
+# Row kinds. Soft rows may be violated by the fallback, ``weight * t`` at most.
+HARD, AGENT, WALL, POINT, PAD = 0, 1, 2, 3, 4
+FALLBACK_WEIGHT = {AGENT: 1.0, WALL: 2.0, POINT: 4.0}
+"""How much each soft kind may be violated relative to AGV-AGV rows in the fallback."""
+
+_EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class AvoidanceConfig:
+    """Parameters of the avoidance QP (world units and seconds)."""
+
+    radius: float = 0.15
+    """AGV disc radius."""
+    margin: float = 0.04
+    """Safety margin added to the combined radius of two moving AGVs."""
+    static_margin: float = 0.01
+    """Margin against parked AGVs, walls, shelves and forbidden points (they do not move, so
+    their positions are exact and a small margin suffices: gaps between parked AGVs stay open)."""
+    time_horizon: float = 0.6
+    """ORCA time horizon for AGV pairs: no collision within this time if both comply."""
+    obstacle_time_horizon: float = 0.25
+    """Time horizon for walls, shelves and forbidden points."""
+    dt: float = 0.1
+    """Time step (used inside overlapping pairs, as RVO2 does)."""
+    max_speed: float = 1.5
+    """Speed limit, enforced as a regular polygon inscribed in this circle."""
+    polygon_sides: int = 12
+    max_neighbors: int = 8
+    """AGV neighbours per AGV (nearest first)."""
+    neighbor_dist: float = 2.0
+    """Only AGVs closer than this are neighbours."""
+    max_points: int = 4
+    """Forbidden points per AGV (nearest first)."""
+    max_shelves: int = 4
+    """Shelves per AGV (nearest first)."""
+    damping: float | None = None
+    """With ``gain``: next velocity in ``(1 - damping) v + gain [-1, 1]^2`` (None: no limit)."""
+    gain: float | None = None
+    eps: float = 1e-6
+    """OSQP absolute and relative tolerance."""
+    max_iter: int = 2000
+    chunk_size: int = 128
+    """AGVs per block-diagonal OSQP problem (larger batches are split)."""
+    fallback_tol: float = 1e-4
+    """An AGV counts as fallen back when its least violation exceeds this."""
+
+    def __post_init__(self) -> None:
+        for name in ("radius", "time_horizon", "obstacle_time_horizon", "dt", "max_speed",
+                     "neighbor_dist", "eps"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"AvoidanceConfig.{name} must be positive, got {v!r}")
+        if self.margin < 0:
+            raise ValueError(f"AvoidanceConfig.margin must be >= 0, got {self.margin!r}")
+        if self.polygon_sides < 3:
+            raise ValueError("AvoidanceConfig.polygon_sides must be at least 3")
+        if (self.damping is None) != (self.gain is None):
+            raise ValueError("give both damping and gain (the acceleration limit) or neither")
+
+    @classmethod
+    def for_world(cls, world: World, **overrides: Any) -> AvoidanceConfig:
+        """Defaults matching a simulator world (radius, dt and the MPE acceleration limit)."""
+        ph = world.physics
+        base = dict(
+            radius=world.agent_radius,
+            dt=ph.dt,
+            damping=ph.damping,
+            gain=ph.sensitivity * ph.dt / ph.mass,
+        )
+        base.update(overrides)
+        return cls(**base)
+
+
+@dataclass
+class ConstraintRows:
+    """The QP of n AGVs: ``min ||v_i - pref_i||^2  s.t.  lower_i <= A_i v_i <= upper_i``.
+
+    Attributes
+    ----------
+    A : np.ndarray, shape (n, R, 2)
+    lower, upper : np.ndarray, shape (n, R)
+        ``-inf`` / ``inf`` where unbounded; padded rows have ``A = 0`` and infinite bounds.
+    preferred : np.ndarray, shape (n, 2)
+    kind : np.ndarray of int, shape (R,)
+        ``HARD``, ``AGENT``, ``WALL``, ``POINT`` or ``PAD`` per row slot.
+    active : np.ndarray of bool, shape (n,)
+        AGVs that move (static ones get velocity 0 and no rows).
+    """
+
+    A: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    preferred: np.ndarray
+    kind: np.ndarray
+    active: np.ndarray
+
+
+@dataclass
+class AvoidanceResult:
+    """Output of one avoidance step.
+
+    Attributes
+    ----------
+    velocity : np.ndarray, shape (..., N, 2)
+        The new velocities (zero for static AGVs).
+    fell_back : np.ndarray of bool, shape (..., N)
+        AGVs whose constraints conflicted; their velocity minimises the largest violation.
+    violation : np.ndarray, shape (..., N)
+        That largest (weighted) violation ``t`` (0 where the QP was feasible).
+    status : str
+        OSQP's status of the main solve.
+    """
+
+    velocity: np.ndarray
+    fell_back: np.ndarray
+    violation: np.ndarray
+    status: str
+
+    @property
+    def any_fell_back(self) -> bool:
+        return bool(self.fell_back.any())
+
+
+def orca_halfplanes(
+    rel_pos: np.ndarray,
+    rel_vel: np.ndarray,
+    velocity: np.ndarray,
+    combined_radius: np.ndarray | float,
+    time_horizon: float,
+    dt: float,
+    responsibility: np.ndarray | float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """RVO2's ORCA half-planes, vectorised: ``a . v <= b`` for each (agent, neighbour) pair.
+
+    Parameters
+    ----------
+    rel_pos : np.ndarray, shape (..., 2)
+        Neighbour position minus own position.
+    rel_vel : np.ndarray, shape (..., 2)
+        Own velocity minus neighbour velocity.
+    velocity : np.ndarray, shape (..., 2)
+        Own current velocity (the half-plane passes through ``velocity + responsibility * u``).
+    combined_radius : float or np.ndarray, shape (...)
+    time_horizon, dt : float
+    responsibility : float or np.ndarray, shape (...)
+        0.5 for reciprocal avoidance, 1 against a static obstacle.
+
+    Returns
+    -------
+    a : np.ndarray, shape (..., 2)
+        Outward normal of the allowed side is ``-a``; the constraint is ``a . v <= b``.
+    b : np.ndarray, shape (...)
+    """
+    px, py = rel_pos[..., 0], rel_pos[..., 1]
+    dist_sq = px * px + py * py
+    R = np.broadcast_to(np.asarray(combined_radius, dtype=np.float64), dist_sq.shape)
+    R_sq = R * R
+    inv_t = 1.0 / time_horizon
+    # No collision yet: the truncated velocity obstacle.
+    w = rel_vel - inv_t * rel_pos
+    w_len_sq = np.einsum("...k,...k->...", w, w)
+    dot1 = np.einsum("...k,...k->...", w, rel_pos)
+    cutoff = (dot1 < 0.0) & (dot1 * dot1 > R_sq * w_len_sq)
+    w_len = np.sqrt(np.maximum(w_len_sq, _EPS))
+    unit_w = w / w_len[..., None]
+    dir_cut = np.stack([unit_w[..., 1], -unit_w[..., 0]], axis=-1)
+    u_cut = (R * inv_t - w_len)[..., None] * unit_w
+    leg = np.sqrt(np.maximum(dist_sq - R_sq, 0.0))
+    left = px * w[..., 1] - py * w[..., 0] > 0.0
+    d_safe = np.maximum(dist_sq, _EPS)[..., None]
+    dir_left = np.stack([px * leg - py * R, px * R + py * leg], axis=-1) / d_safe
+    dir_right = -np.stack([px * leg + py * R, -px * R + py * leg], axis=-1) / d_safe
+    dir_leg = np.where(left[..., None], dir_left, dir_right)
+    dot2 = np.einsum("...k,...k->...", rel_vel, dir_leg)
+    u_leg = dot2[..., None] * dir_leg - rel_vel
+    # Already overlapping: leave the overlap within one time step.
+    inv_dt = 1.0 / dt
+    w2 = rel_vel - inv_dt * rel_pos
+    w2_len = np.sqrt(np.maximum(np.einsum("...k,...k->...", w2, w2), _EPS))
+    unit_w2 = w2 / w2_len[..., None]
+    dir_col = np.stack([unit_w2[..., 1], -unit_w2[..., 0]], axis=-1)
+    u_col = (R * inv_dt - w2_len)[..., None] * unit_w2
+
+    colliding = (dist_sq <= R_sq)[..., None]
+    cut = cutoff[..., None]
+    direction = np.where(colliding, dir_col, np.where(cut, dir_cut, dir_leg))
+    u = np.where(colliding, u_col, np.where(cut, u_cut, u_leg))
+    point = velocity + np.asarray(responsibility, dtype=np.float64)[..., None] * u
+    # RVO2: valid iff det(direction, point - v) <= 0  <=>  (dy, -dx) . v <= (dy, -dx) . point
+    a = np.stack([direction[..., 1], -direction[..., 0]], axis=-1)
+    b = np.einsum("...k,...k->...", a, point)
+    return a, b
+
+
+def _nearest(dist: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the k smallest entries along the last axis (sorted)."""
+    c = dist.shape[-1]
+    if k >= c:
+        return np.argsort(dist, axis=-1, kind="stable")
+    part = np.argpartition(dist, k - 1, axis=-1)[..., :k]
+    order = np.argsort(np.take_along_axis(dist, part, axis=-1), axis=-1, kind="stable")
+    return np.take_along_axis(part, order, axis=-1)
+
+
+class VelocityAvoidance:
+    """Batched ORCA velocity QP, solved with OSQP (one block-diagonal problem per step).
+
+    Parameters
+    ----------
+    world : World, optional
+        Walls at its bounds and its shelves become constraints.
+    config : AvoidanceConfig, optional
+        Default :meth:`AvoidanceConfig.for_world` with a world, else ``AvoidanceConfig()``.
+    **overrides
+        Fields of :class:`AvoidanceConfig` to change.
+
+    Examples
+    --------
+    Two AGVs heading at each other swerve instead of colliding:
+
+    >>> import numpy as np
+    >>> from allocator.avoidance import VelocityAvoidance
+    >>> qp = VelocityAvoidance(radius=0.15)
+    >>> pos = np.array([[-0.5, 0.0], [0.5, 0.0]])
+    >>> vel = np.array([[1.0, 0.0], [-1.0, 0.0]])
+    >>> out = qp.solve(pos, vel, preferred=vel)
+    >>> bool(abs(out.velocity[0, 1]) > 0.1), out.fell_back.tolist()
+    (True, [False, False])
+    """
+
+    def __init__(
+        self, world: World | None = None, config: AvoidanceConfig | None = None,
+        **overrides: Any,
+    ) -> None:
+        if config is None:
+            config = AvoidanceConfig.for_world(world, **overrides) if world is not None \
+                else AvoidanceConfig(**overrides)
+        elif overrides:
+            from dataclasses import replace
+
+            config = replace(config, **overrides)
+        self.config = config
+        self.world = world
+        ang = 2 * np.pi * (np.arange(config.polygon_sides) + 0.5) / config.polygon_sides
+        self._poly = np.stack([np.cos(ang), np.sin(ang)], axis=1)  # (P, 2)
+        self._poly_cos = float(np.cos(np.pi / config.polygon_sides))
+        self._solvers: dict[int, tuple[tuple[int, int], Any]] = {}
+        self.stats = {"solves": 0, "fallbacks": 0, "setup": 0}
+
+    # ------------------------------------------------------------------ rows
+    def constraints(
+        self,
+        positions: np.ndarray,
+        velocities: np.ndarray,
+        preferred: np.ndarray,
+        static: np.ndarray | None = None,
+        points: np.ndarray | None = None,
+        point_mask: np.ndarray | None = None,
+        point_radius: float = 0.1,
+    ) -> ConstraintRows:
+        """Build every AGV's rows (see the module docstring); shapes as in :meth:`solve`."""
+        c = self.config
+        pos, vel, pref, static, points, point_mask = self._check(
+            positions, velocities, preferred, static, points, point_mask
+        )
+        B, N, _ = pos.shape
+        blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []  # (A, lo, hi, kind)
+        pad_lo = -np.inf
+
+        # AGV neighbours (within one scene).
+        K = min(c.max_neighbors, N - 1)
+        if K:
+            rel = pos[:, None, :, :] - pos[:, :, None, :]  # (B, N, N, 2): p_j - p_i
+            dist = np.linalg.norm(rel, axis=-1)
+            idx_n = np.arange(N)
+            dist[:, idx_n, idx_n] = np.inf
+            dist = np.where(dist < c.neighbor_dist, dist, np.inf)
+            k = min(K, max(N - 1, 0))
+            if k:
+                nb = _nearest(dist, k)  # (B, N, k)
+                ok = np.isfinite(np.take_along_axis(dist, nb, axis=-1))
+                rel_p = np.take_along_axis(rel, nb[..., None], axis=2)
+                v_j = np.take_along_axis(
+                    np.broadcast_to(vel[:, None], (B, N, N, 2)), nb[..., None], axis=2
+                )
+                st_j = np.take_along_axis(np.broadcast_to(static[:, None], (B, N, N)), nb, 2)
+                v_i = np.broadcast_to(vel[:, :, None], rel_p.shape)
+                resp = np.where(st_j, 1.0, 0.5)
+                combined = 2 * c.radius + np.where(st_j, c.static_margin, c.margin)
+                a, b = orca_halfplanes(
+                    rel_p, v_i - v_j, v_i, combined, c.time_horizon, c.dt, resp
+                )
+                a = np.where(ok[..., None], a, 0.0)
+                hi = np.where(ok, b, np.inf)
+            else:
+                a = np.zeros((B, N, 0, 2))
+                hi = np.zeros((B, N, 0))
+            a = _pad(a, K, 0.0)
+            hi = _pad(hi, K, np.inf)
+            blocks.append((a, np.full(hi.shape, pad_lo), hi, AGENT))
+
+        # Forbidden points (static discs of radius point_radius).
+        Q = min(c.max_points, 0 if points is None else points.shape[1])
+        if Q:
+            if points is not None and points.shape[1]:
+                rel = points[:, None, :, :] - pos[:, :, None, :]  # (B, N, P, 2)
+                dist = np.linalg.norm(rel, axis=-1)
+                dist = np.where(point_mask, dist, np.inf)
+                dist = np.where(dist < c.neighbor_dist, dist, np.inf)
+                k = min(Q, points.shape[1])
+                nb = _nearest(dist, k)
+                ok = np.isfinite(np.take_along_axis(dist, nb, axis=-1))
+                rel_p = np.take_along_axis(rel, nb[..., None], axis=2)
+                v_i = np.broadcast_to(vel[:, :, None], rel_p.shape)
+                a, b = orca_halfplanes(
+                    rel_p, v_i, v_i, point_radius + c.static_margin, c.obstacle_time_horizon, c.dt,
+                    1.0,
+                )
+                a = _pad(np.where(ok[..., None], a, 0.0), Q, 0.0)
+                hi = _pad(np.where(ok, b, np.inf), Q, np.inf)
+            else:
+                a = np.zeros((B, N, Q, 2))
+                hi = np.full((B, N, Q), np.inf)
+            blocks.append((a, np.full(hi.shape, pad_lo), hi, POINT))
+
+        # Walls: do not reach a wall (less radius and margin) within the obstacle horizon.
+        if self.world is not None:
+            xmin, ymin, xmax, ymax = self.world.bounds
+            r = c.radius + c.static_margin
+            t = c.obstacle_time_horizon
+            normals = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+            room = np.stack(
+                [xmax - r - pos[..., 0], pos[..., 0] - xmin - r,
+                 ymax - r - pos[..., 1], pos[..., 1] - ymin - r], axis=-1,
+            )  # (B, N, 4)
+            a = np.broadcast_to(normals, (B, N, 4, 2))
+            blocks.append((a, np.full(room.shape, pad_lo), room / t, WALL))
+            if self.world.has_obstacles:
+                S = min(c.max_shelves, len(self.world.obstacles))
+                obs = self.world.obstacles
+                p = pos[:, :, None, :]
+                closest = np.minimum(np.maximum(p, obs[:, :2]), obs[:, 2:])  # (B, N, K, 2)
+                d_vec = p - closest
+                d = np.linalg.norm(d_vec, axis=-1)
+                nb = _nearest(d, S)
+                d_s = np.take_along_axis(d, nb, axis=-1)
+                dv = np.take_along_axis(d_vec, nb[..., None], axis=2)
+                normal = dv / np.maximum(d_s, 1e-9)[..., None]
+                # A centre inside a shelf (only after a bad push): move straight out.
+                normal = np.where((d_s > 1e-9)[..., None], normal, 0.0)
+                far = d_s > c.radius + c.neighbor_dist
+                a = np.where(far[..., None], 0.0, -normal)
+                hi = np.where(far, np.inf, (d_s - c.radius - c.static_margin) / t)
+                blocks.append((a, np.full(hi.shape, pad_lo), hi, WALL))
+
+        # Speed polygon, widened where the current speed cannot be shed in one step.
+        P = c.polygon_sides
+        limit = np.full((B, N), c.max_speed)
+        if c.damping is not None:
+            centre = (1.0 - c.damping) * vel
+            reach = (np.linalg.norm(centre, axis=-1) - c.gain) / self._poly_cos
+            limit = np.maximum(limit, reach + 1e-6)
+        a = np.broadcast_to(self._poly, (B, N, P, 2))
+        hi = np.broadcast_to(limit[..., None], (B, N, P))
+        blocks.append((a, np.full(hi.shape, pad_lo), hi, HARD))
+
+        # Acceleration box.
+        if c.damping is not None:
+            a = np.broadcast_to(np.eye(2), (B, N, 2, 2))
+            blocks.append((a, centre - c.gain, centre + c.gain, HARD))
+
+        A = np.concatenate([blk[0] for blk in blocks], axis=2)
+        lo = np.concatenate([blk[1] for blk in blocks], axis=2)
+        hi = np.concatenate([blk[2] for blk in blocks], axis=2)
+        kind = np.concatenate([np.full(blk[0].shape[2], blk[3]) for blk in blocks])
+        # Static AGVs: no rows, velocity 0.
+        act = ~static
+        A = np.where(act[..., None, None], A, 0.0)
+        lo = np.where(act[..., None], lo, -np.inf)
+        hi = np.where(act[..., None], hi, np.inf)
+        pad = np.all(A == 0.0, axis=-1)
+        lo = np.where(pad, -np.inf, lo)
+        hi = np.where(pad, np.inf, hi)
+        n = B * N
+        R = A.shape[2]
+        return ConstraintRows(
+            A.reshape(n, R, 2), lo.reshape(n, R), hi.reshape(n, R),
+            np.where(act[..., None], pref, 0.0).reshape(n, 2), kind, act.reshape(n),
+        )
+
+    def _check(
+        self, positions: Any, velocities: Any, preferred: Any, static: Any, points: Any,
+        point_mask: Any,
+    ) -> tuple[np.ndarray, ...]:
+        pos = np.asarray(positions, dtype=np.float64)
+        single = pos.ndim == 2
+        if single:
+            pos = pos[None]
+        if pos.ndim != 3 or pos.shape[-1] != 2:
+            raise ValueError(f"positions must have shape (N, 2) or (B, N, 2), got {pos.shape}")
+        B, N, _ = pos.shape
+        out = [pos]
+        for name, x in (("velocities", velocities), ("preferred", preferred)):
+            arr = np.asarray(x, dtype=np.float64)
+            arr = arr[None] if single else arr
+            if arr.shape != pos.shape:
+                raise ValueError(f"{name} must have the shape of positions {pos.shape[single:]}"
+                                 f", got {arr.shape[single:]}")
+            out.append(arr)
+        for name, arr in zip(("positions", "velocities", "preferred"), out, strict=True):
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name} contain NaN or infinite values")
+        st = np.zeros((B, N), dtype=bool) if static is None else np.asarray(static, dtype=bool)
+        st = st[None] if single and st.ndim == 1 else st
+        if st.shape != (B, N):
+            raise ValueError(f"static must have shape {(B, N)[single:]}, got {st.shape}")
+        out.append(st)
+        if points is None:
+            out += [None, None]
+        else:
+            pts = np.asarray(points, dtype=np.float64)
+            pts = pts[None] if single and pts.ndim == 2 else pts
+            if pts.ndim != 3 or pts.shape[0] != B or pts.shape[2] != 2:
+                raise ValueError(f"points must have shape (P, 2) or (B, P, 2), got {pts.shape}")
+            m = np.ones((B, N, pts.shape[1]), dtype=bool) if point_mask is None else \
+                np.asarray(point_mask, dtype=bool)
+            m = m[None] if single and m.ndim == 2 else m
+            if m.shape != (B, N, pts.shape[1]):
+                raise ValueError(
+                    f"point_mask must have shape {(B, N, pts.shape[1])[single:]}, got {m.shape}"
+                )
+            out += [pts, m]
+        return tuple(out)
+
+    # ------------------------------------------------------------------ solve
+    def solve(
+        self,
+        positions: np.ndarray,
+        velocities: np.ndarray,
+        preferred: np.ndarray,
+        static: np.ndarray | None = None,
+        points: np.ndarray | None = None,
+        point_mask: np.ndarray | None = None,
+        point_radius: float = 0.1,
+    ) -> AvoidanceResult:
+        """New velocities for every AGV, as close to ``preferred`` as the constraints allow.
+
+        Parameters
+        ----------
+        positions, velocities, preferred : np.ndarray, shape (N, 2) or (B, N, 2)
+            B independent scenes of N AGVs (AGVs of different scenes never interact).
+            ``positions`` are where the AGVs are when the new velocity takes effect.
+        static : np.ndarray of bool, shape (N,) or (B, N), optional
+            Parked AGVs: obstacles for the others, velocity 0 themselves.
+        points : np.ndarray, shape (P, 2) or (B, P, 2), optional
+            Points to keep ``point_radius + margin`` away from (e.g. other AGVs' tasks).
+        point_mask : np.ndarray of bool, shape (N, P) or (B, N, P), optional
+            Which AGV must avoid which point (default all).
+
+        Returns
+        -------
+        AvoidanceResult
+            ``velocity`` with the shape of ``positions``; ``fell_back`` marks AGVs whose
+            constraints conflicted (their velocity least violates them).
+        """
+        rows = self.constraints(positions, velocities, preferred, static, points, point_mask,
+                                point_radius)
+        vel, fell, viol, status = self.solve_rows(rows)
+        shape = np.shape(positions)
+        return AvoidanceResult(
+            vel.reshape(shape), fell.reshape(shape[:-1]), viol.reshape(shape[:-1]), status
+        )
+
+    def solve_rows(self, rows: ConstraintRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+        """Solve built rows: ``(velocity (n, 2), fell_back (n,), violation (n,), status)``.
+
+        The problem separates per AGV, so more than ``config.chunk_size`` AGVs are solved as
+        several block-diagonal problems (each with its own warm-started solver): ADMM runs until
+        its slowest block converges, and smaller problems stop sooner.
+        """
+        n = rows.A.shape[0]
+        size = self.config.chunk_size
+        if n <= size:
+            return self._solve_chunk(rows, 0)
+        parts = [
+            self._solve_chunk(_take(rows, slice(k, min(k + size, n))), k // size)
+            for k in range(0, n, size)
+        ]
+        status = next((p[3] for p in parts if not p[3].startswith("solved")), parts[0][3])
+        return (
+            np.concatenate([p[0] for p in parts]),
+            np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]),
+            status,
+        )
+
+    def _solve_chunk(
+        self, rows: ConstraintRows, chunk: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+        import osqp
+
+        n, R, _ = rows.A.shape
+        self.stats["solves"] += 1
+        solver = self._solvers.get(chunk)
+        if solver is None or solver[0] != (n, R):
+            self._solvers[chunk] = solver = ((n, R), self._setup(n, R))
+        solver = solver[1]
+        data = rows.A.transpose(0, 2, 1).reshape(-1)  # CSC order: column 2i then 2i+1
+        lo = rows.lower.reshape(-1).copy()
+        hi = rows.upper.reshape(-1).copy()
+        q = -rows.preferred.reshape(-1)
+        soft = (rows.kind != HARD) & (rows.kind != PAD)
+        suspects = np.zeros(n, dtype=bool)
+        solver.update(q=q, l=lo, u=hi, Ax=data)
+        for _ in range(6):
+            res = solver.solve(raise_error=False)
+            status = res.info.status
+            if res.info.status_val in (osqp.SolverStatus.OSQP_SOLVED,
+                                       osqp.SolverStatus.OSQP_SOLVED_INACCURATE):
+                break
+            if res.info.status_val == osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE:
+                new = self._certificate_blocks(res.prim_inf_cert, n, R)
+            else:  # stalled: treat every AGV whose rows the iterate violates as a suspect
+                new = self._violated(res.x, rows)
+            new &= rows.active & ~suspects
+            if not new.any():
+                new = rows.active & ~suspects
+            suspects |= new
+            # The suspects get their own least-violation program; the others are re-solved
+            # with the suspects' soft rows switched off (warm started).
+            relax = (suspects[:, None] & soft[None, :]).reshape(-1)
+            solver.update(l=np.where(relax, -np.inf, lo), u=np.where(relax, np.inf, hi))
+            if not (rows.active & ~suspects).any():
+                break
+        x = res.x.reshape(n, 2) if status.startswith("solved") else np.zeros((n, 2))
+        velocity = np.where(rows.active[:, None], x, 0.0)
+        violation = np.zeros(n)
+        fell = np.zeros(n, dtype=bool)
+        if suspects.any():
+            idx = np.flatnonzero(suspects)
+            v, t = LeastViolation().solve(_take(rows, idx), self.config.eps)
+            velocity[idx] = v
+            fell[idx] = t > self.config.fallback_tol
+            violation[idx] = np.where(fell[idx], t, 0.0)
+            self.stats["fallbacks"] += int(fell.sum())
+        return velocity, fell, violation, status
+
+    @staticmethod
+    def _certificate_blocks(cert: np.ndarray, n: int, R: int) -> np.ndarray:
+        """AGVs whose rows carry OSQP's infeasibility certificate (a superset of the culprits:
+        a wrongly suspected AGV gets t = 0 and its QP velocity from the fallback program)."""
+        y = np.abs(np.asarray(cert, dtype=np.float64).reshape(n, R)).max(axis=1)
+        top = y.max() if y.size else 0.0
+        return y > 1e-6 * top if top > 0 else np.zeros(n, dtype=bool)
+
+    @staticmethod
+    def _violated(x: np.ndarray, rows: ConstraintRows, tol: float = 1e-4) -> np.ndarray:
+        n = rows.A.shape[0]
+        v = np.asarray(x, dtype=np.float64).reshape(n, 2)
+        if not np.all(np.isfinite(v)) or np.abs(v).max() > 1e6:
+            return rows.active.copy()
+        av = np.einsum("nrk,nk->nr", rows.A, v)
+        return ((av > rows.upper + tol) | (av < rows.lower - tol)).any(axis=1)
+
+    def _setup(self, n: int, R: int) -> Any:
+        import osqp
+
+        self.stats["setup"] += 1
+        c = self.config
+        indptr = np.arange(2 * n + 1, dtype=np.int64) * R
+        rows_idx = (np.arange(n)[:, None] * R + np.arange(R)[None, :])  # (n, R)
+        indices = np.repeat(rows_idx, 2, axis=0).reshape(-1)
+        A = sp.csc_matrix((np.ones(2 * n * R), indices, indptr), shape=(n * R, 2 * n))
+        P = sp.identity(2 * n, format="csc")
+        solver = osqp.OSQP()
+        solver.setup(
+            P, np.zeros(2 * n), A, np.full(n * R, -np.inf), np.full(n * R, np.inf),
+            verbose=False, polishing=False, warm_starting=True, eps_abs=c.eps, eps_rel=c.eps,
+            max_iter=c.max_iter, eps_prim_inf=1e-3, adaptive_rho=True,
+        )
+        return solver
+
+
+def _take(rows: ConstraintRows, idx: Any) -> ConstraintRows:
+    """The rows of some AGVs."""
+    return ConstraintRows(rows.A[idx], rows.lower[idx], rows.upper[idx], rows.preferred[idx],
+                          rows.kind, rows.active[idx])
+
+
+def _pad(x: np.ndarray, k: int, fill: float) -> np.ndarray:
+    """Pad axis 2 of ``x`` (B, N, k', ...) to k entries with ``fill``."""
+    have = x.shape[2]
+    if have >= k:
+        return x
+    shape = list(x.shape)
+    shape[2] = k - have
+    return np.concatenate([x, np.full(shape, fill)], axis=2)
+
+
+class LeastViolation:
+    """ORCA's "3-D" program for AGVs whose rows conflict, batched in one OSQP problem.
+
+    Per AGV: ``min t + (regularization / 2) ||v - pref||^2`` s.t. ``a . v - w t <= u`` on
+    soft rows (``w`` from :data:`FALLBACK_WEIGHT`), the hard rows (speed polygon, acceleration
+    box) unchanged, ``t >= 0``. Where the rows are compatible the optimum has ``t = 0`` and
+    ``v`` equals the QP solution (the penalty on ``t`` is exact), so one solve serves all AGVs.
+    The sparsity pattern is fixed per (n, R), so repeated calls update and warm start.
+    """
+
+    def __init__(self, regularization: float = 1e-3) -> None:
+        self.regularization = regularization
+        self._solver: Any = None
+        self._key: tuple[int, int] | None = None
+
+    def problem(
+        self, rows: ConstraintRows
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(dense (n, R + 1, 3), lower (n, R + 1), upper (n, R + 1), q (3 n,))``."""
+        n, R, _ = rows.A.shape
+        weight = np.array([FALLBACK_WEIGHT.get(int(k), 0.0) for k in rows.kind])
+        t_col = np.broadcast_to(-weight, (n, R))[..., None]
+        dense = np.concatenate([rows.A, t_col], axis=2)
+        t_row = np.zeros((n, 1, 3))
+        t_row[..., 2] = 1.0
+        dense = np.concatenate([dense, t_row], axis=1)
+        lo = np.concatenate([rows.lower, np.zeros((n, 1))], axis=1)
+        hi = np.concatenate([rows.upper, np.full((n, 1), np.inf)], axis=1)
+        q = np.concatenate(
+            [-self.regularization * rows.preferred, rows.active[:, None].astype(float)], axis=1
+        ).reshape(-1)
+        return dense, lo, hi, q
+
+    def solve(self, rows: ConstraintRows, eps: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+        """Velocities (n, 2) and violations t (n,) (``inf`` where even the hard rows conflict)."""
+        import osqp
+
+        n, R, _ = rows.A.shape
+        dense, lo, hi, q = self.problem(rows)
+        if self._solver is None or self._key != (n, R):
+            R1 = R + 1
+            indptr = np.arange(3 * n + 1, dtype=np.int64) * R1
+            rows_idx = np.arange(n)[:, None] * R1 + np.arange(R1)[None, :]
+            indices = np.repeat(rows_idx, 3, axis=0).reshape(-1)
+            A = sp.csc_matrix((np.ones(3 * n * R1), indices, indptr), shape=(n * R1, 3 * n))
+            P = sp.diags(np.tile([self.regularization, self.regularization, 0.0], n),
+                         format="csc")
+            self._solver = osqp.OSQP()
+            self._solver.setup(
+                P, q, A, lo.reshape(-1), hi.reshape(-1), verbose=False, polishing=False,
+                eps_abs=eps * 0.1, eps_rel=eps * 0.1, max_iter=50000, warm_starting=True,
+            )
+            self._key = (n, R)
+        self._solver.update(q=q, l=lo.reshape(-1), u=hi.reshape(-1),
+                            Ax=dense.transpose(0, 2, 1).reshape(-1))
+        res = self._solver.solve(raise_error=False)
+        if not res.info.status.startswith("solved"):
+            return np.zeros((n, 2)), np.where(rows.active, np.inf, 0.0)
+        z = res.x.reshape(n, 3)
+        velocity = np.where(rows.active[:, None], z[:, :2], 0.0)
+        return velocity, np.maximum(z[:, 2], 0.0) * rows.active
+
+
+def solve_reference(
+    rows: ConstraintRows, fallback_regularization: float = 1e-3
+) -> tuple[np.ndarray, np.ndarray]:
+    """The same QP (and fallback) written in cvxpy, one small problem per AGV: the readable
+    reference the OSQP path is tested against.
+
+    Returns
+    -------
+    velocity : np.ndarray, shape (n, 2)
+    fell_back : np.ndarray of bool, shape (n,)
+    """
+    import cvxpy as cp
+
+    n = rows.A.shape[0]
+    out = np.zeros((n, 2))
+    fell = np.zeros(n, dtype=bool)
+    weight = np.array([FALLBACK_WEIGHT.get(int(k), 0.0) for k in rows.kind])
+    for i in np.flatnonzero(rows.active):
+        A, lo, hi, pref = rows.A[i], rows.lower[i], rows.upper[i], rows.preferred[i]
+        up, down = np.isfinite(hi), np.isfinite(lo)
+        v = cp.Variable(2)
+        cons = []
+        if up.any():
+            cons.append(A[up] @ v <= hi[up])
+        if down.any():
+            cons.append(A[down] @ v >= lo[down])
+        prob = cp.Problem(cp.Minimize(cp.sum_squares(v - pref)), cons)
+        prob.solve(solver=cp.CLARABEL)
+        if prob.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            out[i] = v.value
+            continue
+        # Least violation: min t s.t. a.v - w t <= u (soft), hard rows kept.
+        fell[i] = True
+        t = cp.Variable()
+        hard = weight == 0.0
+        cons = [t >= 0]
+        su, hu = up & ~hard, up & hard
+        if su.any():
+            cons.append(A[su] @ v - weight[su] * t <= hi[su])
+        if hu.any():
+            cons.append(A[hu] @ v <= hi[hu])
+        if down.any():
+            cons.append(A[down] @ v >= lo[down])
+        obj = t + fallback_regularization / 2 * cp.sum_squares(v - pref)
+        cp.Problem(cp.Minimize(obj), cons).solve(solver=cp.CLARABEL)
+        out[i] = v.value
+    return out, fell

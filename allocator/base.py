@@ -1,0 +1,256 @@
+"""The Allocator interface: the :class:`Assignment` result, the protocol, the registry.
+
+Every solver, classical or learned, answers one question: which AGV serves which task. It does
+so through ``assign(agents, tasks, world=None) -> Assignment`` and is also a controller for the
+simulator (``reset(env)`` / ``act(obs)``), so ``sim.evaluate(allocator.make(name), "6v6")``
+scores any registry entry on the same episodes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from torch import Tensor
+
+    from sim.world import World
+
+__all__ = [
+    "Assignment",
+    "Allocator",
+    "ALLOCATORS",
+    "register",
+    "make",
+    "check_inputs",
+    "ClassicalAllocator",
+]
+
+
+@dataclass(frozen=True)
+class Assignment:
+    """Which AGV serves which task, what it costs and how the AGVs get there.
+
+    Attributes
+    ----------
+    task_of_agent : np.ndarray of int64, shape (N,)
+        Task index served by each AGV, or -1 for an idle AGV.
+    agent_of_task : np.ndarray of int64, shape (M,)
+        AGV index serving each task, or -1 for an unserved task.
+    cost : float
+        Total travel distance of the plan: straight lines in an open world, obstacle-aware path
+        lengths when the world has shelves.
+    paths : list of (np.ndarray or None), optional
+        Per AGV, the planned waypoints ``(K_i, 2)`` from its position to its task (``None`` for
+        an idle AGV); ``None`` as a whole when no path planner was used.
+    unserved : dict of int to str
+        Why each unserved task is unserved (e.g. ``"no AGV left"`` when M > N, or
+        ``"unreachable: ..."`` when the shelves cut it off from every AGV).
+    method : str
+        Name of the solver that produced it.
+    """
+
+    task_of_agent: np.ndarray  # (N,) int64, -1 = idle
+    agent_of_task: np.ndarray  # (M,) int64, -1 = unserved
+    cost: float
+    paths: list[np.ndarray | None] | None = None
+    unserved: dict[int, str] = field(default_factory=dict)
+    method: str = ""
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.task_of_agent, dtype=np.int64).copy()
+        a = np.asarray(self.agent_of_task, dtype=np.int64).copy()
+        if t.ndim != 1 or a.ndim != 1:
+            raise ValueError(
+                f"task_of_agent and agent_of_task must be 1-D, got shapes {t.shape} and {a.shape}"
+            )
+        n, m = len(t), len(a)
+        if np.any((t < -1) | (t >= m)) or np.any((a < -1) | (a >= n)):
+            raise ValueError("assignment indices out of range")
+        served = np.flatnonzero(t >= 0)
+        if not np.array_equal(a[t[served]], served) or np.count_nonzero(a >= 0) != len(served):
+            raise ValueError("task_of_agent and agent_of_task are not inverse of each other")
+        if self.paths is not None and len(self.paths) != n:
+            raise ValueError(f"paths must hold one entry per AGV ({n}), got {len(self.paths)}")
+        t.setflags(write=False)
+        a.setflags(write=False)
+        object.__setattr__(self, "task_of_agent", t)
+        object.__setattr__(self, "agent_of_task", a)
+        object.__setattr__(self, "cost", float(self.cost))
+
+    @property
+    def num_served(self) -> int:
+        """Number of (AGV, task) pairs in the plan."""
+        return int(np.count_nonzero(self.task_of_agent >= 0))
+
+    def pairs(self) -> np.ndarray:
+        """The served ``(agent, task)`` pairs, shape (S, 2), sorted by agent."""
+        agents = np.flatnonzero(self.task_of_agent >= 0)
+        return np.stack([agents, self.task_of_agent[agents]], axis=1).astype(np.int64)
+
+    @classmethod
+    def from_pairs(
+        cls,
+        rows: np.ndarray,
+        cols: np.ndarray,
+        num_agents: int,
+        num_tasks: int,
+        cost: float,
+        **kwargs: Any,
+    ) -> Assignment:
+        """Build an assignment from matched agent indices ``rows`` and task indices ``cols``."""
+        task_of_agent = np.full(num_agents, -1, dtype=np.int64)
+        agent_of_task = np.full(num_tasks, -1, dtype=np.int64)
+        task_of_agent[rows] = cols
+        agent_of_task[cols] = rows
+        return cls(task_of_agent, agent_of_task, cost, **kwargs)
+
+
+@runtime_checkable
+class Allocator(Protocol):
+    """What every registry entry offers.
+
+    ``assign`` plans for one scene; ``reset`` / ``act`` drive the simulator (see
+    :func:`sim.evaluate`), so every allocator is also a controller.
+    """
+
+    name: str
+
+    def assign(
+        self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
+    ) -> Assignment: ...
+
+    def reset(self, env: Any) -> None: ...
+
+    def act(self, obs: Tensor) -> Tensor: ...
+
+
+ALLOCATORS: dict[str, type] = {}
+"""The registry: name -> allocator class (built with :func:`make`)."""
+
+_T = TypeVar("_T", bound=type)
+
+
+def register(name: str) -> Callable[[_T], _T]:
+    """Class decorator adding an allocator class to :data:`ALLOCATORS` under ``name``."""
+
+    def deco(cls: _T) -> _T:
+        ALLOCATORS[name] = cls
+        cls.name = name
+        return cls
+
+    return deco
+
+
+def make(name: str, **options: Any) -> Allocator:
+    """Build a registered allocator.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`ALLOCATORS`, e.g. ``"hungarian"`` or ``"greedy"``.
+    **options
+        Passed to the allocator's constructor (e.g. ``planner="ompl"``, ``scenario="6v6"``).
+
+    Returns
+    -------
+    Allocator
+        Call ``.assign(agents, tasks, world)`` for a plan, or hand it to ``sim.evaluate``.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name; the message lists the registered ones.
+
+    Examples
+    --------
+    >>> import allocator
+    >>> solver = allocator.make("hungarian")
+    >>> solver.assign([[0.0, 0.0], [1.0, 0.0]], [[0.9, 0.0], [0.1, 0.0]]).task_of_agent
+    array([1, 0])
+    """
+    if name not in ALLOCATORS:
+        raise ValueError(f"unknown allocator {name!r}; expected one of {sorted(ALLOCATORS)}")
+    return ALLOCATORS[name](**options)
+
+
+def _as_points(points: object, what: str, letter: str) -> np.ndarray:
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{what} must be an ({letter}, 2) array of numbers: {err}") from None
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{what} must have shape ({letter}, 2), got {arr.shape}")
+    if arr.shape[0] == 0:
+        raise ValueError(f"{what} is empty: expected at least one row of shape ({letter}, 2)")
+    if not np.all(np.isfinite(arr)):
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        raise ValueError(f"{what} contain NaN or infinite values at rows {bad.tolist()}")
+    return arr
+
+
+def check_inputs(
+    agents: object, tasks: object, world: World | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a scene and return ``(agents (N, 2), tasks (M, 2))`` as float64.
+
+    Raises
+    ------
+    ValueError
+        On a wrong shape, an empty array, NaN or infinite values, or (with a world) a point
+        outside the world's bounds or inside a shelf. The message names the array and rows.
+    """
+    a = _as_points(agents, "agents", "N")
+    t = _as_points(tasks, "tasks", "M")
+    if world is not None:
+        world.check_positions(a, "agents")
+        world.check_positions(t, "tasks")
+    return a, t
+
+
+class ClassicalAllocator:
+    """Shared base of the centralized allocators: ``assign`` plus the controller methods.
+
+    ``reset(env)`` and ``act(obs)`` delegate to an :class:`allocator.controller.
+    AllocatorController` built on first use with ``controller_options``.
+
+    Parameters
+    ----------
+    **controller_options
+        Passed to :class:`~allocator.controller.AllocatorController` (``avoidance``,
+        ``planner``, ``max_speed``, ...).
+    """
+
+    name = "classical"
+
+    def __init__(self, **controller_options: Any) -> None:
+        self.controller_options = controller_options
+        self._controller: Any = None
+
+    def assign(
+        self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
+    ) -> Assignment:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def controller(self) -> Any:
+        """The :class:`~allocator.controller.AllocatorController` driving the simulator."""
+        if self._controller is None:
+            from allocator.controller import AllocatorController
+
+            self._controller = AllocatorController(self, **self.controller_options)
+        return self._controller
+
+    def reset(self, env: Any) -> None:
+        """Plan for every environment of ``env`` (called by ``sim.evaluate`` after a reset)."""
+        self.controller.reset(env)
+
+    def act(self, obs: Tensor) -> Tensor:
+        """Actions (B, N, 2) in [-1, 1] for the environment given to :meth:`reset`."""
+        return self.controller.act(obs)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"

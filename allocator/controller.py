@@ -1,0 +1,297 @@
+"""Drive the simulator with any assignment solver: assign, follow paths, avoid, accelerate.
+
+:class:`AllocatorController` is what ``sim.evaluate`` calls for the classical allocators
+(``reset(env)`` after every batch of episodes starts, then ``act(obs)`` each step):
+
+1. ``reset``: one assignment per environment (the solver's ``assign`` on that scene), and a
+   path per AGV (a straight segment in an open world, OMPL around shelves).
+2. ``act``: re-assign the environments where a claim went against the plan (or every
+   ``reassign_every`` steps, or when :meth:`AllocatorController.reassign` is called); each
+   idle AGV gets a preferred velocity along its path, braking on the last leg; the ORCA QP
+   (:class:`~allocator.avoidance.VelocityAvoidance`) makes the velocities collision-free; each
+   velocity becomes the acceleration action that reaches it in one step.
+
+The simulator moves positions with the *current* velocity before the action acts
+(``pos += vel dt``; ``vel = (1 - damping) vel + action sensitivity dt / mass``), so the
+controller plans from the predicted positions ``pos + vel dt`` and chooses the velocity of the
+step after; the acceleration limit is a hard constraint of the QP.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
+
+__all__ = ["AllocatorController"]
+
+
+class AllocatorController:
+    """Turn an allocator into simulator actions (batched over the B environments).
+
+    Parameters
+    ----------
+    allocator : object with ``assign(agents, tasks, world) -> Assignment``
+    avoidance : bool
+        Filter the preferred velocities through the ORCA QP (False: follow paths blindly).
+    planner : {"auto", "ompl", "prm", "grid"}
+        Paths around shelves: OMPL RRTConnect (``"ompl"``), a PRM roadmap shared by all
+        queries (``"prm"``) or the string-pulled grid path; ``"auto"`` is ``"prm"``. Open
+        worlds use straight segments.
+    max_speed : float, optional
+        Cruise speed (default the simulator's terminal speed).
+    brake : float
+        Deceleration (units/s^2) assumed by the speed profile on the last leg.
+    reassign_every : int, optional
+        Also re-assign idle AGVs every this many steps.
+    avoid_tasks : bool
+        Keep AGVs off tasks that are not theirs (an idle AGV claims any task it touches).
+    avoidance_options : dict, optional
+        Overrides of :class:`~allocator.avoidance.AvoidanceConfig`.
+    seed : int
+        Seed of the OMPL planner.
+
+    Attributes
+    ----------
+    task_of_agent : np.ndarray of int64, shape (B, N)
+        The current plan (-1: no task).
+    fallbacks : int
+        AGV-steps in which the avoidance QP had to fall back.
+    timing : dict
+        Seconds spent assigning, planning and avoiding.
+    """
+
+    def __init__(
+        self,
+        allocator: Any,
+        avoidance: bool = True,
+        planner: str = "auto",
+        max_speed: float | None = None,
+        brake: float = 4.0,
+        reassign_every: int | None = None,
+        avoid_tasks: bool = True,
+        avoidance_options: dict[str, Any] | None = None,
+        waypoint_tolerance: float = 0.12,
+        seed: int = 0,
+    ) -> None:
+        if planner not in ("auto", "ompl", "prm", "grid"):
+            raise ValueError(f"planner must be 'auto', 'ompl', 'prm' or 'grid', got {planner!r}")
+        self.allocator = allocator
+        self.use_avoidance = avoidance
+        self.planner_kind = "prm" if planner == "auto" else planner
+        self.max_speed = max_speed
+        self.brake = brake
+        self.reassign_every = reassign_every
+        self.avoid_tasks = avoid_tasks
+        self.avoidance_options = dict(avoidance_options or {})
+        self.waypoint_tolerance = waypoint_tolerance
+        self.seed = seed
+        self.env: Any = None
+        self._world: Any = None
+        self._planner: Any = None
+        self._avoid: VelocityAvoidance | None = None
+        self.fallbacks = 0
+        self.reassignments = 0
+        self.timing = {"assign": 0.0, "plan": 0.0, "avoid": 0.0, "act": 0.0}
+
+    # ------------------------------------------------------------------ planning
+    def reset(self, env: Any) -> None:
+        """Plan for every environment of ``env`` (read its positions, tasks and world)."""
+        self.env = env
+        world = env.world
+        if world is not self._world:
+            self._world = world
+            self._planner = None
+            self._avoid = None
+        B, N = env.num_envs, env.num_agents
+        self.task_of_agent = np.full((B, N), -1, dtype=np.int64)
+        self._paths: list[list[np.ndarray | None]] = [[None] * N for _ in range(B)]
+        self._waypoints = np.zeros((B, N, 1, 2))
+        self._num_waypoints = np.zeros((B, N), dtype=np.int64)
+        self._next = np.zeros((B, N), dtype=np.int64)
+        self._steps = 0
+        self.reassign()
+
+    def reassign(self, env_ids: Any = None) -> None:
+        """Assign the idle AGVs to the unclaimed tasks again (all environments by default)."""
+        env = self._require_env()
+        ids = range(env.num_envs) if env_ids is None else np.atleast_1d(env_ids)
+        pos = env.agent_pos.detach().cpu().double().numpy()
+        tasks = env.task_pos.detach().cpu().double().numpy()
+        held = env.agent_task.detach().cpu().numpy()
+        claimed = env.task_claimed.detach().cpu().numpy()
+        for b in ids:
+            self._assign_env(int(b), pos[b], tasks[b], held[b], claimed[b])
+        self._pack_paths()
+
+    def _assign_env(
+        self, b: int, pos: np.ndarray, tasks: np.ndarray, held: np.ndarray, claimed: np.ndarray
+    ) -> None:
+        world = self._world
+        self.task_of_agent[b] = held  # parked AGVs keep their task
+        for i in range(len(held)):
+            self._paths[b][i] = None
+        idle = np.flatnonzero(held < 0)
+        open_tasks = np.flatnonzero(~claimed)
+        if idle.size == 0 or open_tasks.size == 0:
+            return
+        t0 = time.perf_counter()
+        result = self.allocator.assign(pos[idle], tasks[open_tasks], world=world)
+        self.timing["assign"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for k, j in enumerate(result.task_of_agent):
+            if j < 0:
+                continue
+            i, task = idle[k], open_tasks[j]
+            self.task_of_agent[b, i] = task
+            path = None
+            if result.paths is not None and result.paths[k] is not None:
+                path = result.paths[k]
+            elif world.has_obstacles:
+                path = self._plan(pos[i], tasks[task])
+            if path is None:
+                path = np.stack([pos[i], tasks[task]])
+            self._paths[b][i] = np.asarray(path, dtype=np.float64)
+        self.timing["plan"] += time.perf_counter() - t0
+
+    def _plan(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
+        if self._planner is None:
+            if self.planner_kind == "grid":
+                from allocator.paths import grid_for
+
+                self._planner = grid_for(self._world)
+            else:
+                from allocator.paths import OMPLPlanner
+
+                kind = "prm" if self.planner_kind == "prm" else "rrtconnect"
+                self._planner = OMPLPlanner(self._world, planner=kind, seed=self.seed)
+        if hasattr(self._planner, "plan"):
+            return self._planner.plan(start, goal)
+        return self._planner.path(start, goal)
+
+    def _pack_paths(self) -> None:
+        """Paths into one padded array (B, N, W, 2) so the step is vectorised."""
+        B, N = self.task_of_agent.shape
+        longest = max([len(p) for row in self._paths for p in row if p is not None] + [1])
+        wp = np.zeros((B, N, longest, 2))
+        count = np.zeros((B, N), dtype=np.int64)
+        for b in range(B):
+            for i, p in enumerate(self._paths[b]):
+                if p is not None:
+                    wp[b, i, : len(p)] = p
+                    wp[b, i, len(p):] = p[-1]
+                    count[b, i] = len(p)
+        self._waypoints = wp
+        self._num_waypoints = count
+        self._next = np.minimum(1, np.maximum(count - 1, 0))
+
+    def _require_env(self) -> Any:
+        if self.env is None:
+            raise RuntimeError("call reset(env) before act(obs): the controller plans per scene")
+        return self.env
+
+    # ------------------------------------------------------------------ acting
+    def _avoidance(self) -> VelocityAvoidance:
+        if self._avoid is None:
+            opts = dict(max_speed=self._cruise_speed())
+            opts.update(self.avoidance_options)
+            self._avoid = VelocityAvoidance(
+                self._world, AvoidanceConfig.for_world(self._world, **opts)
+            )
+        return self._avoid
+
+    def _cruise_speed(self) -> float:
+        if self.max_speed is not None:
+            return float(self.max_speed)
+        ph = self._world.physics
+        return float(ph.terminal_speed)
+
+    @torch.no_grad()
+    def act(self, obs: Tensor | None = None) -> Tensor:
+        """Actions (B, N, 2) in [-1, 1] for the current state of the environment.
+
+        ``obs`` is only used for its batch shape: the controller is centralized and reads the
+        state of the environment given to :meth:`reset`.
+        """
+        t_start = time.perf_counter()
+        env = self._require_env()
+        ph = self._world.physics
+        pos = env.agent_pos.detach().cpu().double().numpy()
+        vel = env.agent_vel.detach().cpu().double().numpy()
+        held = env.agent_task.detach().cpu().numpy()
+        claimed = env.task_claimed.detach().cpu().numpy()
+        done = env.done.detach().cpu().numpy()
+        tasks = env.task_pos.detach().cpu().double().numpy()
+        B, N, _ = pos.shape
+        self._steps += 1
+
+        # Re-plan where a claim went against the plan.
+        plan = self.task_of_agent
+        stolen = (plan >= 0) & (held != plan) & np.take_along_axis(
+            claimed, np.maximum(plan, 0), axis=1
+        )
+        wrong = (held >= 0) & (held != plan)
+        redo = (stolen | wrong).any(axis=1) & ~done
+        if self.reassign_every and self._steps % self.reassign_every == 0:
+            redo |= ~done
+        if redo.any():
+            self.reassignments += int(redo.sum())
+            self.reassign(np.flatnonzero(redo))
+
+        moving = (held < 0) & ~done[:, None]
+        ahead = pos + vel * ph.dt  # where each AGV will be when the new velocity acts
+        preferred = self._preferred(ahead, moving)
+
+        if self.use_avoidance:
+            t0 = time.perf_counter()
+            points = mask = None
+            if self.avoid_tasks:
+                own = np.arange(tasks.shape[1])[None, None, :] == self.task_of_agent[..., None]
+                mask = ~claimed[:, None, :] & ~own & moving[..., None]
+                points = tasks
+            out = self._avoidance().solve(
+                ahead, vel, preferred, static=~moving, points=points, point_mask=mask,
+                point_radius=self._world.capture_radius,
+            )
+            self.fallbacks += int(out.fell_back.sum())
+            command = out.velocity
+            self.timing["avoid"] += time.perf_counter() - t0
+        else:
+            command = preferred
+        gain = ph.sensitivity * ph.dt / ph.mass
+        action = np.clip((command - (1.0 - ph.damping) * vel) / gain, -1.0, 1.0)
+        action = np.where(moving[..., None], action, 0.0)
+        self.timing["act"] += time.perf_counter() - t_start
+        return torch.as_tensor(action, dtype=env.dtype, device=env.device)
+
+    def _preferred(self, ahead: np.ndarray, moving: np.ndarray) -> np.ndarray:
+        """Preferred velocities (B, N, 2) along the paths, braking on the last leg."""
+        ph = self._world.physics
+        B, N, _ = ahead.shape
+        wp, count = self._waypoints, self._num_waypoints
+        has_path = (count > 0) & (self.task_of_agent >= 0)
+        # Advance past intermediate waypoints already reached.
+        for _ in range(wp.shape[2]):
+            target = np.take_along_axis(wp, self._next[..., None, None].repeat(2, -1), 2)[:, :, 0]
+            near = np.linalg.norm(target - ahead, axis=-1) < self.waypoint_tolerance
+            step = near & (self._next < count - 1)
+            if not step.any():
+                break
+            self._next = self._next + step
+        target = np.take_along_axis(wp, self._next[..., None, None].repeat(2, -1), 2)[:, :, 0]
+        last = self._next >= count - 1
+        delta = target - ahead
+        dist = np.linalg.norm(delta, axis=-1)
+        cruise = self._cruise_speed()
+        # Last leg: the speed from which the AGV can still stop on the task, and at most the
+        # speed that lands exactly on it next step.
+        goal_speed = np.minimum(np.sqrt(2.0 * self.brake * dist), dist / ph.dt)
+        speed = np.where(last, np.minimum(cruise, goal_speed), cruise)
+        direction = delta / np.maximum(dist, 1e-9)[..., None]
+        pref = direction * speed[..., None]
+        return np.where((moving & has_path)[..., None], pref, 0.0)

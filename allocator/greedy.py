@@ -1,0 +1,132 @@
+"""Greedy nearest-first assignment: the weak baseline every smarter method must beat.
+
+AGVs take turns in index order; each takes the nearest task still free (by the same
+obstacle-aware travel costs as :mod:`allocator.hungarian`).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from allocator.base import Assignment, ClassicalAllocator, check_inputs, register
+from allocator.hungarian import plan_paths, unserved_reasons
+from allocator.paths import travel_costs
+
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.world import World
+
+__all__ = ["GreedyAllocator", "greedy_matching"]
+
+
+def greedy_matching(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """AGVs in index order each take their cheapest free task (``inf``: never taken).
+
+    Parameters
+    ----------
+    cost : np.ndarray, shape (N, M)
+
+    Returns
+    -------
+    rows, cols : np.ndarray of int64
+        Matched agent and task indices.
+    """
+    work = np.array(cost, dtype=np.float64, copy=True)
+    rows, cols = [], []
+    for i in range(work.shape[0]):
+        j = int(np.argmin(work[i]))
+        if not np.isfinite(work[i, j]):
+            continue
+        rows.append(i)
+        cols.append(j)
+        work[:, j] = np.inf
+        if len(cols) == work.shape[1]:
+            break
+    return np.array(rows, dtype=np.int64), np.array(cols, dtype=np.int64)
+
+
+@register("greedy")
+class GreedyAllocator(ClassicalAllocator):
+    """Each AGV in turn takes its nearest free task.
+
+    Parameters
+    ----------
+    planner : {None, "grid", "ompl", "prm"}
+        Plan a path for every served AGV in :meth:`assign` (None: no paths in the result).
+    resolution : float
+        Cell size of the occupancy grid used for obstacle-aware costs.
+    **controller_options
+        Passed to :class:`~allocator.controller.AllocatorController`.
+    """
+
+    name = "greedy"
+
+    def __init__(
+        self, planner: str | None = None, resolution: float = 0.05, seed: int = 0,
+        **controller_options: Any,
+    ) -> None:
+        super().__init__(**controller_options)
+        from allocator.hungarian import _make_planner
+
+        self.planner = planner
+        _make_planner(planner, None, seed)  # validates the name
+        self.resolution = resolution
+        self.seed = seed
+        self._planner: Any = None
+        self._planner_world: Any = None
+
+    def assign(
+        self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
+    ) -> Assignment:
+        """Greedy nearest-first assignment of N AGVs to M tasks.
+
+        Parameters
+        ----------
+        agents : array-like, shape (N, 2)
+        tasks : array-like, shape (M, 2)
+        world : World, optional
+
+        Returns
+        -------
+        Assignment
+            Same fields as :meth:`allocator.hungarian.HungarianAllocator.assign`; its cost is
+            never below the Hungarian one.
+
+        Raises
+        ------
+        ValueError
+            On bad input (see :func:`allocator.base.check_inputs`).
+
+        Examples
+        --------
+        >>> import allocator
+        >>> agents = [[0.0, 0.0], [1.0, 0.0]]
+        >>> tasks = [[0.6, 0.0], [-1.0, 0.0]]
+        >>> allocator.make("greedy").assign(agents, tasks).task_of_agent   # AGV 0 grabs task 0
+        array([0, 1])
+        >>> allocator.make("hungarian").assign(agents, tasks).task_of_agent
+        array([1, 0])
+        """
+        from allocator.hungarian import _make_planner
+
+        agents, tasks = check_inputs(agents, tasks, world)
+        cost = travel_costs(agents, tasks, world, self.resolution)
+        rows, cols = greedy_matching(cost)
+        task_of_agent = np.full(len(agents), -1, dtype=np.int64)
+        task_of_agent[rows] = cols
+        agent_of_task = np.full(len(tasks), -1, dtype=np.int64)
+        agent_of_task[cols] = rows
+        paths = None
+        if self.planner is not None:
+            if self._planner_world is not world:
+                self._planner = _make_planner(self.planner, world, self.seed)
+                self._planner_world = world
+            paths = plan_paths(agents, tasks, task_of_agent, world, self._planner)
+        return Assignment(
+            task_of_agent, agent_of_task, float(cost[rows, cols].sum()), paths=paths,
+            unserved=unserved_reasons(cost, agent_of_task), method=self.name,
+        )
+
+    def __repr__(self) -> str:
+        return f"GreedyAllocator(planner={self.planner!r})"
