@@ -1,0 +1,156 @@
+"""Train, select and ship policies: the one command that (re)creates any shipped weights.
+
+    python benchmarks/train_policies.py --scenario 3v3 --algo bicnet --reward ipf \
+        --seeds 0 1 2 --episodes 3000 [--jobs 2] [--set KEY=VALUE ...]
+
+For every seed it runs ``agv train`` into ``runs/<scenario>/<algo>-<reward>-s<seed>/`` (resuming
+a run that was interrupted), then
+
+- copies each seed's best-on-validation policy to
+  ``allocator/weights/<scenario>/seeds/<algo>-<reward>-s<seed>.safetensors`` (+ ``.json``);
+- ships the seed whose validation task response is highest (ties: lower validation time) as
+  ``allocator/weights/<scenario>/<algo>-<reward>.safetensors`` (+ ``.json``), the weights that
+  ``allocator.make("<algo>-<reward>", scenario=...)`` loads;
+- copies each seed's ``progress.csv`` to
+  ``benchmarks/results/training/<scenario>/<algo>-<reward>-s<seed>.csv`` (Fig. 9);
+- records the command, seeds, episodes, validation scores and wall-clock training time in
+  ``benchmarks/results/training/<scenario>/<algo>-<reward>.json``.
+
+Validation uses the training's evaluation episodes (seed 12345), never the test episodes of
+``benchmarks/paper_tables.py`` (seed 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from sim.io import atomic_save, atomic_write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+WEIGHTS = ROOT / "allocator" / "weights"
+TRAINING = ROOT / "benchmarks" / "results" / "training"
+
+
+def run_dir(scenario: str, name: str, seed: int) -> Path:
+    return ROOT / "runs" / scenario / f"{name}-s{seed}"
+
+
+def train_seed(args: argparse.Namespace, seed: int) -> tuple[int, float]:
+    """Run (or resume) one seed's training; returns (exit status, wall-clock seconds)."""
+    name = f"{args.algo}-{args.reward}"
+    folder = run_dir(args.scenario, name, seed)
+    log = folder.with_suffix(".log")
+    log.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "allocator.cli", "train", "--no-progress",
+           "--episodes", str(args.episodes)]
+    if (folder / "checkpoint.safetensors").exists():
+        cmd += ["--resume", str(folder)]
+    else:
+        cmd += ["--algo", args.algo, "--reward", args.reward, "--scenario", args.scenario,
+                "--seed", str(seed), "--run-dir", str(folder)]
+        for item in args.set:
+            cmd += ["--set", item]
+    for flag, value in (("--eval-every", args.eval_every), ("--eval-episodes", args.eval_episodes)):
+        if value is not None:
+            cmd += [flag, str(value)]
+    start = time.perf_counter()
+    with log.open("a") as fh:
+        fh.write(" ".join(cmd) + "\n")
+        fh.flush()
+        status = subprocess.call(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT)
+    return status, time.perf_counter() - start
+
+
+def validation(folder: Path) -> dict[str, float]:
+    """Best validation response, its time, and the run's total training seconds."""
+    with (folder / "progress.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    evals = [r for r in rows if r.get("eval_response_rate")]
+    if not evals:
+        raise ValueError(f"{folder}/progress.csv holds no evaluation; train longer")
+    best = max(evals, key=lambda r: (float(r["eval_response_rate"]), -float(r["eval_avg_time"])))
+    return {
+        "response_rate": float(best["eval_response_rate"]),
+        "avg_time": float(best["eval_avg_time"]),
+        "at_episode": int(float(best["episode"])),
+        "episodes": int(float(rows[-1]["episode"])),
+        "train_seconds": float(rows[-1]["seconds"]),
+    }
+
+
+def _copy_policy(src: Path, dst: Path) -> None:
+    """Copy a ``.safetensors`` file and its ``.json`` sidecar, each atomically."""
+    for suffix in (".safetensors", ".json"):
+        source = src.with_suffix(suffix)
+        atomic_save(lambda p, s=source: shutil.copyfile(s, p), dst.with_suffix(suffix))
+
+
+def ship(args: argparse.Namespace, seconds: dict[int, float]) -> dict:
+    """Copy every seed's best policy and log into the package and results; ship the best."""
+    name = f"{args.algo}-{args.reward}"
+    scores = {}
+    for seed in args.seeds:
+        folder = run_dir(args.scenario, name, seed)
+        scores[seed] = validation(folder)
+        _copy_policy(folder / "best.safetensors",
+                     WEIGHTS / args.scenario / "seeds" / f"{name}-s{seed}.safetensors")
+        log = TRAINING / args.scenario / f"{name}-s{seed}.csv"
+        atomic_save(lambda p, f=folder: shutil.copyfile(f / "progress.csv", p), log)
+    best = max(args.seeds, key=lambda s: (scores[s]["response_rate"], -scores[s]["avg_time"]))
+    _copy_policy(run_dir(args.scenario, name, best) / "best.safetensors",
+                 WEIGHTS / args.scenario / f"{name}.safetensors")
+    record = {
+        "method": name,
+        "scenario": args.scenario,
+        "command": "python benchmarks/train_policies.py " + " ".join(sys.argv[1:]),
+        "shipped_seed": best,
+        "validation_seed": 12345,
+        "seeds": {str(s): {**scores[s], "wall_seconds_this_call": round(seconds.get(s, 0.0), 1)}
+                  for s in args.seeds},
+        "date": time.strftime("%Y-%m-%d"),
+    }
+    atomic_write_text(TRAINING / args.scenario / f"{name}.json", json.dumps(record, indent=2))
+    return record
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", required=True)
+    parser.add_argument("--algo", required=True, choices=["maddpg", "bicnet"])
+    parser.add_argument("--reward", required=True, choices=["minidist", "greedy", "ipf"])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--episodes", type=int, required=True)
+    parser.add_argument("--jobs", type=int, default=1, help="seeds trained at the same time")
+    parser.add_argument("--eval-every", type=int, default=None)
+    parser.add_argument("--eval-episodes", type=int, default=None)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="learner hyperparameter override passed to agv train")
+    parser.add_argument("--ship-only", action="store_true",
+                        help="skip training; select and copy from existing runs")
+    args = parser.parse_args(argv)
+    seconds: dict[int, float] = {}
+    if not args.ship_only:
+        with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+            results = dict(zip(args.seeds, pool.map(lambda s: train_seed(args, s), args.seeds),
+                               strict=True))
+        failed = {s: code for s, (code, _) in results.items() if code != 0}
+        if failed:
+            print(f"training failed for seeds {failed}; see runs/{args.scenario}/*.log",
+                  file=sys.stderr)
+            return 1
+        seconds = {s: t for s, (_, t) in results.items()}
+    record = ship(args, seconds)
+    print(json.dumps(record, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
