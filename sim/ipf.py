@@ -73,6 +73,7 @@ __all__ = [
     "MAX_GREEN_BYTES",
     "IPFGrid",
     "IPFField",
+    "TaskBlockCache",
     "IPFReward",
     "ipf_grid",
     "ipf_field",
@@ -306,11 +307,23 @@ class IPFGrid:
         task_open: Tensor | None = None,
         task_value: float = TASK_VALUE,
         agent_value: float = AGENT_VALUE,
+        cache: TaskBlockCache | None = None,
     ) -> Tensor:
         """``r_IPF`` of every AGV in every environment: its own field at its own cell.
 
         Exact (the converged Jacobi fixed point up to float64 rounding), batched, no Python loop
-        over environments or AGVs: one ``(N + M) x (N + M)`` Cholesky inverse per environment.
+        over environments or AGVs. With ``K = G[T, T]`` over all of an environment's sources and
+        ``P = K^{-1}``, AGV i's value is ``v_i - (P v)_i / P_ii`` (see the module notes). Two
+        paths compute it:
+
+        - the *block path* (no two sources share a cell, the usual case): with the tasks'
+          block ``D = G[tasks, tasks]`` factored as ``L_D L_D^T``, ``X = L_D^{-1} G[tasks,
+          agents]`` and the Schur complement ``S = G[agents, agents] - X^T X``, ``P_AA = S^{-1}``
+          and ``(P v)_A = S^{-1} (v_A - X^T L_D^{-1} v_T)``. Tasks move only at resets and
+          claims, so ``L_D`` and ``L_D^{-1} v_T`` can be kept in ``cache`` and refreshed only
+          for the environments whose open tasks changed;
+        - the *general path* (some sources share a cell): one Cholesky factor of the whole
+          ``K`` with the colliding sources resolved by the module's rule.
 
         Parameters
         ----------
@@ -320,6 +333,8 @@ class IPFGrid:
             Unclaimed tasks (default all); claimed ones are not sources.
         task_value, agent_value : float
             The fixed potentials (+5 and -3 in the paper).
+        cache : TaskBlockCache, optional
+            Reused task factors (see :class:`TaskBlockCache`); updated in place.
 
         Returns
         -------
@@ -327,51 +342,93 @@ class IPFGrid:
             ``Phi_i(cell of AGV i)``. Where AGV i's cell holds one of its sources the value is
             that source's (AGV wins over task); on a fixed cell it is 0.
         """
-        B, N, _ = agent_pos.shape
-        M = task_pos.shape[1]
-        T = N + M
+        N = agent_pos.shape[1]
+        T = N + task_pos.shape[1]
         device = agent_pos.device
-        green, index = self._tables(device)
-        F = self.num_free
+        _, index = self._tables(device)
         cells = self.cell_of(torch.cat([agent_pos, task_pos], dim=1))  # (B, T), AGVs first
         fidx = index[cells]
-        candidate = fidx < F
+        candidate = fidx < self.num_free
         if task_open is not None:
             candidate[:, N:] &= task_open
-        # Colliding sources (two candidates on one cell) are rare; find them cheaply and pay
-        # for the (B, T, T) dedupe only when there are some.
+        # Colliding sources (two candidates on one cell) are rare; find them cheaply.
         spread = torch.where(candidate, cells, -1 - self._arange(T, device))
         ordered = spread.sort(dim=1).values
-        collide = bool((ordered[:, 1:] == ordered[:, :-1]).any())
-        if collide:
-            same = cells.unsqueeze(-1) == cells.unsqueeze(-2)  # (B, T, T)
-            kept = _dedupe(cells, candidate, same)
+        if bool((ordered[:, 1:] == ordered[:, :-1]).any()):
+            phi = self._potentials_general(cells, fidx, candidate, N, task_value, agent_value)
         else:
-            kept = candidate
+            phi = self._potentials_block(fidx, candidate, N, task_value, agent_value, cache)
+        return phi.to(agent_pos.dtype)
+
+    def _gather(self, rows: Tensor, cols: Tensor) -> Tensor:
+        """``G[rows[b, j], cols[b, k]]`` as (B, J, K) from the padded G (index F reads 0)."""
+        green, _ = self._tables(rows.device)
+        F1 = self.num_free + 1
+        flat = (rows.unsqueeze(-1) * F1 + cols.unsqueeze(-2)).view(-1)
+        return green.view(-1).index_select(0, flat).view(*rows.shape, cols.shape[-1])
+
+    def _potentials_block(
+        self, fidx: Tensor, candidate: Tensor, N: int, task_value: float, agent_value: float,
+        cache: TaskBlockCache | None,
+    ) -> Tensor:
+        """The block path of :meth:`agent_potentials` (no two candidates share a cell)."""
+        F = self.num_free
+        f_agents = torch.where(candidate[:, :N], fidx[:, :N], F)  # (B, N); F = not a source
+        f_tasks = torch.where(candidate[:, N:], fidx[:, N:], F)  # (B, M)
+        if cache is None:
+            cache = TaskBlockCache()
+        chol_d, u_tasks = cache.update(self, f_tasks, task_value)
+        off = self._gather(f_tasks, f_agents)  # (B, M, N) = G[tasks, agents]
+        x = torch.linalg.solve_triangular(chol_d, off, upper=False)  # L_D^{-1} G[T, A]
+        schur = self._gather(f_agents, f_agents) - x.mT @ x  # (B, N, N)
+        dropped = f_agents == F
+        schur.diagonal(dim1=-2, dim2=-1).add_(dropped)
+        v_agents = (~dropped).to(torch.float64) * agent_value
+        r = v_agents - (x.mT @ u_tasks.unsqueeze(-1)).squeeze(-1)  # (B, N)
+        chol_s, _ = torch.linalg.cholesky_ex(schur)
+        rhs = torch.empty(*r.shape, N + 1, dtype=torch.float64, device=r.device)
+        rhs[..., :N] = self._eye(N, r.device)
+        rhs[..., N] = r
+        z = torch.linalg.solve_triangular(chol_s, rhs, upper=False)  # (B, N, N + 1)
+        z_agents, z_r = z[..., :N], z[..., N:]
+        p_ii = (z_agents * z_agents).sum(1)  # diag(S^{-1}) = diag(P)_A
+        p_v = (z_agents * z_r).sum(1)  # (S^{-1} r) = (P v)_A
+        return v_agents - p_v / p_ii
+
+    def _potentials_general(
+        self, cells: Tensor, fidx: Tensor, candidate: Tensor, N: int, task_value: float,
+        agent_value: float,
+    ) -> Tensor:
+        """The general path of :meth:`agent_potentials`: any sources, colliding ones resolved."""
+        B, T = cells.shape
+        M = T - N
+        device = cells.device
+        F = self.num_free
+        same = cells.unsqueeze(-1) == cells.unsqueeze(-2)  # (B, T, T)
+        kept = _dedupe(cells, candidate, same)
         # K = G[T, T] over the kept sources; a dropped source reads the zero row and column F
         # of the padded G and gets a 1 on the diagonal, which decouples it (and a dropped AGV
         # gets Phi = 0 - 0 / 1 = 0, right for an AGV on a fixed cell).
         fidx_kept = torch.where(kept, fidx, F)
-        flat = (fidx_kept.unsqueeze(-1) * (F + 1) + fidx_kept.unsqueeze(-2)).view(-1)
-        gram = green.view(-1).index_select(0, flat).view(B, T, T)
+        gram = self._gather(fidx_kept, fidx_kept)
         gram.diagonal(dim1=-2, dim2=-1).add_(~kept)
         values = self._values(N, M, agent_value, task_value, device) * kept  # (B, T)
         # With K = C C^T and Y = C^{-1} [e_1 .. e_N, v]: P_ii = |Y_i|^2, (P v)_i = Y_i . Y_v, and
         # Phi_i = -(sum_{j != i} P_ij v_j) / P_ii = v_i - (P v)_i / P_ii.
         chol, _ = torch.linalg.cholesky_ex(gram)
-        rhs = torch.cat([self._eye(T, device)[:, :N].expand(B, T, N), values.unsqueeze(-1)], -1)
+        rhs = torch.empty(B, T, N + 1, dtype=torch.float64, device=device)
+        rhs[..., :N] = self._eye(T, device)[:, :N]
+        rhs[..., N] = values
         y = torch.linalg.solve_triangular(chol, rhs, upper=False)  # (B, T, N + 1)
         y_agents, y_values = y[..., :N], y[..., N:]
         p_ii = (y_agents * y_agents).sum(1)  # (B, N)
         p_v = (y_agents * y_values).sum(1)
         phi = values[:, :N] - p_v / p_ii
-        if collide:
-            # AGV i's own cell shared with one of its sources: that source's value (AGV wins).
-            not_self = ~self._eye(T, device, torch.bool)[:N]
-            coincide = same[:, :N] & candidate.unsqueeze(1) & not_self  # (B, N, T)
-            phi = torch.where(coincide[..., N:].any(-1), task_value, phi)
-            phi = torch.where(coincide[..., :N].any(-1), agent_value, phi)
-        return phi.to(agent_pos.dtype)
+        # AGV i's own cell shared with one of its sources: that source's value (AGV wins).
+        not_self = ~self._eye(T, device, torch.bool)[:N]
+        coincide = same[:, :N] & candidate.unsqueeze(1) & not_self  # (B, N, T)
+        phi = torch.where(coincide[..., N:].any(-1), task_value, phi)
+        return torch.where(coincide[..., :N].any(-1), agent_value, phi)
 
     @staticmethod
     @functools.lru_cache(maxsize=16)
@@ -389,6 +446,57 @@ class IPFGrid:
     @functools.lru_cache(maxsize=16)
     def _eye(n: int, device: torch.device, dtype: torch.dtype = torch.float64) -> Tensor:
         return torch.eye(n, dtype=dtype, device=device)
+
+
+class TaskBlockCache:
+    """The tasks' factors of :meth:`IPFGrid.agent_potentials`, kept between steps.
+
+    Holds, per environment, the free-cell indices of the open tasks (F for none), the Cholesky
+    factor ``L_D`` of ``G[tasks, tasks]`` and ``L_D^{-1} v_T``; :meth:`update` refreshes the
+    environments whose open tasks changed (a reset or a claim) and reuses the rest. One cache
+    serves one batch of environments on one grid; any other grid, shape or value rebuilds it.
+    """
+
+    def __init__(self) -> None:
+        self.grid: IPFGrid | None = None
+        self.key: tuple[tuple[int, ...], float, torch.device] | None = None
+        self.f_tasks: Tensor | None = None  # (B, M) int64
+        self.chol: Tensor | None = None  # (B, M, M) float64
+        self.u: Tensor | None = None  # (B, M) float64
+
+    def update(self, grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
+        """Factors for the open tasks ``f_tasks`` (B, M), recomputed only where they changed.
+
+        Returns
+        -------
+        chol : Tensor, shape (B, M, M)
+            ``L_D``, lower triangular, ``L_D L_D^T = G[tasks, tasks]`` (identity rows for
+            tasks that are not sources).
+        u : Tensor, shape (B, M)
+            ``L_D^{-1} v_T``.
+        """
+        key = (tuple(f_tasks.shape), float(task_value), f_tasks.device)
+        if self.grid is not grid or self.key != key or self.f_tasks is None:
+            self.grid, self.key, self.f_tasks = grid, key, f_tasks.clone()
+            self.chol, self.u = self._factor(grid, f_tasks, task_value)
+            return self.chol, self.u
+        changed = (f_tasks != self.f_tasks).any(dim=1).nonzero().flatten()
+        if len(changed):
+            chol, u = self._factor(grid, f_tasks[changed], task_value)
+            self.chol[changed] = chol
+            self.u[changed] = u
+            self.f_tasks[changed] = f_tasks[changed]
+        return self.chol, self.u
+
+    @staticmethod
+    def _factor(grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
+        dropped = f_tasks == grid.num_free
+        block = grid._gather(f_tasks, f_tasks)
+        block.diagonal(dim1=-2, dim2=-1).add_(dropped)
+        chol, _ = torch.linalg.cholesky_ex(block)
+        v = ((~dropped).to(torch.float64) * task_value).unsqueeze(-1)
+        u = torch.linalg.solve_triangular(chol, v, upper=False).squeeze(-1)
+        return chol, u
 
 
 def _dedupe(cells: Tensor, candidate: Tensor, same: Tensor | None = None) -> Tensor:
@@ -684,13 +792,15 @@ class IPFReward:
         self.resolution = resolution
         self.task_value = task_value
         self.agent_value = agent_value
+        self._cache = TaskBlockCache()
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
         grid = ipf_grid(env.world, self.resolution)
         n = env.num_agents
         active = ctx.active.unsqueeze(1)
         potential = grid.agent_potentials(
-            env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value, self.agent_value
+            env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value, self.agent_value,
+            cache=self._cache,
         )
         potential = torch.where(env.agent_task >= 0, potential.new_tensor(self.task_value),
                                 potential)

@@ -296,3 +296,37 @@ def test_plot_field_returns_a_figure_and_saves(tmp_path) -> None:
     path = tmp_path / "ipf.png"
     fig = plot_field(field, agents, tasks, 1, path=str(path), claimed=[False, True, False])
     assert fig.axes and path.stat().st_size > 1000
+
+
+# ---------------------------------------------------------------------- the two reward paths
+def test_block_path_equals_general_path() -> None:
+    grid = ipf_grid(SHELVES)
+    scenes = [_scene(SHELVES, 5, 4, seed=s) for s in range(4)]
+    agents = torch.from_numpy(np.stack([a for a, _ in scenes]))
+    tasks = torch.from_numpy(np.stack([t for _, t in scenes]))
+    _, index = grid._tables(torch.device("cpu"))
+    cells = grid.cell_of(torch.cat([agents, tasks], dim=1))
+    fidx = index[cells]
+    candidate = fidx < grid.num_free
+    candidate[1, 5:7] = False  # two claimed tasks
+    block = grid._potentials_block(fidx, candidate, 5, TASK_VALUE, AGENT_VALUE, None)
+    general = grid._potentials_general(cells, fidx, candidate, 5, TASK_VALUE, AGENT_VALUE)
+    torch.testing.assert_close(block, general, atol=1e-11, rtol=0)
+
+
+def test_task_cache_follows_resets_and_claims() -> None:
+    from sim.ipf import TaskBlockCache
+
+    env = sim.make_env("6v6", num_envs=8, reward="minidist", seed=3)
+    grid = ipf_grid(env.world)
+    cache = TaskBlockCache()
+    gen = torch.Generator().manual_seed(0)
+    for k in range(12):
+        if k % 5 == 4:
+            env.reset(env_ids=[0, 3, 5])
+        env.step(torch.rand(8, 6, 2, generator=gen) * 2 - 1)
+        args = (env.agent_pos, env.task_pos, ~env.task_claimed)
+        cached = grid.agent_potentials(*args, cache=cache)
+        fresh = grid.agent_potentials(*args)
+        torch.testing.assert_close(cached, fresh, atol=1e-6, rtol=0)
+    assert env.task_claimed.any()

@@ -76,9 +76,13 @@ def test_ipf_matches_the_reference_field_at_the_default_resolution() -> None:
     for _ in range(4):
         _, _, _, info = env.step(torch.rand(3, 6, 2, generator=gen) * 2 - 1)
     got = info["reward_terms"]["ipf"]
+    assert (env.agent_task >= 0).any() and (env.agent_task < 0).any()
     for b in range(3):
         claimed = env.task_claimed[b].numpy()
         for i in range(6):
+            if env.agent_task[b, i] >= 0:  # parked on the task it serves: that task's +5
+                assert float(got[b, i]) == 5.0
+                continue
             field = ipf_field(env.agent_pos[b].numpy(), env.task_pos[b].numpy(), agent=i,
                               world=env.world, claimed=claimed)
             assert float(got[b, i]) == pytest.approx(field.value_at_agent, abs=1e-5)
