@@ -63,12 +63,12 @@ class AvoidanceConfig:
 
     radius: float = 0.15
     """AGV disc radius."""
-    margin: float = 0.04
+    margin: float = 0.06
     """Safety margin added to the combined radius of two moving AGVs."""
     static_margin: float = 0.01
     """Margin against parked AGVs, walls, shelves and forbidden points (they do not move, so
     their positions are exact and a small margin suffices: gaps between parked AGVs stay open)."""
-    time_horizon: float = 0.6
+    time_horizon: float = 1.0
     """ORCA time horizon for AGV pairs: no collision within this time if both comply."""
     obstacle_time_horizon: float = 0.25
     """Time horizon for walls, shelves and forbidden points."""

@@ -53,6 +53,10 @@ class AllocatorController:
         Keep AGVs off tasks that are not theirs (an idle AGV claims any task it touches).
     avoidance_options : dict, optional
         Overrides of :class:`~allocator.avoidance.AvoidanceConfig`.
+    waypoint_tolerance : float
+        Distance at which an intermediate waypoint counts as reached.
+    stuck_steps : int
+        Steps without progress towards its task after which an AGV is re-routed around parked AGVs.
     seed : int
         Seed of the OMPL planner.
 
@@ -77,6 +81,7 @@ class AllocatorController:
         avoid_tasks: bool = True,
         avoidance_options: dict[str, Any] | None = None,
         waypoint_tolerance: float = 0.12,
+        stuck_steps: int = 5,
         seed: int = 0,
     ) -> None:
         if planner not in ("auto", "ompl", "prm", "grid"):
@@ -90,6 +95,7 @@ class AllocatorController:
         self.avoid_tasks = avoid_tasks
         self.avoidance_options = dict(avoidance_options or {})
         self.waypoint_tolerance = waypoint_tolerance
+        self.stuck_steps = stuck_steps
         self.seed = seed
         self.env: Any = None
         self._world: Any = None
@@ -115,6 +121,9 @@ class AllocatorController:
         self._num_waypoints = np.zeros((B, N), dtype=np.int64)
         self._next = np.zeros((B, N), dtype=np.int64)
         self._steps = 0
+        self._stuck = np.zeros((B, N), dtype=np.int64)
+        self._best = np.full((B, N), np.inf)
+        self.replans = 0
         self.reassign()
 
     def reassign(self, env_ids: Any = None) -> None:
@@ -170,9 +179,7 @@ class AllocatorController:
 
                 kind = "prm" if self.planner_kind == "prm" else "rrtconnect"
                 self._planner = OMPLPlanner(self._world, planner=kind, seed=self.seed)
-        if hasattr(self._planner, "plan"):
-            return self._planner.plan(start, goal)
-        return self._planner.path(start, goal)
+        return self._planner.plan(start, goal)
 
     def _pack_paths(self) -> None:
         """Paths into one padded array (B, N, W, 2) so the step is vectorised."""
@@ -244,6 +251,7 @@ class AllocatorController:
             self.reassign(np.flatnonzero(redo))
 
         moving = (held < 0) & ~done[:, None]
+        self._replan_stuck(pos, vel, held, tasks, moving)
         ahead = pos + vel * ph.dt  # where each AGV will be when the new velocity acts
         preferred = self._preferred(ahead, moving)
 
@@ -268,6 +276,58 @@ class AllocatorController:
         action = np.where(moving[..., None], action, 0.0)
         self.timing["act"] += time.perf_counter() - t_start
         return torch.as_tensor(action, dtype=env.dtype, device=env.device)
+
+    def _replan_stuck(
+        self, pos: np.ndarray, vel: np.ndarray, held: np.ndarray, tasks: np.ndarray,
+        moving: np.ndarray,
+    ) -> None:
+        """Route AGVs that stopped short of their task around the parked AGVs.
+
+        Paths are planned among the shelves only; an AGV that parks on a route can block it
+        (ORCA is local and waits in front of a gap too narrow to pass). After
+        ``stuck_steps`` slow steps away from its task, an AGV gets a grid path on a map where
+        every parked AGV is a square shelf.
+        """
+        goal = np.take_along_axis(tasks, np.maximum(self.task_of_agent, 0)[..., None], 1)
+        dist = np.linalg.norm(goal - pos, axis=-1)
+        active = moving & (self.task_of_agent >= 0) & (dist > 2 * self._world.capture_radius)
+        progress = dist < self._best - 0.02
+        self._best = np.where(progress | ~active, dist, self._best)
+        self._stuck = np.where(active & ~progress, self._stuck + 1, 0)
+        todo = np.argwhere(self._stuck >= self.stuck_steps)
+        if not len(todo):
+            return
+        from dataclasses import replace
+
+        from allocator.paths import GridMap
+
+        world = self._world
+        r = world.agent_radius
+        for b in np.unique(todo[:, 0]):
+            parked = pos[b][held[b] >= 0]
+            boxes = np.concatenate([parked - r, parked + r], axis=1)
+            blocked = replace(world, obstacles=np.concatenate([world.obstacles, boxes]))
+            grid = GridMap(blocked, resolution=0.04)
+            for i in todo[todo[:, 0] == b, 1]:
+                path = grid.path(pos[b, i], goal[b, i])
+                self._stuck[b, i] = 0
+                self._best[b, i] = np.inf
+                if path is None:
+                    continue
+                self.replans += 1
+                self._paths[b][i] = path
+                self._set_path(b, i, path)
+
+    def _set_path(self, b: int, i: int, path: np.ndarray) -> None:
+        """Replace one AGV's waypoints (grows the padded array if needed)."""
+        if len(path) > self._waypoints.shape[2]:
+            extra = len(path) - self._waypoints.shape[2]
+            pad = np.repeat(self._waypoints[:, :, -1:], extra, axis=2)
+            self._waypoints = np.concatenate([self._waypoints, pad], axis=2)
+        self._waypoints[b, i, : len(path)] = path
+        self._waypoints[b, i, len(path):] = path[-1]
+        self._num_waypoints[b, i] = len(path)
+        self._next[b, i] = 1
 
     def _preferred(self, ahead: np.ndarray, moving: np.ndarray) -> np.ndarray:
         """Preferred velocities (B, N, 2) along the paths, braking on the last leg."""

@@ -237,6 +237,10 @@ class GridMap:
         pts = np.concatenate([start[None], self.centres[cells[::-1]], goal[None]])
         return self.shortcut(pts)
 
+    def plan(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
+        """Same as :meth:`path` (the planner interface shared with :class:`OMPLPlanner`)."""
+        return self.path(start, goal)
+
     def shortcut(self, pts: np.ndarray) -> np.ndarray:
         """Greedy string pulling: keep a waypoint only where line of sight breaks."""
         out = [pts[0]]
@@ -344,7 +348,7 @@ class OMPLPlanner:
         from ompl import util as ou
 
         ou.setLogLevel(ou.LogLevel.LOG_WARN)
-        ou.RNG.setSeed(int(seed))
+        ou.RNG.setSeed(int(seed) + 1)  # OMPL rejects 0
         self.world = world
         self.kind = planner
         self.clearance = world.agent_radius + DEFAULT_MARGIN if clearance is None else clearance
