@@ -322,8 +322,9 @@ class IPFGrid:
           and ``(P v)_A = S^{-1} (v_A - X^T L_D^{-1} v_T)``. Tasks move only at resets and
           claims, so ``L_D`` and ``L_D^{-1} v_T`` can be kept in ``cache`` and refreshed only
           for the environments whose open tasks changed;
-        - the *general path* (some sources share a cell): one Cholesky factor of the whole
-          ``K`` with the colliding sources resolved by the module's rule.
+        - the *general path*, for the environments where some sources share a cell (two AGVs
+          overlapping deeply, say): one Cholesky factor of the whole ``K`` with the colliding
+          sources resolved by the module's rule.
 
         Parameters
         ----------
@@ -352,12 +353,14 @@ class IPFGrid:
         if task_open is not None:
             candidate[:, N:] &= task_open
         # Colliding sources (two candidates on one cell) are rare; find them cheaply.
-        spread = torch.where(candidate, cells, -1 - self._arange(T, device))
+        spread = torch.where(candidate, cells, self._negative_arange(T, device))
         ordered = spread.sort(dim=1).values
-        if bool((ordered[:, 1:] == ordered[:, :-1]).any()):
-            phi = self._potentials_general(cells, fidx, candidate, N, task_value, agent_value)
-        else:
-            phi = self._potentials_block(fidx, candidate, N, task_value, agent_value, cache)
+        collide = (ordered[:, 1:] == ordered[:, :-1]).any(dim=1).nonzero().flatten()
+        phi = self._potentials_block(fidx, candidate, N, task_value, agent_value, cache)
+        if len(collide):  # those environments only (the block path is wrong for them)
+            phi[collide] = self._potentials_general(
+                cells[collide], fidx[collide], candidate[collide], N, task_value, agent_value
+            )
         return phi.to(agent_pos.dtype)
 
     def _gather(self, rows: Tensor, cols: Tensor) -> Tensor:
@@ -373,26 +376,23 @@ class IPFGrid:
     ) -> Tensor:
         """The block path of :meth:`agent_potentials` (no two candidates share a cell)."""
         F = self.num_free
-        f_agents = torch.where(candidate[:, :N], fidx[:, :N], F)  # (B, N); F = not a source
-        f_tasks = torch.where(candidate[:, N:], fidx[:, N:], F)  # (B, M)
+        f_all = torch.where(candidate, fidx, F)  # F = not a source (reads G's zero row)
+        f_agents, f_tasks = f_all[:, :N], f_all[:, N:]
         if cache is None:
             cache = TaskBlockCache()
-        chol_d, u_tasks = cache.update(self, f_tasks, task_value)
-        off = self._gather(f_tasks, f_agents)  # (B, M, N) = G[tasks, agents]
-        x = torch.linalg.solve_triangular(chol_d, off, upper=False)  # L_D^{-1} G[T, A]
-        schur = self._gather(f_agents, f_agents) - x.mT @ x  # (B, N, N)
+        inv_chol_d, u_tasks = cache.update(self, f_tasks, task_value)  # L_D^{-1}, L_D^{-1} v_T
+        rows = self._gather(f_agents, torch.cat([f_tasks, f_agents], dim=1))  # G[A, T ++ A]
+        x_t = rows[..., : f_tasks.shape[1]] @ inv_chol_d.mT  # X^T = G[A, T] L_D^{-T}, (B, N, M)
+        schur = rows[..., f_tasks.shape[1]:] - x_t @ x_t.mT  # S = G[A, A] - X^T X, (B, N, N)
         dropped = f_agents == F
         schur.diagonal(dim1=-2, dim2=-1).add_(dropped)
         v_agents = (~dropped).to(torch.float64) * agent_value
-        r = v_agents - (x.mT @ u_tasks.unsqueeze(-1)).squeeze(-1)  # (B, N)
-        chol_s, _ = torch.linalg.cholesky_ex(schur)
-        rhs = torch.empty(*r.shape, N + 1, dtype=torch.float64, device=r.device)
-        rhs[..., :N] = self._eye(N, r.device)
-        rhs[..., N] = r
-        z = torch.linalg.solve_triangular(chol_s, rhs, upper=False)  # (B, N, N + 1)
-        z_agents, z_r = z[..., :N], z[..., N:]
-        p_ii = (z_agents * z_agents).sum(1)  # diag(S^{-1}) = diag(P)_A
-        p_v = (z_agents * z_r).sum(1)  # (S^{-1} r) = (P v)_A
+        r = v_agents - (x_t * u_tasks.unsqueeze(1)).sum(-1)  # v_A - G[A,T] D^{-1} v_T
+        # P_AA = S^{-1} and (P v)_A = S^{-1} r; N x N LU inverses are the cheapest batched
+        # LAPACK call here, and S is well conditioned (a Schur complement of G[T, T]).
+        p_aa, _ = torch.linalg.inv_ex(schur)
+        p_ii = p_aa.diagonal(dim1=-2, dim2=-1)
+        p_v = (p_aa * r.unsqueeze(1)).sum(-1)
         return v_agents - p_v / p_ii
 
     def _potentials_general(
@@ -432,8 +432,8 @@ class IPFGrid:
 
     @staticmethod
     @functools.lru_cache(maxsize=16)
-    def _arange(n: int, device: torch.device) -> Tensor:
-        return torch.arange(n, device=device)
+    def _negative_arange(n: int, device: torch.device) -> Tensor:
+        return -1 - torch.arange(n, device=device)
 
     @staticmethod
     @functools.lru_cache(maxsize=16)
@@ -451,17 +451,18 @@ class IPFGrid:
 class TaskBlockCache:
     """The tasks' factors of :meth:`IPFGrid.agent_potentials`, kept between steps.
 
-    Holds, per environment, the free-cell indices of the open tasks (F for none), the Cholesky
-    factor ``L_D`` of ``G[tasks, tasks]`` and ``L_D^{-1} v_T``; :meth:`update` refreshes the
-    environments whose open tasks changed (a reset or a claim) and reuses the rest. One cache
-    serves one batch of environments on one grid; any other grid, shape or value rebuilds it.
+    Holds, per environment, the free-cell indices of the open tasks (F for none), the inverse
+    ``L_D^{-1}`` of the Cholesky factor of ``G[tasks, tasks]`` and ``L_D^{-1} v_T``;
+    :meth:`update` refreshes the environments whose open tasks changed (a reset or a claim) and
+    reuses the rest. One cache serves one batch of environments on one grid; any other grid,
+    shape or value rebuilds it.
     """
 
     def __init__(self) -> None:
         self.grid: IPFGrid | None = None
         self.key: tuple[tuple[int, ...], float, torch.device] | None = None
         self.f_tasks: Tensor | None = None  # (B, M) int64
-        self.chol: Tensor | None = None  # (B, M, M) float64
+        self.inv_chol: Tensor | None = None  # (B, M, M) float64
         self.u: Tensor | None = None  # (B, M) float64
 
     def update(self, grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
@@ -469,24 +470,24 @@ class TaskBlockCache:
 
         Returns
         -------
-        chol : Tensor, shape (B, M, M)
-            ``L_D``, lower triangular, ``L_D L_D^T = G[tasks, tasks]`` (identity rows for
-            tasks that are not sources).
+        inv_chol : Tensor, shape (B, M, M)
+            ``L_D^{-1}``, lower triangular, where ``L_D L_D^T = G[tasks, tasks]`` (identity rows
+            for tasks that are not sources).
         u : Tensor, shape (B, M)
             ``L_D^{-1} v_T``.
         """
         key = (tuple(f_tasks.shape), float(task_value), f_tasks.device)
         if self.grid is not grid or self.key != key or self.f_tasks is None:
             self.grid, self.key, self.f_tasks = grid, key, f_tasks.clone()
-            self.chol, self.u = self._factor(grid, f_tasks, task_value)
-            return self.chol, self.u
+            self.inv_chol, self.u = self._factor(grid, f_tasks, task_value)
+            return self.inv_chol, self.u
         changed = (f_tasks != self.f_tasks).any(dim=1).nonzero().flatten()
         if len(changed):
-            chol, u = self._factor(grid, f_tasks[changed], task_value)
-            self.chol[changed] = chol
+            inv_chol, u = self._factor(grid, f_tasks[changed], task_value)
+            self.inv_chol[changed] = inv_chol
             self.u[changed] = u
             self.f_tasks[changed] = f_tasks[changed]
-        return self.chol, self.u
+        return self.inv_chol, self.u
 
     @staticmethod
     def _factor(grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
@@ -494,9 +495,10 @@ class TaskBlockCache:
         block = grid._gather(f_tasks, f_tasks)
         block.diagonal(dim1=-2, dim2=-1).add_(dropped)
         chol, _ = torch.linalg.cholesky_ex(block)
-        v = ((~dropped).to(torch.float64) * task_value).unsqueeze(-1)
-        u = torch.linalg.solve_triangular(chol, v, upper=False).squeeze(-1)
-        return chol, u
+        eye = torch.eye(f_tasks.shape[1], dtype=torch.float64, device=f_tasks.device)
+        inv_chol = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+        u = (inv_chol * ((~dropped).to(torch.float64) * task_value).unsqueeze(1)).sum(-1)
+        return inv_chol, u
 
 
 def _dedupe(cells: Tensor, candidate: Tensor, same: Tensor | None = None) -> Tensor:
