@@ -112,9 +112,6 @@ class LearnedAllocator:
         from sim.scenarios import Scenario
 
         base = self.scenario
-        if self.policy.algo == "maddpg" and n != self.policy.num_agents:
-            raise ValueError(f"{self.name} (MADDPG) has one actor per AGV and was trained for "
-                             f"N={self.policy.num_agents}; got {n} agents")
         if n == base.num_agents and m == base.num_tasks and world is None:
             scn = base
         else:
@@ -145,14 +142,21 @@ class LearnedAllocator:
         Assignment
             ``task_of_agent`` / ``agent_of_task`` from the claims at the end of the episode
             (-1 where an AGV claimed nothing or a task was not reached within the step limit),
-            ``cost`` the distance travelled by all AGVs, ``paths`` the trajectory (T_i + 1, 2)
-            of each serving AGV up to its claim (None for idle AGVs), ``unserved`` the reason
-            for every unserved task. ``last_trajectories`` holds every AGV's full trajectory.
+            ``cost`` the distance travelled by all AGVs (serving AGVs counted to their task),
+            ``paths`` the trajectory of each serving AGV up to its claim followed by the task
+            position (None for idle AGVs), ``unserved`` the reason for every unserved task.
+            ``last_trajectories`` holds every AGV's full trajectory.
 
         Raises
         ------
         ValueError
-            On bad input; for MADDPG, on an N other than the trained one.
+            On bad input (shapes, NaN, positions outside the world).
+
+        Notes
+        -----
+        Scenes of another size keep the trained scenario's sensing (``k_tasks``, ``k_agents``),
+        so the observation size matches; BiCNet runs at any N, and MADDPG drives AGV i with
+        actor ``i mod N_trained``.
         """
         import torch
 
@@ -173,20 +177,27 @@ class LearnedAllocator:
         agent_of_task = np.full(m, -1, dtype=np.int64)
         served = np.flatnonzero(task_of_agent >= 0)
         agent_of_task[task_of_agent[served]] = served
+        traj[0] = agents
         steps = np.linalg.norm(np.diff(traj, axis=0), axis=-1)  # (T, N)
         paths: list[np.ndarray | None] = []
         for i in range(n):
             if task_of_agent[i] < 0:
                 paths.append(None)
                 continue
+            # up to the claim (the AGV parks there), then the task itself, which lies within
+            # the capture radius of the last position
             moving = np.flatnonzero(steps[:, i] > 0)
             end = int(moving[-1]) + 2 if len(moving) else 1
-            paths.append(traj[:end, i])
+            paths.append(np.concatenate([traj[:end, i], tasks[task_of_agent[i]][None]]))
+        idle = task_of_agent < 0
+        cost = float(steps[:, idle].sum()) + sum(
+            float(np.linalg.norm(np.diff(p, axis=0), axis=-1).sum()) for p in paths
+            if p is not None)
         limit = env.max_steps
-        unserved = {int(j): (f"not claimed within the step limit ({limit} steps)"
-                             if m <= n else "no AGV left or not reached within the step limit")
-                    for j in np.flatnonzero(agent_of_task < 0)}
-        return Assignment(task_of_agent, agent_of_task, float(steps.sum()), paths=paths,
+        reason = ("no AGV left: every AGV serves another task" if len(served) == n
+                  else f"not claimed within the step limit ({limit} steps)")
+        unserved = {int(j): reason for j in np.flatnonzero(agent_of_task < 0)}
+        return Assignment(task_of_agent, agent_of_task, cost, paths=paths,
                           unserved=unserved, method=self.name)
 
     def __repr__(self) -> str:

@@ -26,6 +26,7 @@ from torch import Tensor
 __all__ = [
     "FORMAT", "FORMAT_VERSION", "save_checkpoint", "load_checkpoint", "read_metadata",
     "resolve_checkpoint_path", "validate_metadata", "code_version", "tensor_digest",
+    "export_policy",
 ]
 
 FORMAT = "agv-learner-checkpoint"
@@ -230,3 +231,16 @@ def load_checkpoint(
         raise ValueError(f"checkpoint {path} is corrupted: its tensors do not match the SHA-256 "
                          "recorded when it was written")
     return tensors, meta
+
+
+def export_policy(source: str | os.PathLike[str], target: str | os.PathLike[str]) -> Path:
+    """Copy a policy checkpoint (checked on the way) to ``target`` with its JSON sidecar, e.g.
+    into ``allocator/weights/<scenario>/<algo>-<reward>.safetensors``.
+
+    Returns
+    -------
+    Path
+        The safetensors file written.
+    """
+    tensors, meta = load_checkpoint(source, kind="policy")
+    return save_checkpoint(target, tensors, meta)

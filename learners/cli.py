@@ -49,6 +49,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="KEY=VALUE",
                         help="override a learner hyperparameter, e.g. --set batch_size=512 "
                              "(see MADDPGConfig / BiCNetConfig); repeatable")
+    parser.add_argument("--export", metavar="PATH", default=None,
+                        help="after training, copy the best evaluated policy to PATH (e.g. "
+                             "allocator/weights/3v3/bicnet-ipf.safetensors)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -107,6 +110,13 @@ def run_train(args: argparse.Namespace) -> int:
                 setattr(config, key, getattr(args, key))
         config.progress = not args.no_progress
         result = train(config, learner_config, resume=bool(args.resume))
+        if args.export and not result.interrupted:
+            from learners.checkpoint import export_policy
+
+            best = result.run_dir / "best.safetensors"
+            exported = export_policy(best if best.is_file() else
+                                     result.run_dir / "policy.safetensors", args.export)
+            print(f"exported the best policy to {exported}")
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)
         return 2

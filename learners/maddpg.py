@@ -102,13 +102,18 @@ class MADDPG(ActorCritic):
         self.actor = StackedMLP(n, obs_dim, 2, h, config.layers)
         self.critic = StackedMLP(n, sizes[config.critic_input] + 2 * n, 1, h, config.layers)
         self._finish_init()
-        self.register_buffer("_eye", torch.eye(n, dtype=torch.bool).view(n, n, 1, 1),
-                             persistent=False)
+        self.register_buffer("_agents", torch.arange(n), persistent=False)
 
     def _actor_out(self, obs: Tensor, target: bool = False) -> Tensor:
-        """Pre-tanh actor outputs, (B, N, O) -> (N, B, 2)."""
+        """Pre-tanh actor outputs, (B, N, O) -> (N, B, 2).
+
+        On a scene with N' != N AGVs (deployment only), AGV i runs actor ``i mod N``: each
+        actor reads only its own AGV's local observation, so any actor can drive any AGV.
+        """
         net = self.target_actor if target else self.actor
-        return net(obs.transpose(0, 1))
+        n = obs.shape[1]
+        index = None if n == self.num_agents else torch.arange(n) % self.num_agents
+        return net(obs.transpose(0, 1), index)
 
     def policy(self, obs: Tensor, target: bool = False) -> Tensor:
         """Deterministic actions, (B, N, O) -> (B, N, 2), zero for parked AGVs."""
@@ -125,7 +130,23 @@ class MADDPG(ActorCritic):
         """Every critic on the same joint action: (B, C), (B, N, 2) -> (B, N)."""
         net = self.target_critic if target else self.critic
         x = torch.cat([features, action.reshape(action.shape[0], -1)], dim=-1)
-        return net(x).squeeze(-1).transpose(0, 1)
+        return self._critic_tail(net, self._critic_head(net, x)).transpose(0, 1)
+
+    @staticmethod
+    def _critic_head(net: StackedMLP, x: Tensor) -> Tensor:
+        """First critic layer on an input shared by all N critics, as one GEMM:
+        (B, D) @ (D, N H) -> (N, B, H), pre-activation."""
+        layer = net.layers[0]
+        n, d, h = layer.weight.shape
+        out = x @ layer.weight.permute(1, 0, 2).reshape(d, n * h)
+        return out.view(-1, n, h).transpose(0, 1) + layer.bias
+
+    @staticmethod
+    def _critic_tail(net: StackedMLP, h: Tensor) -> Tensor:
+        """The critic layers after the first, (N, B, H) pre-activation -> (N, B)."""
+        for layer in net.layers[1:]:
+            h = layer(torch.relu(h))
+        return h.squeeze(-1)
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One MADDPG update of all agents from a sampled batch.
@@ -157,15 +178,20 @@ class MADDPG(ActorCritic):
         clip_grad_norm_per_agent_(list(self.critic.parameters()), cfg.grad_clip)
         self.critic_optimizer.step()
 
-        # Actors: critic i sees mu_i(o_i) in slot i and the buffer's actions elsewhere.
+        # Actors: critic i sees mu_i(o_i) in slot i and the buffer's actions elsewhere. Its
+        # first layer is linear, so [x, a with a_i = mu_i] W_i = [x, a] W_i + (mu_i - a_i) W_i,a_i:
+        # the shared part is one GEMM without gradient, the own-action part one small bmm.
         pre = self._actor_out(batch.obs)  # (N, B, 2)
         movable = movable_mask(batch.obs).transpose(0, 1)  # (N, B, 1)
         mu = torch.tanh(pre) * (movable if cfg.mask_parked else 1.0)
         taken = batch.action.transpose(0, 1)  # (N, B, 2)
-        joint = torch.where(self._eye, mu.unsqueeze(0), taken.unsqueeze(0))  # (N_i, N_j, B, 2)
-        joint = joint.permute(0, 2, 1, 3).reshape(n, bsz, 2 * n)
-        x = torch.cat([features.unsqueeze(0).expand(n, -1, -1), joint], dim=-1)
-        q_pi = self.critic(x).squeeze(-1)  # (N, B)
+        first = self.critic.layers[0].weight.detach()  # (N, C + 2N, H)
+        c = features.shape[1]
+        own = first[:, c:].reshape(n, n, 2, -1)[self._agents, self._agents]  # (N, 2, H)
+        with torch.no_grad():
+            base = self._critic_head(self.critic, torch.cat(
+                [features, batch.action.reshape(bsz, -1)], dim=-1))
+        q_pi = self._critic_tail(self.critic, base + torch.bmm(mu - taken, own))  # (N, B)
         weight = movable.squeeze(-1) if cfg.mask_parked else torch.ones_like(q_pi)
         actor_loss = -(q_pi * weight).mean(1).sum()
         reg = cfg.action_l2 * (pre.pow(2).mean(dim=(1, 2))).sum()

@@ -54,9 +54,11 @@ class StackedLinear(nn.Module):
             self.weight.uniform_(-bound, bound)
             self.bias.uniform_(-bound, bound)
 
-    def forward(self, x: Tensor) -> Tensor:
-        """(N, B, in) -> (N, B, out)."""
-        return torch.baddbmm(self.bias, x, self.weight)
+    def forward(self, x: Tensor, index: Tensor | None = None) -> Tensor:
+        """(N, B, in) -> (N, B, out); with ``index`` (K,), layer ``index[k]`` maps ``x[k]``."""
+        if index is None:
+            return torch.baddbmm(self.bias, x, self.weight)
+        return torch.baddbmm(self.bias[index], x, self.weight[index])
 
     def extra_repr(self) -> str:
         return f"num_stacks={self.num_stacks}, in={self.in_features}, out={self.out_features}"
@@ -96,12 +98,16 @@ class StackedMLP(nn.Module):
             for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True))
         )
 
-    def forward(self, x: Tensor) -> Tensor:
-        """(N, B, in) -> (N, B, out); an (B, in) input is shared by all N MLPs."""
+    def forward(self, x: Tensor, index: Tensor | None = None) -> Tensor:
+        """(N, B, in) -> (N, B, out); an (B, in) input is shared by all N MLPs.
+
+        With ``index`` (K,) of MLP numbers, ``x`` is (K, B, in) and MLP ``index[k]`` maps
+        ``x[k]`` (one MLP may serve several rows).
+        """
         if x.dim() == 2:
             x = x.unsqueeze(0).expand(self.layers[0].num_stacks, -1, -1)
         for i, layer in enumerate(self.layers):
-            x = layer(x)
+            x = layer(x, index)
             if i < len(self.layers) - 1:
                 x = torch.relu(x)
         return x

@@ -93,16 +93,18 @@ class LearnedPolicy:
         Raises
         ------
         ValueError
-            If O differs from the training observation size, or (MADDPG) N differs.
+            If O differs from the training observation size.
+
+        Notes
+        -----
+        BiCNet shares its weights across agents and runs at any N. A MADDPG policy trained
+        with N actors drives AGV i of a scene with another N by actor ``i mod N``.
         """
         obs = torch.as_tensor(obs, dtype=torch.float32)
         if obs.dim() != 3 or obs.shape[-1] != self.obs_dim:
             raise ValueError(f"observations must have shape (B, N, {self.obs_dim}) for this "
                              f"{self.algo} policy (trained on {self.scenario}), got "
                              f"{tuple(obs.shape)}")
-        if self.algo == "maddpg" and obs.shape[1] != self.num_agents:
-            raise ValueError(f"this MADDPG policy has one actor per AGV for N={self.num_agents} "
-                             f"(trained on {self.scenario}), got observations of N={obs.shape[1]}")
         return self.learner.act(obs)
 
     __call__ = act

@@ -1,0 +1,129 @@
+"""The training entry point: smoke runs, determinism, resume, bad input."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+
+import pytest
+import torch
+from conftest import TINY
+
+from learners.cli import add_evaluate_arguments, add_train_arguments, run_evaluate, run_train
+from learners.train import CSV_COLUMNS, TrainConfig, train
+
+
+def _cli(add, run, argv: list[str]) -> int:
+    parser = argparse.ArgumentParser()
+    add(parser)
+    return run(parser.parse_args(argv))
+
+
+def _tiny_args(algo: str, run_dir, episodes: int = 32) -> list[str]:
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    return ["--algo", algo, "--reward", "ipf", "--scenario", "3v3", "--episodes", str(episodes),
+            "--seed", "0", "--run-dir", str(run_dir), "--eval-every", "16",
+            "--eval-episodes", "8", "--checkpoint-every", "16", "--no-progress", *sets]
+
+
+def _tiny_config(algo: str, run_dir, episodes: int, **kw) -> TrainConfig:
+    return TrainConfig(algo=algo, reward="minidist", scenario="3v3", episodes=episodes, seed=3,
+                       run_dir=str(run_dir), eval_every=16, eval_episodes=4, log_every=8,
+                       checkpoint_every=16, progress=False, **kw)
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "bicnet"])
+def test_agv_train_smoke_then_evaluate(tmp_path, algo, capsys):
+    """`agv train` end to end on a tiny budget, then `agv evaluate` on what it wrote."""
+    run_dir = tmp_path / "run"
+    export = tmp_path / "weights" / f"{algo}-ipf.safetensors"
+    assert _cli(add_train_arguments, run_train,
+                [*_tiny_args(algo, run_dir), "--export", str(export)]) == 0
+    for name in ("checkpoint", "policy", "best"):
+        assert (run_dir / f"{name}.safetensors").is_file()
+        assert (run_dir / f"{name}.json").is_file()
+    assert export.is_file() and export.with_suffix(".json").is_file()
+    with (run_dir / "progress.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert set(CSV_COLUMNS) <= set(rows[0]) and {"train_term_ipf", "train_term_goal"} <= set(
+        rows[0])
+    assert int(rows[-1]["episode"]) >= 32 and rows[-1]["eval_response_rate"] != ""
+    capsys.readouterr()
+    assert _cli(add_evaluate_arguments, run_evaluate, [str(export), "--episodes", "6"]) == 0
+    out = capsys.readouterr().out
+    assert "task response rate" in out and "average time" in out
+
+
+def _weights(learner) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in learner.training_tensors().items()}
+
+
+def test_same_seed_same_weights(tmp_path):
+    a = train(_tiny_config("maddpg", tmp_path / "a", 40), TINY)
+    b = train(_tiny_config("maddpg", tmp_path / "b", 40), TINY)
+    assert a.updates == b.updates > 10
+    wa, wb = _weights(a.learner), _weights(b.learner)
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    other_seed = _tiny_config("maddpg", tmp_path / "c", 40)
+    other_seed.seed = 4
+    c = train(other_seed, TINY)
+    assert not torch.equal(c.learner.actor.layers[0].weight, a.learner.actor.layers[0].weight)
+
+
+class _Crash(Exception):
+    pass
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "bicnet"])
+def test_resume_equals_uninterrupted_run(tmp_path, algo):
+    whole = train(_tiny_config(algo, tmp_path / "whole", 48), TINY)
+
+    def crash(counters):
+        raise _Crash  # the process dies right after its first periodic checkpoint
+
+    with pytest.raises(_Crash):
+        train(_tiny_config(algo, tmp_path / "cut", 48), TINY, on_checkpoint=crash)
+    resumed = train(_tiny_config(algo, tmp_path / "cut", 48), resume=True)
+    assert (resumed.episodes, resumed.env_steps, resumed.updates) == (
+        whole.episodes, whole.env_steps, whole.updates)
+    wa, wb = _weights(whole.learner), _weights(resumed.learner)
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    with (tmp_path / "whole" / "progress.csv").open() as f:
+        whole_rows = [r["episode"] for r in csv.DictReader(f)]
+    with (tmp_path / "cut" / "progress.csv").open() as f:
+        cut_rows = [r["episode"] for r in csv.DictReader(f)]
+    assert cut_rows == whole_rows
+
+
+def test_resume_cli_continues_to_a_larger_budget(tmp_path):
+    run_dir = tmp_path / "run"
+    assert _cli(add_train_arguments, run_train, _tiny_args("maddpg", run_dir, 16)) == 0
+    assert _cli(add_train_arguments, run_train,
+                ["--resume", str(run_dir), "--episodes", "32", "--no-progress"]) == 0
+    with (run_dir / "progress.csv").open() as f:
+        assert int(list(csv.DictReader(f))[-1]["episode"]) >= 32
+
+
+def test_bad_input_gives_clear_errors(tmp_path, capsys):
+    with pytest.raises(ValueError, match="unknown algorithm 'ppo'"):
+        train(TrainConfig(algo="ppo", run_dir=str(tmp_path / "x")))
+    with pytest.raises(ValueError, match="unknown reward 'dense'"):
+        train(TrainConfig(reward="dense", run_dir=str(tmp_path / "x")))
+    with pytest.raises(ValueError, match="nothing to resume: expected a checkpoint at"):
+        train(TrainConfig(run_dir=str(tmp_path / "empty")), resume=True)
+    assert _cli(add_train_arguments, run_train, ["--resume", str(tmp_path / "empty")]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse names the valid choices
+        _cli(add_train_arguments, run_train, ["--algo", "ppo"])
+    assert "invalid choice: 'ppo'" in capsys.readouterr().err
+    assert _cli(add_train_arguments, run_train,
+                ["--set", "hidden_size=3", "--run-dir", str(tmp_path / "y")]) == 2
+    assert "--set expects KEY=VALUE" in capsys.readouterr().err
+    # a finished run is not overwritten by a new one
+    train(_tiny_config("maddpg", tmp_path / "done", 8), TINY)
+    with pytest.raises(ValueError, match="already holds a run"):
+        train(_tiny_config("maddpg", tmp_path / "done", 8), TINY)
+    with pytest.raises(ValueError, match="it was trained with algo='maddpg'"):
+        train(_tiny_config("bicnet", tmp_path / "done", 16), resume=True)
