@@ -9,12 +9,13 @@ Measures, in one run and on a fixed number of threads:
 3. a full ``env.step`` with ``reward="ipf"`` against ``reward="minidist"`` at B = 1024, N = 6
    (target: ratio <= 1.5), interleaved, median of repeats.
 
-Run: ``python benchmarks/ipf_speed.py [--threads 1] [--quick]``.
+Run: ``python benchmarks/ipf_speed.py [--threads 1 [2]] [--quick]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import time
@@ -144,38 +145,51 @@ def solver_speed(quick: bool) -> dict:
 
 
 def step_ratio(scenario: str, num_envs: int, repeats: int) -> dict:
-    """Median env.step time with ipf and with minidist, steps interleaved."""
+    """Median env.step time with ipf and with minidist, steps interleaved.
+
+    Both wall-clock and process CPU time are recorded: on a machine shared with other jobs the
+    CPU time is the steadier of the two (it does not count time the process waited).
+    """
     envs = {r: sim.make_env(scenario, num_envs=num_envs, reward=r, seed=0)
             for r in ("minidist", "ipf")}
     gen = torch.Generator().manual_seed(0)
     n = envs["ipf"].num_agents
-    times: dict[str, list[float]] = {r: [] for r in envs}
+    wall: dict[str, list[float]] = {r: [] for r in envs}
+    cpu: dict[str, list[float]] = {r: [] for r in envs}
     for k in range(repeats + 3):
         actions = torch.rand(num_envs, n, 2, generator=gen) * 2 - 1
         for r, env in envs.items():
             if k % 10 == 0:
                 env.reset(seed=k)
-            t0 = time.perf_counter()
+            w0, c0 = time.perf_counter(), time.process_time()
             env.step(actions)
+            w1, c1 = time.perf_counter(), time.process_time()
             if k >= 3:
-                times[r].append(time.perf_counter() - t0)
-    mini = statistics.median(times["minidist"])
-    ipf = statistics.median(times["ipf"])
-    return dict(scenario=scenario, B=num_envs, N=n, minidist_ms=1e3 * mini, ipf_ms=1e3 * ipf,
-                ratio=ipf / mini)
+                wall[r].append(w1 - w0)
+                cpu[r].append(c1 - c0)
+    out = dict(scenario=scenario, B=num_envs, N=n)
+    for kind, times in (("wall", wall), ("cpu", cpu)):
+        mini, ipf = statistics.median(times["minidist"]), statistics.median(times["ipf"])
+        out.update({f"minidist_{kind}_ms": 1e3 * mini, f"ipf_{kind}_ms": 1e3 * ipf,
+                    f"ratio_{kind}": ipf / mini})
+    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1],
+                        help="torch thread counts for the step comparison (default 1)")
     parser.add_argument("--quick", action="store_true", help="fewer scenes and repeats")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    steps = [step_ratio("6v6", 1024, 30 if args.quick else 100)]
-    steps.append(step_ratio("warehouse", 1024, 20 if args.quick else 50))
-    for s in steps:
-        print(s, flush=True)
+    steps = []
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for scenario, repeats in (("6v6", 100), ("warehouse", 50)):
+            s = step_ratio(scenario, 1024, repeats // 3 if args.quick else repeats)
+            steps.append(dict(s, threads=threads))
+            print(steps[-1], flush=True)
+    torch.set_num_threads(1)
     speed = solver_speed(args.quick)
     print(speed, flush=True)
     acc = accuracy(args.quick)
@@ -184,20 +198,26 @@ def main() -> None:
     lines = [
         "# IPF solver: accuracy and speed",
         "",
-        f"Measured by `python benchmarks/ipf_speed.py --threads {args.threads}"
-        f"{' --quick' if args.quick else ''}` on {platform.machine()} "
-        f"({platform.processor() or 'cpu'}), torch {torch.__version__}, "
-        f"{args.threads} thread(s); times are medians of repeats. The machine was shared with "
-        "other jobs, so absolute times are noisy; ratios are measured interleaved.",
+        f"Measured by `python benchmarks/ipf_speed.py --threads "
+        f"{' '.join(map(str, args.threads))}{' --quick' if args.quick else ''}` on "
+        f"{platform.machine()}, {os.cpu_count()} cores shared with other jobs, torch "
+        f"{torch.__version__}; times are medians of repeats, the step comparison interleaves "
+        "the two environments step by step. Solver timings below use 1 thread.",
         "",
         "## Environment step, ipf against minidist (target ratio <= 1.5)",
         "",
-        "| scenario | B | N | minidist step (ms) | ipf step (ms) | ratio |",
-        "|---|---|---|---|---|---|",
+        "Wall-clock and process CPU time per `env.step` (random actions, resets every 10 "
+        "steps). CPU time is the steadier measure on a shared machine.",
+        "",
+        "| scenario | B | N | threads | minidist wall (ms) | ipf wall (ms) | ratio wall | "
+        "minidist CPU (ms) | ipf CPU (ms) | ratio CPU |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in steps:
-        lines.append(f"| {s['scenario']} | {s['B']} | {s['N']} | {s['minidist_ms']:.2f} | "
-                     f"{s['ipf_ms']:.2f} | **{s['ratio']:.2f}** |")
+        lines.append(
+            f"| {s['scenario']} | {s['B']} | {s['N']} | {s['threads']} | "
+            f"{s['minidist_wall_ms']:.2f} | {s['ipf_wall_ms']:.2f} | **{s['ratio_wall']:.2f}** | "
+            f"{s['minidist_cpu_ms']:.2f} | {s['ipf_cpu_ms']:.2f} | **{s['ratio_cpu']:.2f}** |")
     lines += [
         "",
         "## Fast exact solver against the paper's Jacobi iteration",

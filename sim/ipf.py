@@ -34,7 +34,18 @@ Two solvers
   at its own cell, and AGV ``i``'s sources are the scene's sources ``T`` minus ``i`` itself. With
   ``K = G[T, T]`` and ``P = K^{-1}``, the Schur-complement identity gives
   ``Phi_i(cell_i) = K[i, T'] K[T', T']^{-1} v_T' = -(sum_{j != i} P_ij v_j) / P_ii``, so one small
-  ``(N + M) x (N + M)`` inverse per environment serves all N AGVs.
+  inverse per environment serves all N AGVs. The reward computes only its AGV block,
+  ``P_AA = S^{-1}`` with the Schur complement ``S = G[A, A] - G[A, T] D^{-1} G[T, A]`` of the
+  tasks' block ``D``; ``D``'s factor changes only at resets and claims and is cached
+  (:class:`TaskBlockCache`), so a step costs one gather from ``G``, two small batched matrix
+  products and one ``N x N`` inverse per environment.
+
+The reward
+----------
+:class:`IPFReward` is the ``"ipf"`` reward, ``r_IPF + r_g + r_c``. ``r_IPF`` is the value above,
+with one rule on top: a parked AGV (one that holds a task) receives that task's value, ``+5``,
+since it stands on it (otherwise claiming, which removes the task's ``+5`` from the field, would
+pay less than hovering just outside the capture radius).
 
 Colliding sources
 -----------------
@@ -43,8 +54,11 @@ charge). Sources that share a cell with different values mean the grid is too co
 :func:`ipf_field` raises :class:`ValueError`; the batched reward applies a deterministic rule
 instead: *the AGV wins*, the cell is fixed at ``-3`` (an AGV standing on a task is serving it).
 A source whose cell is fixed at 0 (a boundary ring or shelf cell): :func:`ipf_field` raises; the
-reward ignores it (0 wins). Neither happens in the shipped scenarios at the default resolution,
-since AGVs and tasks spawn at least one AGV radius from walls and shelves.
+reward ignores it (0 wins), and an AGV on such a cell reads 0. Sources on fixed cells do not
+happen in the shipped scenarios at the default resolution (AGVs and tasks stay at least one AGV
+radius from walls and shelves); two AGVs on one cell do, rarely (a deep overlap, about one
+environment in a thousand per step), and the reward handles those environments on its general
+path.
 """
 
 from __future__ import annotations
@@ -773,14 +787,19 @@ class IPFReward:
       a task (which removes its +5 from the field) would pay less than hovering just outside
       the capture radius, and learners learn to hover.
     - ``"goal"``: ``r_g = -sum over tasks of the distance to the nearest AGV`` (all tasks, as in
-      the paper's R_t), shared by every AGV.
+      the paper's R_t), shared by every AGV. The paper writes ``-sum_i min_j d_ij`` with
+      ``d_ij`` the distance between AGV i and task j, which read literally sums over AGVs; we
+      follow the design's reading, the MiniDist distance term, which rewards covering every
+      task rather than crowding one.
     - ``"collision"``: ``r_c = -1`` if AGV i's disc overlaps any other AGV's (centres closer
-      than two radii, the environment's collision rule), else 0.
+      than two radii, the environment's collision rule; the paper writes ``<=``), else 0.
 
     Parameters
     ----------
     resolution : float
-        Grid cell size (default 0.05).
+        Grid cell size (default 0.05). Large floors may need a coarser one: the grid refuses
+        a Green's function over :data:`MAX_GREEN_BYTES` and names a resolution that fits, to
+        be passed as ``make_env(..., reward=IPFReward(resolution=...))``.
     task_value, agent_value : float
         The fixed potentials (+5, -3 in the paper).
     """
