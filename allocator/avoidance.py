@@ -563,6 +563,15 @@ class VelocityAvoidance:
         q = -rows.preferred.reshape(-1)
         soft = (rows.kind != HARD) & (rows.kind != PAD)
         suspects = np.zeros(n, dtype=bool)
+        # AGVs whose preferred velocity already satisfies their rows keep it: switch their
+        # rows off so they cost the solver nothing (the pattern stays fixed).
+        at_pref = np.einsum("nrk,nk->nr", rows.A, rows.preferred)
+        free = ((at_pref <= rows.upper + 1e-12) & (at_pref >= rows.lower - 1e-12)).all(axis=1)
+        if free.all():
+            return np.where(rows.active[:, None], rows.preferred, 0.0), suspects, \
+                np.zeros(n), "solved"
+        lo[np.repeat(free, R)] = -np.inf
+        hi[np.repeat(free, R)] = np.inf
         solver.update(q=q, l=lo, u=hi, Ax=data)
         for _ in range(6):
             res = solver.solve(raise_error=False)

@@ -306,6 +306,9 @@ def _validity_fn(world: World, clearance: float) -> Any:
     return valid
 
 
+_OMPL_SEED: int | None = None
+
+
 class OMPLPlanner:
     """Collision-free waypoints for a disc among the shelves, planned with OMPL.
 
@@ -322,7 +325,8 @@ class OMPLPlanner:
     simplify_time : float
         Seconds of path simplification per query.
     seed : int
-        Seed of OMPL's global RNG (set once, before the first planner is built).
+        Seed of OMPL's global RNG. OMPL accepts one seed per process, before its first
+        sample: the first planner built sets it, later ones share that stream.
 
     Notes
     -----
@@ -347,8 +351,11 @@ class OMPLPlanner:
         from ompl import geometric as og
         from ompl import util as ou
 
+        global _OMPL_SEED
         ou.setLogLevel(ou.LogLevel.LOG_WARN)
-        ou.RNG.setSeed(int(seed) + 1)  # OMPL rejects 0
+        if _OMPL_SEED is None:  # OMPL's RNG can be seeded once per process, before sampling
+            _OMPL_SEED = int(seed) + 1  # and rejects 0
+            ou.RNG.setSeed(_OMPL_SEED)
         self.world = world
         self.kind = planner
         self.clearance = world.agent_radius + DEFAULT_MARGIN if clearance is None else clearance
