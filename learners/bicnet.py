@@ -66,6 +66,12 @@ class BiCNetConfig:
     """Weight of the penalty on the actor's pre-tanh outputs."""
     reward_scale: float = 1.0
     """Factor applied to rewards before they are stored."""
+    terminal_value: str = "absorbing"
+    """Target at the end where every task is claimed: ``"absorbing"`` bootstraps the final
+    reward forever, r / (1 - gamma), as if the parked fleet kept receiving it (consistent with
+    bootstrapping at the step limit); ``"zero"`` is the textbook terminal target r. With the
+    positive IPF potentials, ``"zero"`` makes ending the episode by claiming the last task look
+    worse than hovering next to it until the step limit."""
     mask_parked: bool = True
     """Zero the actions of parked AGVs (their actions are ignored) in acting and in the losses."""
 
@@ -120,7 +126,7 @@ class BiCNet(ActorCritic):
         with torch.no_grad():
             next_action = self.policy(batch.next_obs, target=True)
             q_next = self.q_values(batch.next_obs, next_action, target=True)
-            y = batch.reward + cfg.gamma * (1.0 - batch.terminal).unsqueeze(1) * q_next
+            y = self.td_target(batch, q_next)
         q = self.q_values(batch.obs, batch.action)
         critic_loss = (q - y).pow(2).mean(0).sum()
         self.critic_optimizer.zero_grad(set_to_none=True)

@@ -86,10 +86,10 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
 
 
 def resolve_checkpoint_path(path: str | os.PathLike[str]) -> Path:
-    """``X.safetensors`` for ``X.safetensors``, ``X.json`` or ``X``; ``DIR/checkpoint.safetensors``
-    for a run folder."""
+    """``X.safetensors`` for ``X.safetensors``, ``X.json`` or ``X`` (if that file exists);
+    ``DIR/checkpoint.safetensors`` for a run folder (or a name that is neither)."""
     p = Path(path)
-    if p.is_dir():
+    if p.is_dir() or (p.suffix == "" and not p.with_name(p.name + ".safetensors").exists()):
         return p / "checkpoint.safetensors"
     if p.suffix == ".json":
         return p.with_suffix(".safetensors")
@@ -120,7 +120,9 @@ def save_checkpoint(
     """
     from safetensors.torch import save
 
-    path = resolve_checkpoint_path(path)
+    path = Path(path)
+    if path.suffix != ".safetensors":
+        path = path.with_name(path.name + ".safetensors")
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, **metadata,
             "code_version": metadata.get("code_version") or code_version(),
@@ -146,8 +148,8 @@ def read_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
 
     path = resolve_checkpoint_path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}: expected a .safetensors file "
-                                "written by `agv train`")
+        raise FileNotFoundError(f"no checkpoint at {path}: expected a .safetensors file written "
+                                "by `agv train` (or its .json sidecar, or a run folder)")
     try:
         with safe_open(str(path), framework="pt") as f:
             header = f.metadata() or {}

@@ -85,6 +85,20 @@ class ActorCritic(nn.Module):
         noise = torch.randn(a.shape, generator=generator, dtype=a.dtype, device=a.device)
         return (a + noise_std * noise).clamp(-1.0, 1.0) * movable_mask(obs)
 
+    def td_target(self, batch: Batch, q_next: Tensor) -> Tensor:
+        """y = r + gamma Q'(s', mu'(s')); at a terminal (every task claimed) Q' is replaced by
+        the absorbing value r / (1 - gamma) or by 0 (``config.terminal_value``). (B, N)."""
+        cfg = self.config
+        terminal = batch.terminal.unsqueeze(1).bool()
+        if cfg.terminal_value == "absorbing":
+            after = torch.where(terminal, batch.reward / (1.0 - cfg.gamma), q_next)
+        elif cfg.terminal_value == "zero":
+            after = torch.where(terminal, torch.zeros_like(q_next), q_next)
+        else:
+            raise ValueError(f"terminal_value must be 'absorbing' or 'zero', got "
+                             f"{cfg.terminal_value!r}")
+        return batch.reward + cfg.gamma * after
+
     def update(self, batch: Batch) -> dict[str, float]:
         """One gradient step of the critic(s), then of the actor(s), then the soft update."""
         raise NotImplementedError

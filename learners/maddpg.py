@@ -47,9 +47,9 @@ class MADDPGConfig:
     """Transitions per gradient update."""
     buffer_size: int = 200_000
     """Replay buffer capacity in joint transitions."""
-    num_envs: int = 32
+    num_envs: int = 16
     """Parallel environments stepped together while collecting."""
-    updates_per_step: int = 1
+    updates_per_step: int = 2
     """Gradient updates after every vectorized step (num_envs transitions)."""
     learning_starts: int = 4096
     """Transitions collected with the untrained policy before the first update."""
@@ -65,6 +65,12 @@ class MADDPGConfig:
     """Weight of the penalty on the actors' pre-tanh outputs (Lowe et al.'s regularizer)."""
     reward_scale: float = 1.0
     """Factor applied to rewards before they are stored."""
+    terminal_value: str = "absorbing"
+    """Target at the end where every task is claimed: ``"absorbing"`` bootstraps the final
+    reward forever, r / (1 - gamma), as if the parked fleet kept receiving it (consistent with
+    bootstrapping at the step limit); ``"zero"`` is the textbook terminal target r. With the
+    positive IPF potentials, ``"zero"`` makes ending the episode by claiming the last task look
+    worse than hovering next to it until the step limit."""
     mask_parked: bool = True
     """Zero the actions and the actor loss of parked AGVs (their actions are ignored)."""
     critic_input: str = "obs"
@@ -169,7 +175,7 @@ class MADDPG(ActorCritic):
             next_action = self.policy(batch.next_obs, target=True)
             next_features = self.critic_features(batch.next_obs, batch.next_state)
             q_next = self.q_values(next_features, next_action, target=True)
-            y = batch.reward + cfg.gamma * (1.0 - batch.terminal).unsqueeze(1) * q_next
+            y = self.td_target(batch, q_next)
         features = self.critic_features(batch.obs, batch.state)
         q = self.q_values(features, batch.action)
         critic_loss = (q - y).pow(2).mean(0).sum()

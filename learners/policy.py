@@ -62,7 +62,7 @@ class LearnedPolicy:
             See :func:`learners.checkpoint.load_checkpoint`.
         """
         p = Path(path)
-        if p.is_dir():
+        if p.is_dir() or (p.suffix == "" and not p.with_name(p.name + ".safetensors").exists()):
             p = p / "policy.safetensors"
         if algo is not None:
             check_algo(algo)

@@ -58,7 +58,7 @@ class LoopedMADDPG:
         for i in range(n):  # critics
             with torch.no_grad():
                 q_next = self.target_critics[i](torch.cat([next_features, next_action], -1))
-                y = batch.reward[:, i:i + 1] + cfg.gamma * (1 - batch.terminal[:, None]) * q_next
+                y = self.source.td_target(batch, q_next.expand(-1, n))[:, i:i + 1]
             q = self.critics[i](torch.cat([features, taken], -1))
             loss = (q - y).pow(2).mean()
             self.critic_optimizers[i].zero_grad()
