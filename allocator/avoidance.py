@@ -42,6 +42,7 @@ __all__ = [
     "VelocityAvoidance",
     "orca_halfplanes",
     "solve_reference",
+    "solve_qp_2d",
     "LeastViolation",
     "HARD",
     "AGENT",
@@ -88,6 +89,11 @@ class AvoidanceConfig:
     damping: float | None = None
     """With ``gain``: next velocity in ``(1 - damping) v + gain [-1, 1]^2`` (None: no limit)."""
     gain: float | None = None
+    solver: str = "exact"
+    """``"exact"``: :func:`solve_qp_2d`, the vectorised exact 2-D solver (default, fastest);
+    ``"osqp"``: one block-diagonal OSQP problem per ``chunk_size`` AGVs."""
+    feasibility_tol: float = 1e-9
+    """Exact solver: a row counts as satisfied within this slack (velocity units)."""
     eps: float = 1e-6
     """OSQP absolute and relative tolerance."""
     max_iter: int = 2000
@@ -104,6 +110,12 @@ class AvoidanceConfig:
                 raise ValueError(f"AvoidanceConfig.{name} must be positive, got {v!r}")
         if self.margin < 0:
             raise ValueError(f"AvoidanceConfig.margin must be >= 0, got {self.margin!r}")
+        if self.solver not in ("exact", "osqp"):
+            raise ValueError(
+                f"AvoidanceConfig.solver must be 'exact' or 'osqp', got {self.solver!r}"
+            )
+        if not (np.isfinite(self.feasibility_tol) and self.feasibility_tol >= 0):
+            raise ValueError("AvoidanceConfig.feasibility_tol must be finite and >= 0")
         if self.polygon_sides < 3:
             raise ValueError("AvoidanceConfig.polygon_sides must be at least 3")
         if (self.damping is None) != (self.gain is None):
@@ -297,6 +309,7 @@ class VelocityAvoidance:
         self._poly = np.stack([np.cos(ang), np.sin(ang)], axis=1)  # (P, 2)
         self._poly_cos = float(np.cos(np.pi / config.polygon_sides))
         self._solvers: dict[int, tuple[tuple[int, int], Any]] = {}
+        self._fallback = LeastViolation()
         self.stats = {"solves": 0, "fallbacks": 0, "setup": 0}
 
     # ------------------------------------------------------------------ rows
@@ -526,10 +539,15 @@ class VelocityAvoidance:
     def solve_rows(self, rows: ConstraintRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
         """Solve built rows: ``(velocity (n, 2), fell_back (n,), violation (n,), status)``.
 
-        The problem separates per AGV, so more than ``config.chunk_size`` AGVs are solved as
-        several block-diagonal problems (each with its own warm-started solver): ADMM runs until
-        its slowest block converges, and smaller problems stop sooner.
+        With ``config.solver == "exact"`` (default) every AGV's QP is solved exactly by
+        :func:`solve_qp_2d`; the AGVs whose rows conflict go to :class:`LeastViolation`.
+
+        With ``"osqp"`` the problem (it separates per AGV) is solved as one block-diagonal OSQP
+        problem, or several of ``config.chunk_size`` AGVs (each with its own warm-started
+        solver): ADMM runs until its slowest block converges, and smaller problems stop sooner.
         """
+        if self.config.solver == "exact":
+            return self._solve_exact(rows)
         n = rows.A.shape[0]
         size = self.config.chunk_size
         if n <= size:
@@ -545,6 +563,26 @@ class VelocityAvoidance:
             np.concatenate([p[2] for p in parts]),
             status,
         )
+
+    def _solve_exact(
+        self, rows: ConstraintRows
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+        n = rows.A.shape[0]
+        self.stats["solves"] += 1
+        v, ok = solve_qp_2d(rows.A, rows.lower, rows.upper, rows.preferred,
+                            self.config.feasibility_tol)
+        velocity = np.where(rows.active[:, None], v, 0.0)
+        fell = np.zeros(n, dtype=bool)
+        violation = np.zeros(n)
+        bad = ~ok & rows.active
+        if bad.any():
+            idx = np.flatnonzero(bad)
+            v, t = self._fallback.solve(_take(rows, idx), self.config.eps)
+            velocity[idx] = v
+            fell[idx] = t > self.config.fallback_tol
+            violation[idx] = np.where(fell[idx], t, 0.0)
+            self.stats["fallbacks"] += int(fell.sum())
+        return velocity, fell, violation, "solved"
 
     def _solve_chunk(
         self, rows: ConstraintRows, chunk: int
@@ -599,7 +637,7 @@ class VelocityAvoidance:
         fell = np.zeros(n, dtype=bool)
         if suspects.any():
             idx = np.flatnonzero(suspects)
-            v, t = LeastViolation().solve(_take(rows, idx), self.config.eps)
+            v, t = self._fallback.solve(_take(rows, idx), self.config.eps)
             velocity[idx] = v
             fell[idx] = t > self.config.fallback_tol
             violation[idx] = np.where(fell[idx], t, 0.0)
@@ -658,6 +696,135 @@ def _pad(x: np.ndarray, k: int, fill: float) -> np.ndarray:
     return np.concatenate([x, np.full(shape, fill)], axis=2)
 
 
+def _one_sided(
+    A: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rewrite ``lower <= A v <= upper`` as ``G v <= h`` with unit rows.
+
+    Parameters
+    ----------
+    A : np.ndarray, shape (n, R, 2)
+    lower, upper : np.ndarray, shape (n, R)
+
+    Returns
+    -------
+    G : np.ndarray, shape (n, K, 2)
+        Unit normals (row slots whose bound is infinite for every AGV are dropped; a lower
+        bound becomes the row ``-a . v <= -lower``). Zero rows get ``G = 0``.
+    h : np.ndarray, shape (n, K)
+        ``+inf`` where a row is absent (padding, or a zero row that holds anyway); negative
+        where a zero row can never hold (the AGV is then infeasible).
+    """
+    up = np.isfinite(upper).any(axis=0)
+    down = np.isfinite(lower).any(axis=0)
+    if down.any():
+        G = np.concatenate([A[:, up], -A[:, down]], axis=1)
+        h = np.concatenate([upper[:, up], -lower[:, down]], axis=1)
+    else:
+        G, h = A[:, up], upper[:, up]
+    norm = np.sqrt(G[..., 0] ** 2 + G[..., 1] ** 2)
+    zero = norm < 1e-12
+    if zero.any():
+        h = np.where(zero & (h >= 0.0), np.inf, h)
+        norm = np.where(zero, 1.0, norm)
+    inv = 1.0 / norm
+    return G * inv[..., None], h * inv
+
+
+def solve_qp_2d(
+    A: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    preferred: np.ndarray,
+    tol: float = 1e-9,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ``min ||v_i - pref_i||^2 s.t. lower_i <= A_i v_i <= upper_i`` for many 2-D QPs.
+
+    The minimiser is the Euclidean projection of ``pref_i`` onto the feasible polygon, so it
+    is ``pref_i`` itself, the projection of ``pref_i`` onto one violated line, or a vertex
+    where a violated line meets another line (KKT: at least one active line is violated by
+    ``pref_i``). All candidates are enumerated and checked at once (no loop over AGVs):
+    projections first, ``(n, K)`` candidates checked against ``K`` rows; then, only for AGVs
+    none of whose projections is feasible, the ``(m, V, K)`` vertices of the ``V`` violated
+    lines with all lines. The feasible candidate nearest ``pref_i`` is the optimum.
+
+    Parameters
+    ----------
+    A : np.ndarray, shape (n, R, 2)
+    lower, upper : np.ndarray, shape (n, R)
+        ``-inf`` / ``inf`` where unbounded (padded rows: ``A = 0``, infinite bounds).
+    preferred : np.ndarray, shape (n, 2)
+    tol : float
+        A row holds when ``a . v <= b + tol`` (rows normalised to unit normals).
+
+    Returns
+    -------
+    velocity : np.ndarray, shape (n, 2)
+        The optimum; ``preferred`` where the rows conflict.
+    feasible : np.ndarray of bool, shape (n,)
+        False where no point satisfies every row (within ``tol``).
+    """
+    pref = np.asarray(preferred, dtype=np.float64)
+    n = pref.shape[0]
+    velocity = pref.copy()
+    feasible = np.ones(n, dtype=bool)
+    if n == 0 or A.shape[1] == 0:
+        return velocity, feasible
+    G, h = _one_sided(A, lower, upper)
+    s = G[..., 0] * pref[:, None, 0] + G[..., 1] * pref[:, None, 1] - h  # (n, K) violation
+    violated = s > tol
+    need = np.flatnonzero(violated.any(axis=1))
+    if need.size == 0:
+        return velocity, feasible
+    G, h, s, violated, p = G[need], h[need], s[need], violated[need], pref[need]
+    m, K, _ = G.shape
+
+    # 1. Projections onto the violated lines: c_k = p - s_k g_k. Row j at c_k has slack
+    #    g_j . c_k - h_j = s_j - s_k (g_j . g_k).
+    s_pos = np.where(violated, s, 0.0)
+    gram = G @ G.transpose(0, 2, 1)  # (m, K, K)
+    slack = s[:, None, :] - s_pos[:, :, None] * gram  # (m, candidate k, row j)
+    ok = violated & (slack <= tol).all(axis=2)
+    dist = np.where(ok, s, np.inf)
+    best = np.argmin(dist, axis=1)
+    rows_m = np.arange(m)
+    found = ok[rows_m, best]
+    if found.any():
+        i = np.flatnonzero(found)
+        velocity[need[i]] = p[i] - s[i, best[i], None] * G[i, best[i]]
+    rest = np.flatnonzero(~found)
+    if rest.size == 0:
+        return velocity, feasible
+
+    # 2. Vertices: a violated line j (the V most violated) meets any other line k.
+    G, h, s, violated, p = G[rest], h[rest], s[rest], violated[rest], p[rest]
+    m = rest.size
+    V = int(violated.sum(axis=1).max())
+    top = np.argsort(-s, axis=1)[:, :V]  # (m, V)
+    top_ok = np.take_along_axis(violated, top, axis=1)
+    gj = np.take_along_axis(G, top[..., None], axis=1)[:, :, None, :]  # (m, V, 1, 2)
+    hj = np.where(top_ok, np.take_along_axis(h, top, axis=1), 0.0)[:, :, None]  # (m, V, 1)
+    gk, hk = G[:, None, :, :], h[:, None, :]  # (m, 1, K, 2), (m, 1, K)
+    det = gj[..., 0] * gk[..., 1] - gj[..., 1] * gk[..., 0]  # (m, V, K)
+    pair = top_ok[..., None] & (np.abs(det) > 1e-12) & np.isfinite(hk)
+    inv = np.where(pair, 1.0 / np.where(pair, det, 1.0), 0.0)
+    hk0 = np.where(pair, hk, 0.0)
+    cand = np.stack(
+        [(hj * gk[..., 1] - hk0 * gj[..., 1]) * inv, (gj[..., 0] * hk0 - gk[..., 0] * hj) * inv],
+        axis=-1,
+    )  # (m, V, K, 2)
+    slack = cand.reshape(m, V * K, 2) @ G.transpose(0, 2, 1) - h[:, None, :]  # (m, V K, K)
+    ok = pair.reshape(m, V * K) & (slack <= tol).all(axis=2)
+    d = cand.reshape(m, V * K, 2) - p[:, None, :]
+    dist = np.where(ok, d[..., 0] ** 2 + d[..., 1] ** 2, np.inf)
+    best = np.argmin(dist, axis=1)
+    found = ok[np.arange(m), best]
+    i = np.flatnonzero(found)
+    velocity[need[rest[i]]] = cand.reshape(m, V * K, 2)[i, best[i]]
+    feasible[need[rest[~found]]] = False
+    return velocity, feasible
+
+
 class LeastViolation:
     """ORCA's "3-D" program for AGVs whose rows conflict, batched in one OSQP problem.
 
@@ -692,7 +859,10 @@ class LeastViolation:
         return dense, lo, hi, q
 
     def solve(self, rows: ConstraintRows, eps: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-        """Velocities (n, 2) and violations t (n,) (``inf`` where even the hard rows conflict)."""
+        """Velocities (n, 2) and violations t (n,) (``inf`` where even the hard rows conflict).
+
+        When the joint solve does not converge, each AGV is solved on its own (a stalled block
+        must not cost the others their answer)."""
         import osqp
 
         n, R, _ = rows.A.shape
@@ -715,6 +885,10 @@ class LeastViolation:
                             Ax=dense.transpose(0, 2, 1).reshape(-1))
         res = self._solver.solve(raise_error=False)
         if not res.info.status.startswith("solved"):
+            if n > 1:  # one slow block stalls ADMM for all: solve them one by one
+                parts = [LeastViolation(self.regularization).solve(_take(rows, [i]), eps)
+                         for i in range(n)]
+                return np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts])
             return np.zeros((n, 2)), np.where(rows.active, np.inf, 0.0)
         z = res.x.reshape(n, 3)
         velocity = np.where(rows.active[:, None], z[:, :2], 0.0)

@@ -1,30 +1,42 @@
-"""Speed of the ORCA avoidance QP for all AGVs in one step, against a loop of per-AGV problems.
+"""Speed of the ORCA avoidance step for all AGVs: exact 2-D solver, batched OSQP, OSQP loop.
 
-    python benchmarks/avoidance_speed.py [--agents 100] [--steps 20] [--seed 0]
+    python benchmarks/avoidance_speed.py [--agents 10 100 1000] [--steps 30] [--seed 0]
 
-An ``NvN`` episode (default 100 AGVs, 100 tasks, world sized as ``sim.scenarios``) is driven by
-the Hungarian controller; at every step the same constraint rows are solved (a) as one
-block-diagonal OSQP problem with warm start (what the controller does), and (b) as a loop of
-N separate OSQP problems, each set up once and updated with warm start. Target: (a) at most
-3 ms per step at N = 100. Writes benchmarks/results/avoidance_speed.md.
+For each N, an ``NvN`` episode (N AGVs, N tasks, world sized as ``sim.scenarios``) is driven by
+the Hungarian controller and the arguments of every avoidance call are recorded. Then, step by
+step in the same run, the same scene is
+
+- turned into constraint rows (``VelocityAvoidance.constraints``, numpy),
+- solved by the exact vectorised 2-D solver (``solver="exact"``, the default, fallback
+  included),
+- solved as one block-diagonal OSQP problem with warm start (``solver="osqp"``),
+- solved as a loop of N separate OSQP problems, each set up once and updated with warm start.
+
+Target (issue 4): rows + solve at most 3 ms per step at N = 100. Timings are medians and 90th
+percentiles over the steps (the first step, which includes OSQP setup, is dropped). Writes
+benchmarks/results/avoidance_speed.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-import osqp
-import scipy.sparse as sp
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-import allocator
-import allocator.avoidance as avoidance
-import sim
+import numpy as np  # noqa: E402
+import osqp  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
+
+import allocator  # noqa: E402
+import allocator.avoidance as avoidance  # noqa: E402
+import sim  # noqa: E402
 
 
 class LoopOfSolvers:
@@ -33,7 +45,8 @@ class LoopOfSolvers:
     def __init__(self) -> None:
         self.solvers: list = []
 
-    def solve(self, rows: avoidance.ConstraintRows) -> np.ndarray:
+    def solve(self, rows: avoidance.ConstraintRows) -> tuple[np.ndarray, np.ndarray]:
+        """Velocities (n, 2) and a mask (n,) of the AGVs OSQP solved."""
         n, R, _ = rows.A.shape
         if len(self.solvers) != n:
             self.solvers = []
@@ -46,94 +59,130 @@ class LoopOfSolvers:
                         eps_rel=1e-6, max_iter=2000, eps_prim_inf=1e-3)
                 self.solvers.append(s)
         out = np.zeros((n, 2))
+        solved = np.zeros(n, dtype=bool)
         for i, s in enumerate(self.solvers):
             s.update(q=-rows.preferred[i], l=rows.lower[i], u=rows.upper[i],
                      Ax=rows.A[i].T.reshape(-1))
             res = s.solve(raise_error=False)
             if res.info.status.startswith("solved"):
                 out[i] = res.x
-        return out
+                solved[i] = True
+        return out, solved
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--agents", type=int, default=100)
-    parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--chunk", type=int, default=None, help="AGVs per OSQP problem")
-    args = parser.parse_args()
-    n = args.agents
-    scenario = f"{n}v{n}"
-    env = sim.make_env(scenario, num_envs=1, seed=args.seed)
+def record(n: int, steps: int, seed: int) -> tuple[avoidance.VelocityAvoidance, list]:
+    """Run a Hungarian-controlled ``NvN`` episode; the avoidance object and its calls."""
+    env = sim.make_env(f"{n}v{n}", num_envs=1, seed=seed)
     obs = env.reset()
     solver = allocator.make("hungarian")
     solver.reset(env)
     qp = solver.controller._avoidance()
-    captured: list[avoidance.ConstraintRows] = []
-    build_times: list[float] = []
+    calls: list[tuple[tuple, dict]] = []
     original = qp.constraints
 
     def capture(*a, **k):
-        t = time.perf_counter()
-        rows = original(*a, **k)
-        build_times.append(time.perf_counter() - t)
-        captured.append(rows)
-        return rows
+        calls.append((a, k))
+        return original(*a, **k)
 
     qp.constraints = capture
-    for _ in range(args.steps):
+    for _ in range(steps):
         obs, _, done, _ = env.step(solver.act(obs))
         if bool(done.all()):
             break
     qp.constraints = original
+    return qp, calls
 
-    config = qp.config if args.chunk is None else replace(qp.config, chunk_size=args.chunk)
-    batched = avoidance.VelocityAvoidance(env.world, config)
-    loop = LoopOfSolvers()
-    t_batch, t_loop, diffs, falls = [], [], [], 0
-    for rows in captured:  # consecutive steps, so both warm start as in the controller
-        t = time.perf_counter()
-        v_batch, fell, _, _ = batched.solve_rows(rows)
-        t_batch.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        v_loop = loop.solve(rows)
-        t_loop.append(time.perf_counter() - t)
-        falls += int(fell.sum())
-        ok = ~fell & rows.active
+
+def measure(n: int, steps: int, seed: int, loop_max: int) -> dict:
+    """Time rows, exact solve, batched OSQP and the per-AGV loop on the same recorded steps."""
+    qp, calls = record(n, steps, seed)
+    exact = avoidance.VelocityAvoidance(qp.world, replace(qp.config, solver="exact"))
+    batched = avoidance.VelocityAvoidance(qp.world, replace(qp.config, solver="osqp"))
+    loop = LoopOfSolvers() if n <= loop_max else None
+    t = {"rows": [], "exact": [], "osqp": [], "loop": []}
+    diff_osqp, diff_loop, fell_exact, fell_osqp, R = 0.0, 0.0, 0, 0, 0
+    for a, k in calls:  # consecutive steps, so OSQP warm starts as in the controller
+        t0 = time.perf_counter()
+        rows = exact.constraints(*a, **k)
+        t["rows"].append(time.perf_counter() - t0)
+        R = rows.A.shape[1]
+        t0 = time.perf_counter()
+        v_ex, f_ex, _, _ = exact.solve_rows(rows)
+        t["exact"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        v_os, f_os, _, _ = batched.solve_rows(rows)
+        t["osqp"].append(time.perf_counter() - t0)
+        fell_exact += int(f_ex.sum())
+        fell_osqp += int(f_os.sum())
+        ok = rows.active & ~f_ex & ~f_os
         if ok.any():
-            diffs.append(np.abs(v_batch[ok] - v_loop[ok]).max())
-    t_batch_ms = np.array(t_batch[1:]) * 1e3  # the first includes OSQP setup
-    t_loop_ms = np.array(t_loop[1:]) * 1e3
-    build_ms = np.array(build_times[1:]) * 1e3
-    total = t_batch_ms + build_ms
+            diff_osqp = max(diff_osqp, float(np.abs(v_ex[ok] - v_os[ok]).max()))
+        if loop is not None:
+            t0 = time.perf_counter()
+            v_lp, solved = loop.solve(rows)
+            t["loop"].append(time.perf_counter() - t0)
+            ok = rows.active & ~f_ex & solved
+            if ok.any():
+                diff_loop = max(diff_loop, float(np.abs(v_ex[ok] - v_lp[ok]).max()))
+    ms = {key: np.array(val[1:]) * 1e3 for key, val in t.items() if val}
+    ms["total_exact"] = ms["rows"] + ms["exact"]
+    ms["total_osqp"] = ms["rows"] + ms["osqp"]
+    return dict(n=n, steps=len(calls) - 1, R=R, ms=ms, diff_osqp=diff_osqp, diff_loop=diff_loop,
+                fell_exact=fell_exact, fell_osqp=fell_osqp, loop=loop is not None)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--agents", type=int, nargs="+", default=[10, 100, 1000])
+    parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--loop-max", type=int, default=1000,
+                        help="skip the per-AGV OSQP loop above this many AGVs")
+    parser.add_argument("--out", type=Path,
+                        default=Path(__file__).parent / "results" / "avoidance_speed.md")
+    args = parser.parse_args()
     stamp = datetime.datetime.now().isoformat(timespec="minutes")
     lines = [
-        "# Avoidance QP speed (all AGVs, one step)",
+        "# Avoidance step speed (all AGVs, one step)",
         "",
         f"Command: `python {' '.join(sys.argv)}`  ",
-        f"Seed: {args.seed}, scenario {scenario}, {len(captured) - 1} timed steps of one "
-        f"Hungarian-controlled episode, date: {stamp}  ",
-        f"Rows per AGV: {captured[0].A.shape[1]}; AGVs per OSQP problem: {config.chunk_size}; "
-        f"AGV-steps that fell back: {falls}; largest "
-        f"difference between the two solvers where feasible: {max(diffs):.1e}.",
+        f"Seed {args.seed}; up to {args.steps} steps of one Hungarian-controlled `NvN` episode "
+        f"per N (the first step is not timed); 1 thread; date: {stamp}.  ",
+        "Target (issue 4): rows + solve at most 3 ms per step at N = 100.",
         "",
-        "| what | median (ms) | 90th percentile (ms) | per AGV, median (us) |",
-        "|---|---|---|---|",
     ]
-    for name, arr in (
-        ("build the rows (numpy)", build_ms),
-        ("one block-diagonal OSQP solve, warm", t_batch_ms),
-        ("**rows + batched solve (the avoidance step)**", total),
-        (f"loop of {n} separate OSQP problems, warm", t_loop_ms),
-    ):
-        lines.append(
-            f"| {name} | {np.median(arr):.2f} | {np.percentile(arr, 90):.2f} | "
-            f"{np.median(arr) / n * 1e3:.1f} |"
-        )
-    text = "\n".join(lines) + "\n"
-    out = Path(__file__).parent / "results" / "avoidance_speed.md"
-    out.write_text(text)
-    print(text)
+    names = (
+        ("rows", "build the rows (numpy)"),
+        ("exact", "exact 2-D solver, vectorised (default)"),
+        ("total_exact", "**rows + exact solve (the avoidance step)**"),
+        ("osqp", "one block-diagonal OSQP problem, warm"),
+        ("total_osqp", "rows + block-diagonal OSQP"),
+        ("loop", "loop of N separate OSQP problems, warm"),
+    )
+    for n in args.agents:
+        r = measure(n, args.steps, args.seed, args.loop_max)
+        lines += [
+            f"## N = {n}",
+            "",
+            f"{r['steps']} timed steps, {r['R']} rows per AGV; AGV-steps that fell back: "
+            f"{r['fell_exact']} (exact), {r['fell_osqp']} (OSQP); largest velocity difference "
+            f"where both are feasible: exact vs block-diagonal OSQP {r['diff_osqp']:.1e}"
+            + (f", exact vs loop {r['diff_loop']:.1e}." if r["loop"] else "."),
+            "",
+            "| what | median (ms) | 90th percentile (ms) | per AGV, median (us) |",
+            "|---|---|---|---|",
+        ]
+        for key, name in names:
+            if key not in r["ms"]:
+                continue
+            arr = r["ms"][key]
+            lines.append(f"| {name} | {np.median(arr):.3f} | {np.percentile(arr, 90):.3f} | "
+                         f"{np.median(arr) / n * 1e3:.1f} |")
+        lines.append("")
+        print("\n".join(lines[-12:]), flush=True)
+    text = "\n".join(lines)
+    args.out.write_text(text)
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,18 @@
-"""The ORCA velocity QP: OSQP against the cvxpy reference, the fallback, and zero overlaps."""
+"""The ORCA velocity QP: the exact 2-D solver and OSQP against the cvxpy reference, the
+fallback, and zero overlaps."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from allocator.avoidance import AvoidanceConfig, VelocityAvoidance, solve_reference
+from allocator.avoidance import (
+    AvoidanceConfig,
+    ConstraintRows,
+    VelocityAvoidance,
+    solve_qp_2d,
+    solve_reference,
+)
 from sim.world import World
 from tests.allocator.conftest import spaced_points
 
@@ -19,10 +26,11 @@ def random_scene(seed: int, n: int = 12, world: World | None = None):
     return world, pos, vel, pref
 
 
+@pytest.mark.parametrize("solver", ["exact", "osqp"])
 @pytest.mark.parametrize("seed", range(6))
-def test_osqp_matches_the_cvxpy_reference(seed: int) -> None:
+def test_solvers_match_the_cvxpy_reference(seed: int, solver: str) -> None:
     world, pos, vel, pref = random_scene(seed)
-    qp = VelocityAvoidance(world)
+    qp = VelocityAvoidance(world, solver=solver)
     static = np.zeros(len(pos), dtype=bool)
     static[:2] = True
     points = np.array([[0.0, 0.0], [1.0, 1.0]])
@@ -32,12 +40,93 @@ def test_osqp_matches_the_cvxpy_reference(seed: int) -> None:
     np.testing.assert_array_equal(out.fell_back, ref_fell)
     feasible = ~ref_fell
     assert feasible.sum() >= len(pos) // 2
-    np.testing.assert_allclose(out.velocity[feasible], ref[feasible], atol=1e-4)
+    atol = 1e-6 if solver == "exact" else 1e-4
+    np.testing.assert_allclose(out.velocity[feasible], ref[feasible], atol=atol)
     np.testing.assert_allclose(out.velocity[ref_fell], ref[ref_fell], atol=1e-3)
     assert np.all(out.velocity[static] == 0.0)
-    # The second solve of a nearby scene reuses the solver (warm start, no new setup).
+    # The second solve of a nearby scene reuses the OSQP solver (warm start, no new setup).
     qp.solve(pos + 1e-3, vel, pref, static=static, points=points)
-    assert qp.stats["setup"] == 1
+    assert qp.stats["setup"] == (1 if solver == "osqp" else 0)
+
+
+@pytest.mark.parametrize("seed", range(20, 40))
+def test_exact_solver_equals_osqp_where_feasible(seed: int) -> None:
+    world, pos, vel, pref = random_scene(seed, n=16)
+    qp = VelocityAvoidance(world)
+    exact = qp.solve(pos, vel, pref)
+    osqp = VelocityAvoidance(world, solver="osqp").solve(pos, vel, pref)
+    both = ~exact.fell_back & ~osqp.fell_back
+    assert both.sum() >= 8
+    np.testing.assert_allclose(exact.velocity[both], osqp.velocity[both], atol=5e-4)
+    # OSQP's infeasibility detection is looser (it may fall back where cvxpy does not).
+    _, ref_fell = solve_reference(qp.constraints(pos, vel, pref))
+    np.testing.assert_array_equal(exact.fell_back, ref_fell)
+
+
+def random_rows(rng: np.random.Generator, n: int, k: int, near: float) -> ConstraintRows:
+    """Generic random 2-D QPs: k half-planes at distance ~U(-near, 1) from the origin
+    (``near`` sets the share of infeasible instances), plus a box with lower bounds, a padded
+    row, a parallel and a duplicated line, and rows of non-unit length."""
+    ang = rng.uniform(0, 2 * np.pi, (n, k))
+    A = np.stack([np.cos(ang), np.sin(ang)], axis=-1) * rng.uniform(0.2, 3.0, (n, k, 1))
+    hi = rng.uniform(-near, 1.0, (n, k)) * np.linalg.norm(A, axis=-1)
+    A[:, 1] = -A[:, 0]  # a parallel line (opposite side)
+    hi[:, 1] = rng.uniform(-0.3, 1.5, n) * np.linalg.norm(A[:, 1], axis=-1)
+    A[:, 2], hi[:, 2] = 2 * A[:, 3], 2 * hi[:, 3]  # the same line twice
+    A[:, 4], hi[:, 4] = 0.0, np.inf  # padding
+    lo = np.full((n, k), -np.inf)
+    box = np.broadcast_to(np.eye(2), (n, 2, 2))
+    c = rng.normal(0, 0.3, (n, 2))
+    A = np.concatenate([A, box], axis=1)
+    lo = np.concatenate([lo, c - 1.5], axis=1)
+    hi = np.concatenate([hi, c + 1.5], axis=1)
+    kind = np.r_[np.full(k, 1), 0, 0]
+    pref = rng.normal(0, 2.0, (n, 2))
+    return ConstraintRows(A, lo, hi, pref, kind, np.ones(n, dtype=bool))
+
+
+@pytest.mark.parametrize(("k", "near"), [(5, 0.5), (8, 0.5), (30, 0.1), (30, 0.05)])
+def test_exact_2d_solver_matches_cvxpy_on_random_instances(k: int, near: float) -> None:
+    rng = np.random.default_rng(k)
+    rows = random_rows(rng, 60, k, near)
+    v, feasible = solve_qp_2d(rows.A, rows.lower, rows.upper, rows.preferred)
+    ref, ref_fell = solve_reference(rows)
+    np.testing.assert_array_equal(feasible, ~ref_fell)
+    assert 5 <= feasible.sum() <= 55  # both kinds are exercised
+    # Clarabel stops at about 1e-6 on ill-conditioned vertices; the exact answer is never
+    # worse than its answer (which may violate rows by ~1e-9), and is feasible (below).
+    np.testing.assert_allclose(v[feasible], ref[feasible], atol=1e-5)
+    cost = np.sum((v - rows.preferred) ** 2, axis=1)
+    ref_cost = np.sum((ref - rows.preferred) ** 2, axis=1)
+    assert np.all(cost[feasible] <= ref_cost[feasible] + 1e-7)
+    # Feasible answers satisfy every row; infeasible AGVs keep their preferred velocity.
+    av = np.einsum("nrk,nk->nr", rows.A, v)
+    assert np.all(av[feasible] <= rows.upper[feasible] + 1e-8)
+    assert np.all(av[feasible] >= rows.lower[feasible] - 1e-8)
+    np.testing.assert_array_equal(v[~feasible], rows.preferred[~feasible])
+
+
+def test_exact_2d_solver_edge_cases() -> None:
+    # Preferred velocity feasible: returned unchanged; no rows at all: likewise.
+    A = np.array([[[1.0, 0.0], [0.0, 0.0]]])
+    v, ok = solve_qp_2d(A, np.full((1, 2), -np.inf), np.array([[1.0, np.inf]]),
+                        np.array([[0.5, 3.0]]))
+    assert ok.all() and v.tolist() == [[0.5, 3.0]]
+    v, ok = solve_qp_2d(np.zeros((2, 0, 2)), np.zeros((2, 0)), np.zeros((2, 0)), np.ones((2, 2)))
+    assert ok.all() and np.all(v == 1.0)
+    # Optimum at a vertex: x <= 1, y <= 1 from (2, 2); a zero row that can never hold.
+    A = np.array([[[1.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 0.0]]])
+    v, ok = solve_qp_2d(A, np.full((2, 2), -np.inf), np.array([[1.0, 1.0], [1.0, -1.0]]),
+                        np.array([[2.0, 2.0], [0.0, 0.0]]))
+    assert ok.tolist() == [True, False]
+    np.testing.assert_allclose(v[0], [1.0, 1.0], atol=1e-12)
+    # Two parallel lines leave a strip: project onto the nearer one; a single point (x = 1,
+    # y = 1 from both sides) is feasible; opposite parallel lines without a gap are not.
+    A = np.array([[[0.0, 1.0], [0.0, -1.0], [1.0, 0.0], [-1.0, 0.0]]] * 3)
+    hi = np.array([[1.0, 1.0, np.inf, np.inf], [1.0, -1.0, 1.0, -1.0], [1.0, -1.1, np.inf, np.inf]])
+    v, ok = solve_qp_2d(A, np.full((3, 4), -np.inf), hi, np.array([[0.3, 5.0]] * 3))
+    assert ok.tolist() == [True, True, False]
+    np.testing.assert_allclose(v[:2], [[0.3, 1.0], [1.0, 1.0]], atol=1e-12)
 
 
 def test_conflicting_constraints_fall_back_and_say_so() -> None:
@@ -110,5 +199,7 @@ def test_config_validation() -> None:
         AvoidanceConfig(damping=0.25)
     with pytest.raises(ValueError, match="positions"):
         VelocityAvoidance().solve(np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="solver"):
+        AvoidanceConfig(solver="cvxpy")
     with pytest.raises(ValueError, match="NaN"):
         VelocityAvoidance().solve(np.full((2, 2), np.nan), np.zeros((2, 2)), np.zeros((2, 2)))
