@@ -216,43 +216,49 @@ def orca_halfplanes(
     b : np.ndarray, shape (...)
     """
     px, py = rel_pos[..., 0], rel_pos[..., 1]
+    vx, vy = rel_vel[..., 0], rel_vel[..., 1]
     dist_sq = px * px + py * py
     R = np.broadcast_to(np.asarray(combined_radius, dtype=np.float64), dist_sq.shape)
     R_sq = R * R
     inv_t = 1.0 / time_horizon
-    # No collision yet: the truncated velocity obstacle.
-    w = rel_vel - inv_t * rel_pos
-    w_len_sq = np.einsum("...k,...k->...", w, w)
-    dot1 = np.einsum("...k,...k->...", w, rel_pos)
+    # No collision yet: the truncated velocity obstacle (cut-off circle or one of its legs).
+    wx = vx - inv_t * px
+    wy = vy - inv_t * py
+    w_len_sq = wx * wx + wy * wy
+    dot1 = wx * px + wy * py
     cutoff = (dot1 < 0.0) & (dot1 * dot1 > R_sq * w_len_sq)
     w_len = np.sqrt(np.maximum(w_len_sq, _EPS))
-    unit_w = w / w_len[..., None]
-    dir_cut = np.stack([unit_w[..., 1], -unit_w[..., 0]], axis=-1)
-    u_cut = (R * inv_t - w_len)[..., None] * unit_w
+    # Leg directions: left (sign +1) or right (sign -1) of the cone.
     leg = np.sqrt(np.maximum(dist_sq - R_sq, 0.0))
-    left = px * w[..., 1] - py * w[..., 0] > 0.0
-    d_safe = np.maximum(dist_sq, _EPS)[..., None]
-    dir_left = np.stack([px * leg - py * R, px * R + py * leg], axis=-1) / d_safe
-    dir_right = -np.stack([px * leg + py * R, -px * R + py * leg], axis=-1) / d_safe
-    dir_leg = np.where(left[..., None], dir_left, dir_right)
-    dot2 = np.einsum("...k,...k->...", rel_vel, dir_leg)
-    u_leg = dot2[..., None] * dir_leg - rel_vel
-    # Already overlapping: leave the overlap within one time step.
-    inv_dt = 1.0 / dt
-    w2 = rel_vel - inv_dt * rel_pos
-    w2_len = np.sqrt(np.maximum(np.einsum("...k,...k->...", w2, w2), _EPS))
-    unit_w2 = w2 / w2_len[..., None]
-    dir_col = np.stack([unit_w2[..., 1], -unit_w2[..., 0]], axis=-1)
-    u_col = (R * inv_dt - w2_len)[..., None] * unit_w2
-
-    colliding = (dist_sq <= R_sq)[..., None]
-    cut = cutoff[..., None]
-    direction = np.where(colliding, dir_col, np.where(cut, dir_cut, dir_leg))
-    u = np.where(colliding, u_col, np.where(cut, u_cut, u_leg))
-    point = velocity + np.asarray(responsibility, dtype=np.float64)[..., None] * u
-    # RVO2: valid iff det(direction, point - v) <= 0  <=>  (dy, -dx) . v <= (dy, -dx) . point
-    a = np.stack([direction[..., 1], -direction[..., 0]], axis=-1)
-    b = np.einsum("...k,...k->...", a, point)
+    sign = np.where(px * wy - py * wx > 0.0, 1.0, -1.0)
+    inv_d = 1.0 / np.maximum(dist_sq, _EPS)
+    sleg = sign * leg
+    dx = (sleg * px - R * py) * inv_d
+    dy = (R * px + sleg * py) * inv_d
+    dot2 = vx * dx + vy * dy
+    # The half-plane's normal a = (dir_y, -dir_x) and u (the smallest change of velocity).
+    ax, ay = dy, -dx
+    ux, uy = dot2 * dx - vx, dot2 * dy - vy
+    if cutoff.any():  # dir = (w_y, -w_x) / |w|, u = (R / t - |w|) w / |w|
+        uwx, uwy = wx / w_len, wy / w_len
+        scale = R * inv_t - w_len
+        ax, ay = np.where(cutoff, -uwx, ax), np.where(cutoff, -uwy, ay)
+        ux, uy = np.where(cutoff, scale * uwx, ux), np.where(cutoff, scale * uwy, uy)
+    colliding = dist_sq <= R_sq
+    if colliding.any():  # already overlapping: leave the overlap within one time step
+        inv_dt = 1.0 / dt
+        w2x = vx - inv_dt * px
+        w2y = vy - inv_dt * py
+        w2_len = np.sqrt(np.maximum(w2x * w2x + w2y * w2y, _EPS))
+        uwx, uwy = w2x / w2_len, w2y / w2_len
+        scale = R * inv_dt - w2_len
+        ax, ay = np.where(colliding, -uwx, ax), np.where(colliding, -uwy, ay)
+        ux, uy = np.where(colliding, scale * uwx, ux), np.where(colliding, scale * uwy, uy)
+    resp = np.asarray(responsibility, dtype=np.float64)
+    # RVO2: valid iff det(direction, point - v) <= 0  <=>  (dy, -dx) . v <= (dy, -dx) . point,
+    # with point = velocity + responsibility * u.
+    b = ax * (velocity[..., 0] + resp * ux) + ay * (velocity[..., 1] + resp * uy)
+    a = np.stack([ax, ay], axis=-1)
     return a, b
 
 
@@ -323,131 +329,125 @@ class VelocityAvoidance:
         point_mask: np.ndarray | None = None,
         point_radius: float = 0.1,
     ) -> ConstraintRows:
-        """Build every AGV's rows (see the module docstring); shapes as in :meth:`solve`."""
+        """Build every AGV's rows (see the module docstring); shapes as in :meth:`solve`.
+
+        The rows are written into preallocated ``(B, N, R, 2)`` / ``(B, N, R)`` arrays, block
+        by block (neighbours, forbidden points, walls, shelves, speed polygon, acceleration
+        box); unused slots keep ``A = 0`` and infinite bounds.
+        """
         c = self.config
         pos, vel, pref, static, points, point_mask = self._check(
             positions, velocities, preferred, static, points, point_mask
         )
         B, N, _ = pos.shape
-        blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []  # (A, lo, hi, kind)
-        pad_lo = -np.inf
+        K = min(c.max_neighbors, N - 1)
+        Q = min(c.max_points, 0 if points is None else points.shape[1])
+        W = 4 if self.world is not None else 0
+        S = min(c.max_shelves, len(self.world.obstacles)) \
+            if self.world is not None and self.world.has_obstacles else 0
+        P = c.polygon_sides
+        D = 2 if c.damping is not None else 0
+        sizes = ((K, AGENT), (Q, POINT), (W, WALL), (S, WALL), (P, HARD), (D, HARD))
+        R = sum(k for k, _ in sizes)
+        kind = np.concatenate([np.full(k, kd) for k, kd in sizes])
+        A = np.zeros((B, N, R, 2))
+        lo = np.full((B, N, R), -np.inf)
+        hi = np.full((B, N, R), np.inf)
+        nd_sq = c.neighbor_dist * c.neighbor_dist
+        bi = np.arange(B)[:, None, None]
 
         # AGV neighbours (within one scene).
-        K = min(c.max_neighbors, N - 1)
         if K:
             rel = pos[:, None, :, :] - pos[:, :, None, :]  # (B, N, N, 2): p_j - p_i
-            dist = np.linalg.norm(rel, axis=-1)
+            d_sq = rel[..., 0] ** 2 + rel[..., 1] ** 2
             idx_n = np.arange(N)
-            dist[:, idx_n, idx_n] = np.inf
-            dist = np.where(dist < c.neighbor_dist, dist, np.inf)
-            k = min(K, max(N - 1, 0))
-            if k:
-                nb = _nearest(dist, k)  # (B, N, k)
-                ok = np.isfinite(np.take_along_axis(dist, nb, axis=-1))
-                rel_p = np.take_along_axis(rel, nb[..., None], axis=2)
-                v_j = np.take_along_axis(
-                    np.broadcast_to(vel[:, None], (B, N, N, 2)), nb[..., None], axis=2
-                )
-                st_j = np.take_along_axis(np.broadcast_to(static[:, None], (B, N, N)), nb, 2)
-                v_i = np.broadcast_to(vel[:, :, None], rel_p.shape)
-                resp = np.where(st_j, 1.0, 0.5)
-                combined = 2 * c.radius + np.where(st_j, c.static_margin, c.margin)
-                a, b = orca_halfplanes(
-                    rel_p, v_i - v_j, v_i, combined, c.time_horizon, c.dt, resp
-                )
-                a = np.where(ok[..., None], a, 0.0)
-                hi = np.where(ok, b, np.inf)
-            else:
-                a = np.zeros((B, N, 0, 2))
-                hi = np.zeros((B, N, 0))
-            a = _pad(a, K, 0.0)
-            hi = _pad(hi, K, np.inf)
-            blocks.append((a, np.full(hi.shape, pad_lo), hi, AGENT))
+            d_sq[:, idx_n, idx_n] = np.inf
+            d_sq[d_sq >= nd_sq] = np.inf
+            nb = _nearest(d_sq, K)  # (B, N, K)
+            ok = np.isfinite(np.take_along_axis(d_sq, nb, axis=-1))
+            rel_p = np.take_along_axis(rel, nb[..., None], axis=2)
+            v_i = vel[:, :, None, :]
+            st_j = static[bi, nb]
+            a, b = orca_halfplanes(
+                rel_p, v_i - vel[bi, nb], v_i, 2 * c.radius + np.where(st_j, c.static_margin,
+                                                                        c.margin),
+                c.time_horizon, c.dt, np.where(st_j, 1.0, 0.5),
+            )
+            A[:, :, :K] = np.where(ok[..., None], a, 0.0)
+            hi[:, :, :K] = np.where(ok, b, np.inf)
+        off = K
 
         # Forbidden points (static discs of radius point_radius).
-        Q = min(c.max_points, 0 if points is None else points.shape[1])
         if Q:
-            if points is not None and points.shape[1]:
-                rel = points[:, None, :, :] - pos[:, :, None, :]  # (B, N, P, 2)
-                dist = np.linalg.norm(rel, axis=-1)
-                dist = np.where(point_mask, dist, np.inf)
-                dist = np.where(dist < c.neighbor_dist, dist, np.inf)
-                k = min(Q, points.shape[1])
-                nb = _nearest(dist, k)
-                ok = np.isfinite(np.take_along_axis(dist, nb, axis=-1))
-                rel_p = np.take_along_axis(rel, nb[..., None], axis=2)
-                v_i = np.broadcast_to(vel[:, :, None], rel_p.shape)
-                a, b = orca_halfplanes(
-                    rel_p, v_i, v_i, point_radius + c.static_margin, c.obstacle_time_horizon, c.dt,
-                    1.0,
-                )
-                a = _pad(np.where(ok[..., None], a, 0.0), Q, 0.0)
-                hi = _pad(np.where(ok, b, np.inf), Q, np.inf)
-            else:
-                a = np.zeros((B, N, Q, 2))
-                hi = np.full((B, N, Q), np.inf)
-            blocks.append((a, np.full(hi.shape, pad_lo), hi, POINT))
+            rel = points[:, None, :, :] - pos[:, :, None, :]  # (B, N, P, 2)
+            d_sq = rel[..., 0] ** 2 + rel[..., 1] ** 2
+            d_sq[~point_mask] = np.inf
+            d_sq[d_sq >= nd_sq] = np.inf
+            nb = _nearest(d_sq, Q)
+            ok = np.isfinite(np.take_along_axis(d_sq, nb, axis=-1))
+            rel_p = np.take_along_axis(rel, nb[..., None], axis=2)
+            v_i = vel[:, :, None, :]
+            a, b = orca_halfplanes(
+                rel_p, v_i, v_i, point_radius + c.static_margin, c.obstacle_time_horizon, c.dt,
+                1.0,
+            )
+            A[:, :, off:off + Q] = np.where(ok[..., None], a, 0.0)
+            hi[:, :, off:off + Q] = np.where(ok, b, np.inf)
+        off += Q
 
         # Walls: do not reach a wall (less radius and margin) within the obstacle horizon.
-        if self.world is not None:
+        if W:
             xmin, ymin, xmax, ymax = self.world.bounds
             r = c.radius + c.static_margin
-            t = c.obstacle_time_horizon
-            normals = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
-            room = np.stack(
-                [xmax - r - pos[..., 0], pos[..., 0] - xmin - r,
-                 ymax - r - pos[..., 1], pos[..., 1] - ymin - r], axis=-1,
-            )  # (B, N, 4)
-            a = np.broadcast_to(normals, (B, N, 4, 2))
-            blocks.append((a, np.full(room.shape, pad_lo), room / t, WALL))
-            if self.world.has_obstacles:
-                S = min(c.max_shelves, len(self.world.obstacles))
-                obs = self.world.obstacles
-                p = pos[:, :, None, :]
-                closest = np.minimum(np.maximum(p, obs[:, :2]), obs[:, 2:])  # (B, N, K, 2)
-                d_vec = p - closest
-                d = np.linalg.norm(d_vec, axis=-1)
-                nb = _nearest(d, S)
-                d_s = np.take_along_axis(d, nb, axis=-1)
-                dv = np.take_along_axis(d_vec, nb[..., None], axis=2)
-                normal = dv / np.maximum(d_s, 1e-9)[..., None]
-                # A centre inside a shelf (only after a bad push): move straight out.
-                normal = np.where((d_s > 1e-9)[..., None], normal, 0.0)
-                far = d_s > c.radius + c.neighbor_dist
-                a = np.where(far[..., None], 0.0, -normal)
-                hi = np.where(far, np.inf, (d_s - c.radius - c.static_margin) / t)
-                blocks.append((a, np.full(hi.shape, pad_lo), hi, WALL))
+            inv_t = 1.0 / c.obstacle_time_horizon
+            A[:, :, off:off + 4] = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
+            hi[:, :, off] = (xmax - r - pos[..., 0]) * inv_t
+            hi[:, :, off + 1] = (pos[..., 0] - xmin - r) * inv_t
+            hi[:, :, off + 2] = (ymax - r - pos[..., 1]) * inv_t
+            hi[:, :, off + 3] = (pos[..., 1] - ymin - r) * inv_t
+        off += W
+        if S:
+            obs = self.world.obstacles
+            p = pos[:, :, None, :]
+            closest = np.minimum(np.maximum(p, obs[:, :2]), obs[:, 2:])  # (B, N, O, 2)
+            d_vec = p - closest
+            d = np.sqrt(d_vec[..., 0] ** 2 + d_vec[..., 1] ** 2)
+            nb = _nearest(d, S)
+            d_s = np.take_along_axis(d, nb, axis=-1)
+            dv = np.take_along_axis(d_vec, nb[..., None], axis=2)
+            # A centre inside a shelf (only after a bad push) gives a zero row: no constraint.
+            use = (d_s > 1e-9) & (d_s <= c.radius + c.neighbor_dist)
+            normal = dv / np.maximum(d_s, 1e-9)[..., None]
+            A[:, :, off:off + S] = np.where(use[..., None], -normal, 0.0)
+            hi[:, :, off:off + S] = np.where(
+                use, (d_s - c.radius - c.static_margin) / c.obstacle_time_horizon, np.inf
+            )
+        off += S
 
         # Speed polygon, widened where the current speed cannot be shed in one step.
-        P = c.polygon_sides
-        limit = np.full((B, N), c.max_speed)
+        A[:, :, off:off + P] = self._poly
         if c.damping is not None:
             centre = (1.0 - c.damping) * vel
-            reach = (np.linalg.norm(centre, axis=-1) - c.gain) / self._poly_cos
-            limit = np.maximum(limit, reach + 1e-6)
-        a = np.broadcast_to(self._poly, (B, N, P, 2))
-        hi = np.broadcast_to(limit[..., None], (B, N, P))
-        blocks.append((a, np.full(hi.shape, pad_lo), hi, HARD))
+            reach = (np.sqrt(centre[..., 0] ** 2 + centre[..., 1] ** 2) - c.gain) / self._poly_cos
+            hi[:, :, off:off + P] = np.maximum(c.max_speed, reach + 1e-6)[..., None]
+        else:
+            hi[:, :, off:off + P] = c.max_speed
+        off += P
 
         # Acceleration box.
-        if c.damping is not None:
-            a = np.broadcast_to(np.eye(2), (B, N, 2, 2))
-            blocks.append((a, centre - c.gain, centre + c.gain, HARD))
+        if D:
+            A[:, :, off, 0] = 1.0
+            A[:, :, off + 1, 1] = 1.0
+            lo[:, :, off:off + 2] = centre - c.gain
+            hi[:, :, off:off + 2] = centre + c.gain
 
-        A = np.concatenate([blk[0] for blk in blocks], axis=2)
-        lo = np.concatenate([blk[1] for blk in blocks], axis=2)
-        hi = np.concatenate([blk[2] for blk in blocks], axis=2)
-        kind = np.concatenate([np.full(blk[0].shape[2], blk[3]) for blk in blocks])
         # Static AGVs: no rows, velocity 0.
         act = ~static
-        A = np.where(act[..., None, None], A, 0.0)
-        lo = np.where(act[..., None], lo, -np.inf)
-        hi = np.where(act[..., None], hi, np.inf)
-        pad = np.all(A == 0.0, axis=-1)
-        lo = np.where(pad, -np.inf, lo)
-        hi = np.where(pad, np.inf, hi)
+        if static.any():
+            A[static] = 0.0
+            lo[static] = -np.inf
+            hi[static] = np.inf
         n = B * N
-        R = A.shape[2]
         return ConstraintRows(
             A.reshape(n, R, 2), lo.reshape(n, R), hi.reshape(n, R),
             np.where(act[..., None], pref, 0.0).reshape(n, 2), kind, act.reshape(n),
@@ -686,16 +686,6 @@ def _take(rows: ConstraintRows, idx: Any) -> ConstraintRows:
                           rows.kind, rows.active[idx])
 
 
-def _pad(x: np.ndarray, k: int, fill: float) -> np.ndarray:
-    """Pad axis 2 of ``x`` (B, N, k', ...) to k entries with ``fill``."""
-    have = x.shape[2]
-    if have >= k:
-        return x
-    shape = list(x.shape)
-    shape[2] = k - have
-    return np.concatenate([x, np.full(shape, fill)], axis=2)
-
-
 def _one_sided(
     A: np.ndarray, lower: np.ndarray, upper: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -743,10 +733,13 @@ def solve_qp_2d(
     The minimiser is the Euclidean projection of ``pref_i`` onto the feasible polygon, so it
     is ``pref_i`` itself, the projection of ``pref_i`` onto one violated line, or a vertex
     where a violated line meets another line (KKT: at least one active line is violated by
-    ``pref_i``). All candidates are enumerated and checked at once (no loop over AGVs):
-    projections first, ``(n, K)`` candidates checked against ``K`` rows; then, only for AGVs
-    none of whose projections is feasible, the ``(m, V, K)`` vertices of the ``V`` violated
-    lines with all lines. The feasible candidate nearest ``pref_i`` is the optimum.
+    ``pref_i``). The candidates of all AGVs are enumerated as flat arrays and checked at
+    once (no loop over AGVs): first the projections onto the violated lines, ``E`` (AGV,
+    line) pairs checked against all ``K`` rows, ``(E, K)``; then, only for AGVs none of whose
+    projections is feasible, the vertices of each violated line with every other line whose
+    KKT multipliers are non-negative, again ``(E', K)``. Any feasible point is at least as far
+    from ``pref_i`` as the optimum, and the optimum is a candidate, so the feasible candidate
+    nearest ``pref_i`` is the optimum (up to ``tol``).
 
     Parameters
     ----------
@@ -771,57 +764,66 @@ def solve_qp_2d(
     if n == 0 or A.shape[1] == 0:
         return velocity, feasible
     G, h = _one_sided(A, lower, upper)
-    s = G[..., 0] * pref[:, None, 0] + G[..., 1] * pref[:, None, 1] - h  # (n, K) violation
+    gx, gy = G[..., 0], G[..., 1]
+    s = gx * pref[:, None, 0] + gy * pref[:, None, 1] - h  # (n, K): violation at pref
     violated = s > tol
-    need = np.flatnonzero(violated.any(axis=1))
-    if need.size == 0:
+    need = violated.any(axis=1)
+    if not need.any():
         return velocity, feasible
-    G, h, s, violated, p = G[need], h[need], s[need], violated[need], pref[need]
-    m, K, _ = G.shape
+    K = h.shape[1]
 
-    # 1. Projections onto the violated lines: c_k = p - s_k g_k. Row j at c_k has slack
-    #    g_j . c_k - h_j = s_j - s_k (g_j . g_k).
-    s_pos = np.where(violated, s, 0.0)
-    gram = G @ G.transpose(0, 2, 1)  # (m, K, K)
-    slack = s[:, None, :] - s_pos[:, :, None] * gram  # (m, candidate k, row j)
-    ok = violated & (slack <= tol).all(axis=2)
-    dist = np.where(ok, s, np.inf)
-    best = np.argmin(dist, axis=1)
-    rows_m = np.arange(m)
-    found = ok[rows_m, best]
-    if found.any():
-        i = np.flatnonzero(found)
-        velocity[need[i]] = p[i] - s[i, best[i], None] * G[i, best[i]]
-    rest = np.flatnonzero(~found)
-    if rest.size == 0:
+    # 1. Projections onto the violated lines, one candidate per (AGV i, line k) pair:
+    #    c = p - s_k g_k, where row j has slack g_j . c - h_j = s_j - s_k (g_j . g_k).
+    ai, ki = np.nonzero(violated)  # (E,)
+    sk = s[ai, ki]
+    gram = gx[ai] * gx[ai, ki, None] + gy[ai] * gy[ai, ki, None]  # (E, K)
+    ok = (s[ai] - sk[:, None] * gram <= tol).all(axis=1)
+    done = np.zeros(n, dtype=bool)
+    if ok.any():
+        # The nearest feasible projection of each AGV (candidates sorted by AGV, then s_k).
+        ai_ok, ki_ok, sk_ok = ai[ok], ki[ok], sk[ok]
+        order = np.lexsort((sk_ok, ai_ok))
+        first = np.unique(ai_ok[order], return_index=True)[1]
+        sel = order[first]
+        i, k = ai_ok[sel], ki_ok[sel]
+        velocity[i] = pref[i] - sk_ok[sel, None] * G[i, k]
+        done[i] = True
+    rest = need & ~done
+    if not rest.any():
         return velocity, feasible
 
-    # 2. Vertices: a violated line j (the V most violated) meets any other line k.
-    G, h, s, violated, p = G[rest], h[rest], s[rest], violated[rest], p[rest]
-    m = rest.size
-    V = int(violated.sum(axis=1).max())
-    top = np.argsort(-s, axis=1)[:, :V]  # (m, V)
-    top_ok = np.take_along_axis(violated, top, axis=1)
-    gj = np.take_along_axis(G, top[..., None], axis=1)[:, :, None, :]  # (m, V, 1, 2)
-    hj = np.where(top_ok, np.take_along_axis(h, top, axis=1), 0.0)[:, :, None]  # (m, V, 1)
-    gk, hk = G[:, None, :, :], h[:, None, :]  # (m, 1, K, 2), (m, 1, K)
-    det = gj[..., 0] * gk[..., 1] - gj[..., 1] * gk[..., 0]  # (m, V, K)
-    pair = top_ok[..., None] & (np.abs(det) > 1e-12) & np.isfinite(hk)
-    inv = np.where(pair, 1.0 / np.where(pair, det, 1.0), 0.0)
-    hk0 = np.where(pair, hk, 0.0)
-    cand = np.stack(
-        [(hj * gk[..., 1] - hk0 * gj[..., 1]) * inv, (gj[..., 0] * hk0 - gk[..., 0] * hj) * inv],
-        axis=-1,
-    )  # (m, V, K, 2)
-    slack = cand.reshape(m, V * K, 2) @ G.transpose(0, 2, 1) - h[:, None, :]  # (m, V K, K)
-    ok = pair.reshape(m, V * K) & (slack <= tol).all(axis=2)
-    d = cand.reshape(m, V * K, 2) - p[:, None, :]
-    dist = np.where(ok, d[..., 0] ** 2 + d[..., 1] ** 2, np.inf)
-    best = np.argmin(dist, axis=1)
-    found = ok[np.arange(m), best]
-    i = np.flatnonzero(found)
-    velocity[need[rest[i]]] = cand.reshape(m, V * K, 2)[i, best[i]]
-    feasible[need[rest[~found]]] = False
+    # 2. Vertices where a violated line j meets another line k, one candidate per (i, j, k);
+    #    kept when the KKT multipliers of p - c = l_j g_j + l_k g_k are both >= 0 (that
+    #    vertex is then the optimum if it is feasible).
+    ai, ji = np.nonzero(violated & rest[:, None])
+    E = ai.size
+    ai = np.repeat(ai, K)
+    ji = np.repeat(ji, K)
+    ki = np.tile(np.arange(K), E)
+    gjx, gjy, hj = gx[ai, ji], gy[ai, ji], h[ai, ji]
+    gkx, gky, hk = gx[ai, ki], gy[ai, ki], h[ai, ki]
+    det = gjx * gky - gjy * gkx
+    pair = (np.abs(det) > 1e-12) & np.isfinite(hk)
+    ai, ji, ki = ai[pair], ji[pair], ki[pair]
+    gjx, gjy, hj, gkx, gky, hk = (x[pair] for x in (gjx, gjy, hj, gkx, gky, hk))
+    inv = 1.0 / det[pair]
+    cx = (hj * gky - hk * gjy) * inv
+    cy = (gjx * hk - gkx * hj) * inv
+    dx, dy = pref[ai, 0] - cx, pref[ai, 1] - cy
+    lam_j = (dx * gky - dy * gkx) * inv
+    lam_k = (gjx * dy - gjy * dx) * inv
+    kkt = (lam_j >= -1e-6) & (lam_k >= -1e-6)  # loose: extra candidates cost nothing
+    ai, cx, cy, dx, dy = ai[kkt], cx[kkt], cy[kkt], dx[kkt], dy[kkt]
+    ok = (gx[ai] * cx[:, None] + gy[ai] * cy[:, None] - h[ai] <= tol).all(axis=1)
+    if ok.any():
+        ai, cx, cy = ai[ok], cx[ok], cy[ok]
+        order = np.lexsort((dx[ok] ** 2 + dy[ok] ** 2, ai))
+        first = np.unique(ai[order], return_index=True)[1]
+        sel = order[first]
+        velocity[ai[sel], 0] = cx[sel]
+        velocity[ai[sel], 1] = cy[sel]
+        rest[ai[sel]] = False
+    feasible[rest] = False
     return velocity, feasible
 
 
