@@ -7,9 +7,12 @@ import numpy as np
 import pytest
 
 from allocator.avoidance import (
+    FALLBACK_WEIGHT,
     AvoidanceConfig,
     ConstraintRows,
+    LeastViolation,
     VelocityAvoidance,
+    least_violation_2d,
     solve_qp_2d,
     solve_reference,
 )
@@ -104,6 +107,40 @@ def test_exact_2d_solver_matches_cvxpy_on_random_instances(k: int, near: float) 
     assert np.all(av[feasible] <= rows.upper[feasible] + 1e-8)
     assert np.all(av[feasible] >= rows.lower[feasible] - 1e-8)
     np.testing.assert_array_equal(v[~feasible], rows.preferred[~feasible])
+
+
+@pytest.mark.parametrize(("k", "near"), [(5, 0.5), (12, 0.8)])
+def test_exact_least_violation_matches_cvxpy_and_osqp(k: int, near: float) -> None:
+    rows = random_rows(np.random.default_rng(100 + k), 60, k, near)
+    _, feasible = solve_qp_2d(rows.A, rows.lower, rows.upper, rows.preferred)
+    idx = np.flatnonzero(~feasible)
+    assert idx.size >= 5
+    sub = ConstraintRows(rows.A[idx], rows.lower[idx], rows.upper[idx], rows.preferred[idx],
+                         rows.kind, rows.active[idx])
+    weight = np.array([FALLBACK_WEIGHT.get(int(q), 0.0) for q in rows.kind])
+    v, t = least_violation_2d(sub.A, sub.lower, sub.upper, sub.preferred, weight)
+    ref, ref_fell = solve_reference(sub)
+    assert ref_fell.all() and np.all(t > 0) and np.all(np.isfinite(t))
+
+    def objective(vel: np.ndarray) -> np.ndarray:
+        av = np.einsum("nrk,nk->nr", sub.A, vel)
+        soft = (weight > 0) & np.isfinite(sub.upper)
+        viol = np.where(soft, (av - sub.upper) / np.where(weight > 0, weight, 1.0), -np.inf)
+        return np.maximum(viol.max(axis=1), 0.0) + 0.5e-3 * np.sum((vel - sub.preferred) ** 2, 1)
+
+    # Exact: never worse than Clarabel (whose answers can be 1e-4 off on these flat optima).
+    assert np.all(objective(v) <= objective(ref) + 1e-9)
+    np.testing.assert_allclose(objective(v), objective(ref), atol=1e-7)
+    np.testing.assert_allclose(t, objective(v) - 0.5e-3 * np.sum((v - sub.preferred) ** 2, 1),
+                               atol=1e-12)
+    np.testing.assert_allclose(v, ref, atol=1e-3)
+    # The hard rows (acceleration box) hold.
+    av = np.einsum("nrk,nk->nr", sub.A, v)
+    assert np.all(av[:, -2:] <= sub.upper[:, -2:] + 1e-8)
+    assert np.all(av[:, -2:] >= sub.lower[:, -2:] - 1e-8)
+    # The OSQP program agrees (to its tolerance).
+    v_osqp, t_osqp = LeastViolation().solve(sub)
+    np.testing.assert_allclose(t_osqp, t, atol=1e-4)
 
 
 def test_exact_2d_solver_edge_cases() -> None:
