@@ -44,11 +44,11 @@ class BiCNetConfig:
     """Discount factor."""
     tau: float = 0.01
     """Soft target update rate, applied after every update."""
-    batch_size: int = 1024
+    batch_size: int = 512
     """Transitions per gradient update."""
     buffer_size: int = 200_000
     """Replay buffer capacity in joint transitions."""
-    num_envs: int = 32
+    num_envs: int = 16
     """Parallel environments stepped together while collecting."""
     updates_per_step: int = 1
     """Gradient updates after every vectorized step (num_envs transitions)."""

@@ -25,9 +25,9 @@ def movable_mask(obs: Tensor) -> Tensor:
 
 @torch.no_grad()
 def soft_update_(target: nn.Module, source: nn.Module, tau: float) -> None:
-    """Polyak averaging ``target <- (1 - tau) target + tau source``, in place."""
-    for t, s in zip(target.parameters(), source.parameters(), strict=True):
-        t.lerp_(s, tau)
+    """Polyak averaging ``target <- (1 - tau) target + tau source``, in place (one fused
+    multi-tensor call)."""
+    torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
 
 
 class ActorCritic(nn.Module):
@@ -52,8 +52,11 @@ class ActorCritic(nn.Module):
         cfg = self.config
         self.target_actor = copy.deepcopy(self.actor).requires_grad_(False)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        # fused: one kernel for all parameters (the stacked layout has few, large tensors)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr,
+                                                fused=True)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr,
+                                                 fused=True)
 
     # ------------------------------------------------------------------ acting
     def policy(self, obs: Tensor, target: bool = False) -> Tensor:

@@ -31,7 +31,7 @@ __all__ = ["MADDPGConfig", "MADDPG"]
 class MADDPGConfig:
     """Hyperparameters of MADDPG (defaults tuned on ``3v3``; see ``docs/learners.md``)."""
 
-    hidden: int = 128
+    hidden: int = 64
     """Width of the two hidden layers of every actor and critic (three FC layers)."""
     layers: int = 3
     """Fully connected layers per actor and per critic (the paper: three)."""

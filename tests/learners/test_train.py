@@ -127,3 +127,21 @@ def test_bad_input_gives_clear_errors(tmp_path, capsys):
         train(_tiny_config("maddpg", tmp_path / "done", 8), TINY)
     with pytest.raises(ValueError, match="it was trained with algo='maddpg'"):
         train(_tiny_config("bicnet", tmp_path / "done", 16), resume=True)
+
+
+def test_sigint_stops_cleanly_with_a_checkpoint_and_resumes_exactly(tmp_path):
+    import os
+    import signal
+
+    whole = train(_tiny_config("maddpg", tmp_path / "whole", 48), TINY)
+
+    def interrupt(counters):
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C during training
+
+    cut = train(_tiny_config("maddpg", tmp_path / "cut", 48), TINY, on_checkpoint=interrupt)
+    assert cut.interrupted and cut.episodes < 48
+    resumed = train(_tiny_config("maddpg", tmp_path / "cut", 48), resume=True)
+    assert not resumed.interrupted
+    wa, wb = _weights(whole.learner), _weights(resumed.learner)
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
