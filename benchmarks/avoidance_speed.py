@@ -70,11 +70,17 @@ class LoopOfSolvers:
         return out, solved
 
 
+REPLAN_MAX = 500
+"""Above this many AGVs the controller's re-planning of stuck AGVs is switched off: its grid
+map of the whole 1000v1000 world takes about 8 GB and 40 s (measured), which says nothing about
+the avoidance step."""
+
+
 def record(n: int, steps: int, seed: int) -> tuple[avoidance.VelocityAvoidance, list]:
     """Run a Hungarian-controlled ``NvN`` episode; the avoidance object and its calls."""
     env = sim.make_env(f"{n}v{n}", num_envs=1, seed=seed)
     obs = env.reset()
-    solver = allocator.make("hungarian")
+    solver = allocator.make("hungarian", **({"stuck_steps": 10**9} if n > REPLAN_MAX else {}))
     solver.reset(env)
     qp = solver.controller._avoidance()
     calls: list[tuple[tuple, dict]] = []
@@ -148,7 +154,9 @@ def main() -> None:
         f"Command: `python {' '.join(sys.argv)}`  ",
         f"Seed {args.seed}; up to {args.steps} steps of one Hungarian-controlled `NvN` episode "
         f"per N (the first step is not timed); 1 thread; date: {stamp}.  ",
-        "Target (issue 4): rows + solve at most 3 ms per step at N = 100.",
+        "Target (issue 4): rows + solve at most 3 ms per step at N = 100. Above "
+        f"N = {REPLAN_MAX} the controller does not re-plan stuck AGVs while recording (its "
+        "whole-world grid map would take 8 GB).",
         "",
     ]
     names = (
