@@ -4,7 +4,8 @@ Every AGV i picks its next velocity v_i as close as possible to its preferred ve
 subject to linear constraints ``l <= a . v_i <= u``:
 
 - the reciprocal ORCA half-planes of its nearest neighbours (RVO2's construction, each AGV
-  taking half the responsibility; parked AGVs are static and the mover takes all of it),
+  taking half the responsibility; parked AGVs are static and the mover takes all of it, and so
+  are "committed" AGVs, whose next velocity is already decided and is given),
 - half-planes keeping it off points it must not touch (e.g. other AGVs' tasks, which it would
   otherwise claim in passing), the walls and the nearest shelves,
 - its speed limit, as a regular polygon, and (optionally) the velocities its acceleration
@@ -175,7 +176,7 @@ class AvoidanceResult:
     Attributes
     ----------
     velocity : np.ndarray, shape (..., N, 2)
-        The new velocities (zero for static AGVs).
+        The new velocities (zero for static AGVs, the given ones for committed AGVs).
     fell_back : np.ndarray of bool, shape (..., N)
         AGVs whose constraints conflicted; their velocity minimises the largest violation.
     violation : np.ndarray, shape (..., N)
@@ -337,6 +338,7 @@ class VelocityAvoidance:
         points: np.ndarray | None = None,
         point_mask: np.ndarray | None = None,
         point_radius: float = 0.1,
+        committed: np.ndarray | None = None,
     ) -> ConstraintRows:
         """Build every AGV's rows (see the module docstring); shapes as in :meth:`solve`.
 
@@ -348,6 +350,7 @@ class VelocityAvoidance:
         pos, vel, pref, static, points, point_mask = self._check(
             positions, velocities, preferred, static, points, point_mask
         )
+        fixed = self._mask(committed, pos.shape[:2], positions, "committed") & ~static
         B, N, _ = pos.shape
         K = min(c.max_neighbors, N - 1)
         Q = min(c.max_points, 0 if points is None else points.shape[1])
@@ -380,7 +383,7 @@ class VelocityAvoidance:
             a, b = orca_halfplanes(
                 rel_p, v_i - vel[bi, nb], v_i, 2 * c.radius + np.where(st_j, c.static_margin,
                                                                         c.margin),
-                c.time_horizon, c.dt, np.where(st_j, 1.0, 0.5),
+                c.time_horizon, c.dt, np.where(st_j | fixed[bi, nb], 1.0, 0.5),
             )
             A[:, :, :K] = np.where(ok[..., None], a, 0.0)
             hi[:, :, :K] = np.where(ok, b, np.inf)
@@ -450,17 +453,29 @@ class VelocityAvoidance:
             lo[:, :, off:off + 2] = centre - c.gain
             hi[:, :, off:off + 2] = centre + c.gain
 
-        # Static AGVs: no rows, velocity 0.
-        act = ~static
-        if static.any():
-            A[static] = 0.0
-            lo[static] = -np.inf
-            hi[static] = np.inf
+        # Static and committed AGVs: no rows (velocity 0, or the committed one).
+        act = ~static & ~fixed
+        if not act.all():
+            A[~act] = 0.0
+            lo[~act] = -np.inf
+            hi[~act] = np.inf
         n = B * N
         return ConstraintRows(
             A.reshape(n, R, 2), lo.reshape(n, R), hi.reshape(n, R),
             np.where(act[..., None], pref, 0.0).reshape(n, 2), kind, act.reshape(n),
         )
+
+    @staticmethod
+    def _mask(mask: Any, shape: tuple[int, int], positions: Any, name: str) -> np.ndarray:
+        """A (B, N) boolean mask from ``None`` (all False) or an (N,) / (B, N) array."""
+        if mask is None:
+            return np.zeros(shape, dtype=bool)
+        m = np.asarray(mask, dtype=bool)
+        single = np.ndim(positions) == 2
+        m = m[None] if single and m.ndim == 1 else m
+        if m.shape != shape:
+            raise ValueError(f"{name} must have shape {shape[single:]}, got {m.shape[single:]}")
+        return m
 
     def _check(
         self, positions: Any, velocities: Any, preferred: Any, static: Any, points: Any,
@@ -516,6 +531,7 @@ class VelocityAvoidance:
         points: np.ndarray | None = None,
         point_mask: np.ndarray | None = None,
         point_radius: float = 0.1,
+        committed: np.ndarray | None = None,
     ) -> AvoidanceResult:
         """New velocities for every AGV, as close to ``preferred`` as the constraints allow.
 
@@ -530,6 +546,13 @@ class VelocityAvoidance:
             Points to keep ``point_radius + margin`` away from (e.g. other AGVs' tasks).
         point_mask : np.ndarray of bool, shape (N, P) or (B, N, P), optional
             Which AGV must avoid which point (default all).
+        point_radius : float
+            Radius of the forbidden points.
+        committed : np.ndarray of bool, shape (N,) or (B, N), optional
+            AGVs whose next velocity is already decided, given in ``velocities`` (e.g. ones
+            that could not honour their reciprocal rows): they get no rows and keep that
+            velocity, and their neighbours take the full responsibility against them (with
+            the moving margin). Ignored where ``static``.
 
         Returns
         -------
@@ -538,9 +561,14 @@ class VelocityAvoidance:
             constraints conflicted (their velocity least violates them).
         """
         rows = self.constraints(positions, velocities, preferred, static, points, point_mask,
-                                point_radius)
+                                point_radius, committed)
         vel, fell, viol, status = self.solve_rows(rows)
         shape = np.shape(positions)
+        if committed is not None:  # committed AGVs keep their given velocity
+            keep = np.asarray(committed, dtype=bool) & (
+                True if static is None else ~np.asarray(static, dtype=bool))
+            vel = np.where(np.broadcast_to(keep, shape[:-1]).reshape(-1, 1),
+                           np.asarray(velocities, dtype=np.float64).reshape(-1, 2), vel)
         return AvoidanceResult(
             vel.reshape(shape), fell.reshape(shape[:-1]), viol.reshape(shape[:-1]), status
         )

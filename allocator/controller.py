@@ -124,6 +124,7 @@ class AllocatorController:
         self._stuck = np.zeros((B, N), dtype=np.int64)
         self._best = np.full((B, N), np.inf)
         self.replans = 0
+        self.resolves = 0
         self.reassign()
 
     def reassign(self, env_ids: Any = None) -> None:
@@ -250,24 +251,18 @@ class AllocatorController:
             self.reassignments += int(redo.sum())
             self.reassign(np.flatnonzero(redo))
 
-        moving = (held < 0) & ~done[:, None]
-        self._replan_stuck(pos, vel, held, tasks, moving)
-        ahead = pos + vel * ph.dt  # where each AGV will be when the new velocity acts
+        idle = (held < 0) & ~done[:, None]
+        self._replan_stuck(pos, vel, held, tasks, idle)
+        ahead = self._advance(pos, vel)  # where each AGV will be when the new velocity acts
+        # AGVs that claim a task in this step stop dead at ``ahead`` (the simulator zeroes a
+        # parked AGV's velocity): from now on they are static obstacles for the others.
+        stopping, taken = self._claims(ahead, idle, claimed, tasks)
+        moving = idle & ~stopping
         preferred = self._preferred(ahead, moving)
 
         if self.use_avoidance:
             t0 = time.perf_counter()
-            points = mask = None
-            if self.avoid_tasks:
-                own = np.arange(tasks.shape[1])[None, None, :] == self.task_of_agent[..., None]
-                mask = ~claimed[:, None, :] & ~own & moving[..., None]
-                points = tasks
-            out = self._avoidance().solve(
-                ahead, vel, preferred, static=~moving, points=points, point_mask=mask,
-                point_radius=self._world.capture_radius,
-            )
-            self.fallbacks += int(out.fell_back.sum())
-            command = out.velocity
+            command = self._avoid_step(ahead, vel, preferred, moving, claimed | taken, tasks)
             self.timing["avoid"] += time.perf_counter() - t0
         else:
             command = preferred
@@ -276,6 +271,112 @@ class AllocatorController:
         action = np.where(moving[..., None], action, 0.0)
         self.timing["act"] += time.perf_counter() - t_start
         return torch.as_tensor(action, dtype=env.dtype, device=env.device)
+
+    def _avoid_step(
+        self, ahead: np.ndarray, vel: np.ndarray, preferred: np.ndarray, moving: np.ndarray,
+        claimed: np.ndarray, tasks: np.ndarray,
+    ) -> np.ndarray:
+        """Velocity commands (B, N, 2) from the avoidance QP, re-solved where an AGV will not
+        behave as its neighbours' ORCA rows assume.
+
+        Reciprocal ORCA rows assume every neighbour keeps its velocity and takes half the
+        responsibility. Two kinds of AGV break that, and both are known once the QP is
+        solved (``ahead + v dt`` is where each AGV will be a step later):
+
+        - an AGV whose command brings it within the capture radius of a task claims it there
+          and stops dead (the simulator zeroes a parked AGV's velocity);
+        - an AGV whose rows conflicted (fell back) violates them.
+
+        Their commands are kept, and the scenes that have one are solved again with them as
+        obstacles for the others, who take the full responsibility: a static disc at the
+        stopping point, or a disc moving with the committed velocity. Those solves can
+        produce new such AGVs, so this repeats until none appears (at most N times).
+        """
+        avoid = self._avoidance()
+        capture = self._world.capture_radius
+        dt = self._world.physics.dt
+        plan = self.task_of_agent
+
+        def solve(e: Any, p: np.ndarray, v: np.ndarray, static: np.ndarray,
+                  committed: np.ndarray) -> Any:
+            free = ~static & ~committed
+            points = mask = None
+            if self.avoid_tasks:
+                own = np.arange(tasks.shape[1])[None, None, :] == plan[e][..., None]
+                mask = ~claimed[e][:, None, :] & ~own & free[..., None]
+                points = tasks[e]
+            return avoid.solve(
+                p, v, np.where(free[..., None], preferred[e], 0.0), static=static,
+                points=points, point_mask=mask, point_radius=capture, committed=committed,
+            )
+
+        everything = slice(None)
+        out = solve(everything, ahead, np.where(moving[..., None], vel, 0.0), ~moving,
+                    np.zeros_like(moving))
+        command, fell = out.velocity, out.fell_back & moving
+        fixed = np.zeros_like(moving)
+        for _ in range(moving.shape[1]):
+            nxt = self._advance(ahead, command)
+            stop, _ = self._claims(nxt, moving, claimed, tasks)
+            new = (stop | fell) & moving & ~fixed
+            if not new.any():
+                break
+            fixed |= new
+            e = np.flatnonzero(new.any(axis=1))
+            st = stop[e] & fixed[e]
+            go = fixed[e] & ~st
+            p = np.where(st[..., None], nxt[e], ahead[e])
+            v = np.where(go[..., None], (nxt[e] - ahead[e]) / dt,
+                         np.where(moving[e][..., None] & ~st[..., None], vel[e], 0.0))
+            out = solve(e, p, v, ~moving[e] | st, go)
+            command[e] = np.where(fixed[e][..., None], command[e], out.velocity)
+            fell[e] = np.where(fixed[e], fell[e], out.fell_back & moving[e])
+            self.resolves += int(e.size)
+        self.fallbacks += int(fell.sum())
+        return command
+
+    def _advance(self, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
+        """Positions after one step at velocity ``vel``, clamped by the walls as the
+        simulator clamps them (shelves are not modelled: the QP keeps AGVs off them)."""
+        nxt = pos + vel * self._world.physics.dt
+        if self._world.walls:
+            r = self._world.agent_radius
+            xmin, ymin, xmax, ymax = self._world.bounds
+            nxt = np.clip(nxt, [xmin + r, ymin + r], [xmax - r, ymax - r])
+        return nxt
+
+    def _claims(
+        self, where: np.ndarray, idle: np.ndarray, claimed: np.ndarray, tasks: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The simulator's claim rule at positions ``where`` (B, N, 2).
+
+        An idle AGV within the capture radius of an unclaimed task is eligible; each task goes
+        to its nearest eligible AGV and an AGV that wins several takes its nearest.
+
+        Returns
+        -------
+        takes : np.ndarray of bool, shape (B, N)
+            AGVs that claim (and park).
+        taken : np.ndarray of bool, shape (B, M)
+            Tasks claimed.
+        """
+        B, N, _ = where.shape
+        M = tasks.shape[1]
+        if M == 0:
+            return np.zeros((B, N), dtype=bool), np.zeros((B, 0), dtype=bool)
+        d = np.linalg.norm(where[:, :, None, :] - tasks[:, None, :, :], axis=-1)  # (B, N, M)
+        # A claim decided by less than the simulator's float32 rounding is not predicted.
+        eligible = (d <= self._world.capture_radius - 1e-5) & idle[..., None] \
+            & ~claimed[:, None, :]
+        dm = np.where(eligible, d, np.inf)
+        best = dm.argmin(axis=1)  # (B, M): nearest eligible AGV per task
+        won = eligible & (np.arange(N)[None, :, None] == best[:, None, :])
+        takes = won.any(axis=2)
+        task = np.where(won, d, np.inf).argmin(axis=2)  # (B, N)
+        taken = np.zeros((B, M), dtype=bool)
+        bi, ai = np.nonzero(takes)
+        taken[bi, task[bi, ai]] = True
+        return takes, taken
 
     def _replan_stuck(
         self, pos: np.ndarray, vel: np.ndarray, held: np.ndarray, tasks: np.ndarray,
