@@ -70,7 +70,8 @@ class ActorCritic(nn.Module):
 
     @torch.no_grad()
     def explore(self, obs: Tensor, noise_std: float, generator: torch.Generator) -> Tensor:
-        """Actions with Gaussian exploration noise, clipped to [-1, 1], zero for parked AGVs.
+        """Actions with Gaussian exploration noise, clipped to [-1, 1], zero for parked AGVs
+        (with ``mask_parked``).
 
         Parameters
         ----------
@@ -86,7 +87,8 @@ class ActorCritic(nn.Module):
         """
         a = self.policy(obs)
         noise = torch.randn(a.shape, generator=generator, dtype=a.dtype, device=a.device)
-        return (a + noise_std * noise).clamp(-1.0, 1.0) * movable_mask(obs)
+        a = (a + noise_std * noise).clamp(-1.0, 1.0)
+        return a * movable_mask(obs) if self.config.mask_parked else a
 
     def td_target(self, batch: Batch, q_next: Tensor) -> Tensor:
         """y = r + gamma Q'(s', mu'(s')); at a terminal (every task claimed) Q' is replaced by
