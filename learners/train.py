@@ -14,7 +14,8 @@ Episodes end when every task is claimed (a true terminal: no bootstrap) or at th
 time-limit truncation: the observations hold no clock, so the state is not terminal and the
 target bootstraps from the next state).
 
-At episode milestones it writes a CSV row (``progress.csv``: the curves of the paper's Fig. 9),
+At episode milestones it writes a CSV row (``progress.csv``: the curves of the paper's Fig. 9;
+mirrored to TensorBoard when it is installed),
 evaluates the greedy policy with the paper's metrics (``sim.evaluate``), and writes checkpoints:
 ``checkpoint.safetensors`` (everything needed to resume bit-for-bit: networks, optimizers,
 replay buffer, environments mid-episode, random generators, counters) and
@@ -103,6 +104,9 @@ class TrainConfig:
     """torch intra-op threads (1 is fastest and steadiest on a shared 2-core machine)."""
     progress: bool = True
     """Show a tqdm progress bar with the running task response rate."""
+    tensorboard: bool = True
+    """Also write the CSV's curves as TensorBoard scalars (``RUN_DIR/tb``) when the
+    ``tensorboard`` package is installed (silently skipped otherwise)."""
 
     def resolved_run_dir(self) -> Path:
         """``run_dir`` or its default."""
@@ -199,10 +203,25 @@ class _CsvLog:
         writer.writerows(rows)
         _atomic_write_bytes(path, buf.getvalue().encode())
 
+        self.tb: Any = None
+
+    def enable_tensorboard(self, folder: Path) -> None:
+        """Mirror every row into TensorBoard scalars if ``tensorboard`` is installed."""
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:  # tensorboard is optional
+            return
+        self.tb = SummaryWriter(str(folder))
+
     def write(self, row: dict[str, Any]) -> None:
         with self.path.open("a", newline="") as f:
             csv.DictWriter(f, fieldnames=self.columns, extrasaction="ignore").writerow(
                 {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+        if self.tb is not None:
+            for k, v in row.items():
+                if k != "episode" and isinstance(v, (int, float)) and math.isfinite(v):
+                    self.tb.add_scalar(k, v, global_step=int(row["episode"]))
+            self.tb.flush()
 
 
 def _env_tensors(env: sim.AGVEnv) -> dict[str, Tensor]:
@@ -351,6 +370,8 @@ def train(
     log = _CsvLog(run_dir / "progress.csv",
                   CSV_COLUMNS + [f"train_term_{t}" for t in terms],
                   counters["episodes"] if resume else None)
+    if config.tensorboard:
+        log.enable_tensorboard(run_dir / "tb")
     obs, state = env.observe(), env.global_state()
     losses: dict[str, float] = {}
 
