@@ -66,6 +66,9 @@ class AllocatorController:
         The current plan (-1: no task).
     fallbacks : int
         AGV-steps in which the avoidance QP had to fall back.
+    resolves : int
+        Scene-steps whose QP was solved again around AGVs that claim (and stop) or fall back
+        in the next step (see :meth:`_avoid_step`); reset by :meth:`reset`.
     timing : dict
         Seconds spent assigning, planning and avoiding.
     """
