@@ -8,8 +8,10 @@
 2. ``act``: re-assign the environments where a claim went against the plan (or every
    ``reassign_every`` steps, or when :meth:`AllocatorController.reassign` is called); each
    idle AGV gets a preferred velocity along its path, braking on the last leg; the ORCA QP
-   (:class:`~allocator.avoidance.VelocityAvoidance`) makes the velocities collision-free; each
-   velocity becomes the acceleration action that reaches it in one step.
+   (:class:`~allocator.avoidance.VelocityAvoidance`) makes the velocities collision-free, and
+   is solved again where an AGV will break its reciprocal rows (it claims a task and stops
+   dead, or its rows conflicted): the others then take the full responsibility against it;
+   each velocity becomes the acceleration action that reaches it in one step.
 
 The simulator moves positions with the *current* velocity before the action acts
 (``pos += vel dt``; ``vel = (1 - damping) vel + action sensitivity dt / mass``), so the
