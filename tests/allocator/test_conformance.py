@@ -19,7 +19,9 @@ def test_registry_entry_conforms(name: str) -> None:
         solver = allocator.make(name, **_options(name))
     except FileNotFoundError as err:  # a learned allocator whose weights are not shipped yet
         pytest.skip(str(err))
-    check_allocator(solver, scenario="3v3", episodes=2)
+    # A centralized solver must serve min(N, M) pairs; a decentralized learned policy promises
+    # no complete assignment (its unserved tasks carry a reason), so only consistency is checked.
+    check_allocator(solver, scenario="3v3", episodes=2, complete=name in ("hungarian", "greedy"))
 
 
 def test_registry_holds_the_classical_solvers() -> None:
