@@ -16,12 +16,13 @@ import hashlib
 import json
 import os
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
+
+from sim.io import atomic_write_bytes
 
 __all__ = [
     "FORMAT", "FORMAT_VERSION", "save_checkpoint", "load_checkpoint", "read_metadata",
@@ -70,21 +71,6 @@ def tensor_digest(tensors: dict[str, Tensor]) -> str:
     return h.hexdigest()
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.chmod(tmp, 0o644)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def resolve_checkpoint_path(path: str | os.PathLike[str]) -> Path:
     """``X.safetensors`` for ``X.safetensors``, ``X.json`` or ``X`` (if that file exists);
     ``DIR/checkpoint.safetensors`` for a run folder (or a name that is neither)."""
@@ -128,9 +114,9 @@ def save_checkpoint(
             "code_version": metadata.get("code_version") or code_version(),
             "sha256": tensor_digest(tensors)}
     text = json.dumps(meta, sort_keys=True)
-    _atomic_write_bytes(path, save(tensors, metadata={_META_KEY: text}))
+    atomic_write_bytes(path, save(tensors, metadata={_META_KEY: text}))
     sidecar = json.dumps({**meta, "file": path.name}, indent=2, sort_keys=True) + "\n"
-    _atomic_write_bytes(path.with_suffix(".json"), sidecar.encode())
+    atomic_write_bytes(path.with_suffix(".json"), sidecar.encode())
     return path
 
 

@@ -49,13 +49,13 @@ import sim
 from learners.algorithms import REWARD_NAMES, check_algo, make_config, make_learner
 from learners.buffer import Batch, ReplayBuffer
 from learners.checkpoint import (
-    _atomic_write_bytes,
     code_version,
     load_checkpoint,
     resolve_checkpoint_path,
     save_checkpoint,
 )
 from learners.common import ActorCritic
+from sim.io import atomic_write_bytes
 
 __all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS"]
 
@@ -201,7 +201,7 @@ class _CsvLog:
         writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
-        _atomic_write_bytes(path, buf.getvalue().encode())
+        atomic_write_bytes(path, buf.getvalue().encode())
 
         self.tb: Any = None
 

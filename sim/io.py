@@ -10,6 +10,9 @@ from pathlib import Path
 
 __all__ = ["atomic_save", "atomic_write_text", "atomic_write_bytes"]
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 
 def atomic_save(save: Callable[[str], object], path: str | os.PathLike[str]) -> Path:
     """Write a file through ``save(tmp_path)``, then rename it to ``path``.
@@ -32,6 +35,9 @@ def atomic_save(save: Callable[[str], object], path: str | os.PathLike[str]) -> 
     os.close(fd)
     try:
         save(tmp)
+        with open(tmp, "rb+") as fh:  # the bytes reach the disk before the rename
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the usual file mode
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
