@@ -20,14 +20,14 @@ import torch
 from torch import Tensor
 
 from learners.buffer import Batch
-from learners.common import ActorCritic, movable_mask
+from learners.common import ActorCritic, OffPolicyConfig, movable_mask
 from learners.networks import BiRNNNet
 
 __all__ = ["BiCNetConfig", "BiCNet"]
 
 
 @dataclass
-class BiCNetConfig:
+class BiCNetConfig(OffPolicyConfig):
     """Hyperparameters of BiCNet (defaults tuned on ``3v3``; see ``docs/learners.md``)."""
 
     hidden: int = 64
@@ -36,44 +36,8 @@ class BiCNetConfig:
     """Shared fully connected layers before the bidirectional GRU (the paper: four)."""
     output_layers: int = 2
     """Shared fully connected layers after the GRU, the last one linear (the paper: four)."""
-    actor_lr: float = 1e-3
-    """Adam learning rate of the actor."""
-    critic_lr: float = 1e-3
-    """Adam learning rate of the critic."""
-    gamma: float = 0.95
-    """Discount factor."""
-    tau: float = 0.01
-    """Soft target update rate, applied after every update."""
     batch_size: int = 512
     """Transitions per gradient update."""
-    buffer_size: int = 200_000
-    """Replay buffer capacity in joint transitions."""
-    num_envs: int = 16
-    """Parallel environments stepped together while collecting."""
-    updates_per_step: int = 1
-    """Gradient updates after every vectorized step (num_envs transitions)."""
-    learning_starts: int = 4096
-    """Transitions collected with the untrained policy before the first update."""
-    noise_start: float = 0.5
-    """Initial standard deviation of the Gaussian exploration noise."""
-    noise_end: float = 0.05
-    """Final standard deviation of the exploration noise."""
-    noise_decay_episodes: int = 3000
-    """Episodes over which the noise decays linearly from noise_start to noise_end."""
-    grad_clip: float = 0.5
-    """Gradient norm limit of the actor and of the critic."""
-    action_l2: float = 1e-3
-    """Weight of the penalty on the actor's pre-tanh outputs."""
-    reward_scale: float = 1.0
-    """Factor applied to rewards before they are stored."""
-    terminal_value: str = "absorbing"
-    """Target at the end where every task is claimed: ``"absorbing"`` bootstraps the final
-    reward forever, r / (1 - gamma), as if the parked fleet kept receiving it (consistent with
-    bootstrapping at the step limit); ``"zero"`` is the textbook terminal target r. With the
-    positive IPF potentials, ``"zero"`` makes ending the episode by claiming the last task look
-    worse than hovering next to it until the step limit."""
-    mask_parked: bool = True
-    """Zero the actions of parked AGVs (their actions are ignored) in acting and in the losses."""
 
 
 class BiCNet(ActorCritic):

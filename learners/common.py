@@ -4,6 +4,7 @@ parked-AGV masks and the flat tensor form of their state for checkpoints."""
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
@@ -11,7 +12,53 @@ from torch import Tensor, nn
 
 from learners.buffer import Batch
 
-__all__ = ["ActorCritic", "movable_mask", "soft_update_"]
+__all__ = ["ActorCritic", "OffPolicyConfig", "movable_mask", "soft_update_"]
+
+
+@dataclass
+class OffPolicyConfig:
+    """Hyperparameters shared by the off-policy actor-critic learners (MADDPG, BiCNet)."""
+
+    hidden: int = 64
+    """Width of the hidden layers."""
+    actor_lr: float = 1e-3
+    """Adam learning rate of the actor(s)."""
+    critic_lr: float = 1e-3
+    """Adam learning rate of the critic(s)."""
+    gamma: float = 0.95
+    """Discount factor."""
+    tau: float = 0.01
+    """Soft target update rate: target <- (1 - tau) target + tau online, after every update."""
+    batch_size: int = 1024
+    """Transitions per gradient update."""
+    buffer_size: int = 200_000
+    """Replay buffer capacity in joint transitions."""
+    num_envs: int = 16
+    """Parallel environments stepped together while collecting."""
+    updates_per_step: int = 1
+    """Gradient updates after every vectorized step (num_envs transitions)."""
+    learning_starts: int = 4096
+    """Transitions collected with the untrained policy before the first update."""
+    noise_start: float = 0.5
+    """Initial standard deviation of the Gaussian exploration noise."""
+    noise_end: float = 0.05
+    """Final standard deviation of the exploration noise."""
+    noise_decay_episodes: int = 3000
+    """Episodes over which the noise decays linearly from noise_start to noise_end."""
+    grad_clip: float = 0.5
+    """Gradient norm limit of every actor and critic (Lowe et al.: 0.5)."""
+    action_l2: float = 1e-3
+    """Weight of the penalty on the actors' pre-tanh outputs (Lowe et al.'s regularizer)."""
+    reward_scale: float = 1.0
+    """Factor applied to rewards before they are stored."""
+    terminal_value: str = "absorbing"
+    """Target at the end where every task is claimed: ``"absorbing"`` bootstraps the final
+    reward forever, r / (1 - gamma), as if the parked fleet kept receiving it (consistent with
+    bootstrapping at the step limit); ``"zero"`` is the textbook terminal target r. With the
+    positive IPF potentials, ``"zero"`` makes ending the episode by claiming the last task look
+    worse than hovering next to it until the step limit."""
+    mask_parked: bool = True
+    """Zero the actions of parked AGVs (their actions are ignored) in acting and in the losses."""
 
 
 def movable_mask(obs: Tensor) -> Tensor:

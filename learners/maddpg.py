@@ -21,58 +21,22 @@ import torch
 from torch import Tensor
 
 from learners.buffer import Batch
-from learners.common import ActorCritic, movable_mask
+from learners.common import ActorCritic, OffPolicyConfig, movable_mask
 from learners.networks import StackedMLP, clip_grad_norm_per_agent_
 
 __all__ = ["MADDPGConfig", "MADDPG"]
 
 
 @dataclass
-class MADDPGConfig:
+class MADDPGConfig(OffPolicyConfig):
     """Hyperparameters of MADDPG (defaults tuned on ``3v3``; see ``docs/learners.md``)."""
 
     hidden: int = 64
     """Width of the two hidden layers of every actor and critic (three FC layers)."""
     layers: int = 3
     """Fully connected layers per actor and per critic (the paper: three)."""
-    actor_lr: float = 1e-3
-    """Adam learning rate of the actors."""
-    critic_lr: float = 1e-3
-    """Adam learning rate of the critics."""
-    gamma: float = 0.95
-    """Discount factor."""
-    tau: float = 0.01
-    """Soft target update rate: target <- (1 - tau) target + tau online, after every update."""
-    batch_size: int = 1024
-    """Transitions per gradient update."""
-    buffer_size: int = 200_000
-    """Replay buffer capacity in joint transitions."""
-    num_envs: int = 16
-    """Parallel environments stepped together while collecting."""
     updates_per_step: int = 2
     """Gradient updates after every vectorized step (num_envs transitions)."""
-    learning_starts: int = 4096
-    """Transitions collected with the untrained policy before the first update."""
-    noise_start: float = 0.5
-    """Initial standard deviation of the Gaussian exploration noise."""
-    noise_end: float = 0.05
-    """Final standard deviation of the exploration noise."""
-    noise_decay_episodes: int = 3000
-    """Episodes over which the noise decays linearly from noise_start to noise_end."""
-    grad_clip: float = 0.5
-    """Per-agent gradient norm limit for actors and critics (Lowe et al.: 0.5)."""
-    action_l2: float = 1e-3
-    """Weight of the penalty on the actors' pre-tanh outputs (Lowe et al.'s regularizer)."""
-    reward_scale: float = 1.0
-    """Factor applied to rewards before they are stored."""
-    terminal_value: str = "absorbing"
-    """Target at the end where every task is claimed: ``"absorbing"`` bootstraps the final
-    reward forever, r / (1 - gamma), as if the parked fleet kept receiving it (consistent with
-    bootstrapping at the step limit); ``"zero"`` is the textbook terminal target r. With the
-    positive IPF potentials, ``"zero"`` makes ending the episode by claiming the last task look
-    worse than hovering next to it until the step limit."""
-    mask_parked: bool = True
-    """Zero the actions and the actor loss of parked AGVs (their actions are ignored)."""
     critic_input: str = "obs"
     """What the centralized critics see besides all actions: ``"obs"`` (every agent's local
     observation, the paper's x = [o_1, ..., o_N]), ``"state"`` (the simulator's global state)
