@@ -1,0 +1,79 @@
+"""The tables' code on a tiny run produces a well-formed table; the figures' helpers work."""
+
+import csv
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+paper_tables = _load("paper_tables")
+paper_figures = _load("paper_figures")
+
+
+def test_tiny_table_is_well_formed(tmp_path: Path) -> None:
+    methods = ["bicnet-ipf", "maddpg-ipf", "hungarian", "greedy"]
+    code = paper_tables.main(["--episodes", "3", "--scenarios", "3v3", "--methods", *methods,
+                              "--out", str(tmp_path)])
+    assert code == 0
+    md = (tmp_path / "paper_tables.md").read_text()
+    table = [line for line in md.splitlines() if line.startswith("| ")]
+    assert len(table) == 1 + len(methods)  # header + one row per method
+    assert all(line.count("|") == table[0].count("|") for line in table)
+    with (tmp_path / "paper_tables.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["method"] for r in rows] == methods
+    for r in rows:
+        assert 0.0 <= float(r["response_rate"]) <= 1.0
+        assert float(r["avg_time"]) >= 1.0
+    hungarian = next(r for r in rows if r["method"] == "hungarian")
+    assert float(hungarian["time_ratio_to_hungarian"]) == pytest.approx(1.0)
+    ipf = next(r for r in rows if r["method"] == "bicnet-ipf")
+    assert float(ipf["paper_response_rate"]) == pytest.approx(0.9758)
+    assert not list(tmp_path.glob(".*"))  # nothing half-written left behind
+
+
+def test_missing_policy_names_the_file(tmp_path: Path, monkeypatch, capsys) -> None:
+    import allocator.learned as learned
+
+    monkeypatch.setattr(learned, "WEIGHTS_DIR", tmp_path / "nowhere")
+    code = paper_tables.main(["--episodes", "2", "--scenarios", "3v3", "--methods",
+                              "maddpg-ipf", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "maddpg-ipf.safetensors" in err and "agv train" in err
+    assert not (tmp_path / "paper_tables.md").exists()
+
+
+def test_interval_over_seeds() -> None:
+    class M:
+        def __init__(self, v: float) -> None:
+            self.response_rate = v
+
+    row = paper_tables.Row("3v3", "x", M(0.9), [M(0.8), M(0.9), M(1.0)])
+    mean, half = row.interval("response_rate")
+    assert mean == pytest.approx(0.9)
+    assert half == pytest.approx(4.302652729911275 * 0.1 / math.sqrt(3))
+    assert math.isnan(paper_tables.Row("3v3", "x", M(0.9)).interval("response_rate")[1])
+
+
+def test_preference_counts_sum_to_claims() -> None:
+    import allocator
+
+    by_index, by_rank = paper_figures.preference_counts(allocator.make("hungarian"), "3v3", 8, 0)
+    assert by_index.shape == by_rank.shape == (3, 3)
+    assert by_index.sum() == pytest.approx(by_rank.sum())
+    assert np.all(by_index <= 1.0)
