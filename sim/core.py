@@ -207,14 +207,19 @@ class AGVEnv:
         self._place(idx, a, t, v)
 
     def _place(self, idx: Tensor, a: Tensor, t: Tensor, v: Tensor) -> None:
-        """Start episodes in environments ``idx`` from checked positions."""
-        self.agent_pos[idx] = a
-        self.agent_vel[idx] = v
-        self.task_pos[idx] = t
-        self.task_claimed[idx] = False
-        self.agent_task[idx] = -1
-        self.steps[idx] = 0
-        self.done[idx] = False
+        """Start episodes in environments ``idx`` from checked positions.
+
+        Out of place, like the step: a state tensor the env handed out earlier (``info``,
+        ``env.agent_pos``) is never changed afterwards.
+        """
+        at = (idx,)
+        self.agent_pos = self.agent_pos.index_put(at, a)
+        self.agent_vel = self.agent_vel.index_put(at, v)
+        self.task_pos = self.task_pos.index_put(at, t)
+        self.task_claimed = self.task_claimed.index_put(at, torch.tensor(False))
+        self.agent_task = self.agent_task.index_put(at, torch.tensor(-1))
+        self.steps = self.steps.index_put(at, torch.tensor(0))
+        self.done = self.done.index_put(at, torch.tensor(False))
         self._pair = None
         self._task_rel = None
 
@@ -319,9 +324,8 @@ class AGVEnv:
         actions = self._check_actions(actions)
         ph = self.world.physics
         active = ~self.done
-        prev_pos = self.agent_pos.clone()
-        prev_claimed = self.task_claimed.clone()
-        prev_task = self.agent_task.clone()
+        # The step rebinds every state tensor (never writes in place), so these stay as they were.
+        prev_pos, prev_claimed, prev_task = self.agent_pos, self.task_claimed, self.agent_task
         movable = (self.agent_task < 0) & active.unsqueeze(1)  # (B, N)
 
         # MPE physics: force from the action and soft contacts, then integrate.

@@ -187,3 +187,16 @@ def test_bad_world_and_scenario() -> None:
         env.set_state(torch.tensor([[inside] + [[0.0, -1.4]] * 5]), env.task_pos)
     with pytest.raises(ValueError, match="outside the world"):
         env.set_state(env.agent_pos + 10, env.task_pos)
+
+
+def test_handed_out_tensors_are_never_changed_later() -> None:
+    # A training loop reads info after resetting the finished environments.
+    env = sim.make_env("3v3", num_envs=4, seed=0)
+    env.set_state(torch.tensor([[[0.0, 0.05], [0.5, -0.5], [-0.5, -0.5]]]).expand(4, 3, 2),
+                  torch.tensor([[[0.0, 0.0], [0.7, 0.7], [-0.7, 0.7]]]).expand(4, 3, 2))
+    _, _, _, info = env.step(torch.zeros(4, 3, 2))
+    pos, claims = env.agent_pos, info["agent_task"].clone()
+    before = pos.clone()
+    env.reset(env_ids=[0, 2])
+    assert torch.equal(info["agent_task"], claims)
+    assert torch.equal(pos, before)
