@@ -139,7 +139,7 @@ def preference_counts(controller, scenario: str, episodes: int, seed: int) -> tu
 def preference_figure(scenario: str, episodes: int, seed: int, out: Path) -> None:
     """Figs. 10-12: agent-to-task preferences of MADDPG-IPF and BiCNet-IPF."""
     plt = _plt()
-    fig, axes = plt.subplots(2, 2, figsize=(9, 8))
+    fig, axes = plt.subplots(2, 2, figsize=(10, 8.5), constrained_layout=True)
     for row, method in enumerate(("maddpg-ipf", "bicnet-ipf")):
         by_index, by_rank = preference_counts(allocator.make(method, scenario=scenario),
                                               scenario, episodes, seed)
@@ -150,6 +150,8 @@ def preference_figure(scenario: str, episodes: int, seed: int, out: Path) -> Non
             for (i, j), v in np.ndenumerate(mat):
                 ax.text(j, i, f"{v:.0%}", ha="center", va="center", fontsize=7,
                         color="w" if v < 0.6 else "k")
+            ax.set_xticks(range(mat.shape[1]))
+            ax.set_yticks(range(mat.shape[0]))
             ax.set_xlabel(xlabel)
             ax.set_ylabel("AGV i")
             ax.set_title(f"{method}, {scenario}: P(AGV i claims ...)", fontsize=9)
