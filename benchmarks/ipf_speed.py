@@ -200,7 +200,7 @@ def main() -> None:
         "",
         f"Measured by `python benchmarks/ipf_speed.py --threads "
         f"{' '.join(map(str, args.threads))}{' --quick' if args.quick else ''}` on "
-        f"{platform.machine()}, {os.cpu_count()} cores shared with other jobs, torch "
+        f"{platform.machine()}, {os.cpu_count()} cores, torch "
         f"{torch.__version__}; times are medians of repeats, the step comparison interleaves "
         "the two environments step by step. Solver timings below use 1 thread.",
         "",
