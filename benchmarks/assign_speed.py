@@ -21,6 +21,7 @@ from scipy.spatial.distance import cdist
 
 import allocator
 from allocator.paths import travel_costs
+from sim.io import atomic_write_text
 from sim.scenarios import get_scenario
 
 
@@ -91,7 +92,7 @@ def main() -> None:
         )
     text = "\n".join(lines) + "\n"
     out = Path(__file__).parent / "results" / "assign_speed.md"
-    out.write_text(text)
+    atomic_write_text(out, text)
     print(text)
 
 

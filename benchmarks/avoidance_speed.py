@@ -37,6 +37,7 @@ import scipy.sparse as sp  # noqa: E402
 import allocator  # noqa: E402
 import allocator.avoidance as avoidance  # noqa: E402
 import sim  # noqa: E402
+from sim.io import atomic_write_text  # noqa: E402
 
 
 class LoopOfSolvers:
@@ -189,7 +190,7 @@ def main() -> None:
         lines.append("")
         print("\n".join(lines[-12:]), flush=True)
     text = "\n".join(lines)
-    args.out.write_text(text)
+    atomic_write_text(args.out, text)
     print(f"wrote {args.out}")
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import allocator
 import sim
+from sim.io import atomic_write_text
 
 METHODS = {
     "hungarian + ORCA QP": ("hungarian", {}),
@@ -98,7 +99,7 @@ def main() -> None:
             )
     text = "\n".join(lines) + "\n"
     out = Path(__file__).parent / "results" / "classical_paper_metrics.md"
-    out.write_text(text)
+    atomic_write_text(out, text)
     print(text)
 
 

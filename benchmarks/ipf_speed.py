@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 import sim
+from sim.io import atomic_write_text
 from sim.ipf import AGENT_VALUE, TASK_VALUE, IPFGrid, ipf_grid, jacobi_field
 from sim.scenarios import warehouse_world
 
@@ -253,7 +254,7 @@ def main() -> None:
     lines += ["", f"Worst difference: **{worst:.1e}** (Jacobi's own guaranteed error is "
               "below 1e-9).", ""]
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines))
+    atomic_write_text(args.out, "\n".join(lines))
     print(f"wrote {args.out}")
 
 

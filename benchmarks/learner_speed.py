@@ -31,6 +31,7 @@ from learners.buffer import Batch
 from learners.maddpg import MADDPG, MADDPGConfig
 from learners.reference import LoopedMADDPG
 from learners.train import TrainConfig, train
+from sim.io import atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results" / "learner_speed.md"
 
@@ -149,7 +150,7 @@ def main() -> None:
         "",
     ]
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
+    atomic_write_text(RESULTS, "\n".join(lines))
     print(f"wrote {RESULTS}")
 
 

@@ -55,7 +55,7 @@ from learners.checkpoint import (
     save_checkpoint,
 )
 from learners.common import ActorCritic
-from sim.io import atomic_write_bytes
+from sim.io import atomic_write_bytes, atomic_write_text
 
 __all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS"]
 
@@ -364,7 +364,7 @@ def train(
     run_dir.mkdir(parents=True, exist_ok=True)
     config.run_dir = str(run_dir)
     if not resume:
-        (run_dir / "config.json").write_text(json.dumps(
+        atomic_write_text(run_dir / "config.json", json.dumps(
             {"train": dataclasses.asdict(config), config.algo: dataclasses.asdict(cfg)},
             indent=2) + "\n")
     log = _CsvLog(run_dir / "progress.csv",

@@ -72,6 +72,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sim.io import atomic_save
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -910,5 +911,5 @@ def plot_field(
     ax.set_title(f"IPF of AGV {agent} (r_IPF = {field.value_at_agent:.3f})")
     fig.colorbar(image, ax=ax, shrink=0.8, label="potential")
     if path is not None:
-        fig.savefig(path, dpi=120, bbox_inches="tight")
+        atomic_save(lambda p: fig.savefig(p, dpi=120, bbox_inches="tight"), path)
     return fig
