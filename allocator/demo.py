@@ -85,8 +85,9 @@ def run_demo(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows, results = [], {}
     t0 = time.perf_counter()
-    for scenario in ("3v3", "6v6"):
-        for name, factory in available_methods(scenario):
+    methods = {scenario: list(available_methods(scenario)) for scenario in ("3v3", "6v6")}
+    for scenario, available in methods.items():
+        for name, factory in available:
             metrics = sim.evaluate(factory(), scenario, episodes=episodes, seed=args.seed)
             results[(scenario, name)] = metrics
             rows.append({"scenario": scenario, "method": name, **metrics.as_dict(),
@@ -97,10 +98,9 @@ def run_demo(args: argparse.Namespace) -> int:
     print()
     print(table)
     atomic_write_text(out / "table.md", table + "\n")
-    for scenario in ("3v3", "6v6"):
+    for scenario, available in methods.items():
         _claims_figure(results, scenario, out / f"claims_per_episode_{scenario}.png")
-    for scenario in ("3v3", "6v6"):
-        for name, factory in available_methods(scenario):
+        for name, factory in available:
             if name in ("nearest-task", "hungarian", "bicnet-ipf", "maddpg-ipf"):
                 sim.render_episode(factory(), scenario, seed=args.seed,
                                    path=out / f"episode_{scenario}_{name}.gif",
