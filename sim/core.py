@@ -322,32 +322,12 @@ class AGVEnv:
             ``collisions_per_agent`` (B, N), ``active`` (B,) bool.
         """
         actions = self._check_actions(actions)
-        ph = self.world.physics
         active = ~self.done
         # The step rebinds every state tensor (never writes in place), so these stay as they were.
         prev_pos, prev_claimed, prev_task = self.agent_pos, self.task_claimed, self.agent_task
         movable = (self.agent_task < 0) & active.unsqueeze(1)  # (B, N)
 
-        # MPE physics: force from the action and soft contacts, then integrate.
-        force = actions * ph.sensitivity
-        if ph.contact_force > 0 and self.num_agents > 1:
-            force = force + self._contact_forces(self._pairwise()[1])
-        m = movable.unsqueeze(-1)
-        pos = self.agent_pos + self.agent_vel * (ph.dt * m)
-        vel = self.agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
-        if ph.max_speed is not None:
-            speed = torch.linalg.vector_norm(vel, dim=-1, keepdim=True)
-            vel = vel * (ph.max_speed / speed.clamp_min(ph.max_speed))
-        vel = torch.where(m, vel, self.agent_vel)
-        if self.world.has_obstacles:
-            pos, vel = self._collide_obstacles(pos, vel)
-        if self.world.walls:
-            pos, vel = self._collide_walls(pos, vel)
-        pos = torch.where(m, pos, self.agent_pos)
-        self.agent_pos = pos
-        self.agent_vel = vel
-        self._pair = None
-        self._task_rel = None
+        self.physics_step(actions, movable)
 
         # Task claiming: an idle AGV within the capture radius takes the task and parks.
         _, dist = self._task_offsets()  # (B, N, M)
@@ -378,6 +358,38 @@ class AGVEnv:
             "active": active,
         }
         return self.observe(), reward, self.done.clone(), info
+
+    def physics_step(self, actions: Tensor, movable: Tensor) -> None:
+        """Move the AGVs by one MPE physics step: action and contact forces, integration,
+        shelves, walls. No claiming, observations or rewards (:meth:`step` adds those).
+
+        Parameters
+        ----------
+        actions : Tensor, shape (B, N, 2)
+            Checked, clipped accelerations.
+        movable : Tensor of bool, shape (B, N)
+            AGVs that move (idle AGVs of running environments); the others keep their state.
+        """
+        ph = self.world.physics
+        # MPE physics: force from the action and soft contacts, then integrate.
+        force = actions * ph.sensitivity
+        if ph.contact_force > 0 and self.num_agents > 1:
+            force = force + self._contact_forces(self._pairwise()[1])
+        m = movable.unsqueeze(-1)
+        pos = self.agent_pos + self.agent_vel * (ph.dt * m)
+        vel = self.agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
+        if ph.max_speed is not None:
+            speed = torch.linalg.vector_norm(vel, dim=-1, keepdim=True)
+            vel = vel * (ph.max_speed / speed.clamp_min(ph.max_speed))
+        vel = torch.where(m, vel, self.agent_vel)
+        if self.world.has_obstacles:
+            pos, vel = self._collide_obstacles(pos, vel)
+        if self.world.walls:
+            pos, vel = self._collide_walls(pos, vel)
+        self.agent_pos = torch.where(m, pos, self.agent_pos)
+        self.agent_vel = vel
+        self._pair = None
+        self._task_rel = None
 
     def _claim(self, dist: Tensor, active: Tensor) -> Tensor:
         """Resolve claims in one round: each task goes to its nearest eligible AGV, and an AGV

@@ -49,18 +49,11 @@ def steps_per_second(scenario: str, num_envs: int, reward: str | RewardFn = "min
 @torch.no_grad()
 def physics_only_steps_per_second(scenario: str, num_envs: int, steps: int = 100,
                                   repeats: int = 3, seed: int = 0) -> float:
-    """Steps per second of the bare MPE physics of the same environment (forces, integration,
-    walls), without claiming, observations or rewards: the yardstick for their overhead."""
+    """Steps per second of the bare MPE physics of the same environment
+    (:meth:`~sim.core.AGVEnv.physics_step`: forces, integration, shelves, walls), without
+    claiming, observations or rewards: the yardstick for their overhead."""
     env = AGVEnv(scenario, num_envs=num_envs, seed=seed)
-    ph = env.world.physics
     gen = torch.Generator().manual_seed(seed)
     actions = torch.rand((num_envs, env.num_agents, 2), generator=gen) * 2 - 1
-
-    def step() -> None:
-        env._pair = None
-        force = actions * ph.sensitivity + env._contact_forces(env._pairwise()[1])
-        pos = env.agent_pos + env.agent_vel * ph.dt
-        vel = env.agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
-        env.agent_pos, env.agent_vel = env._collide_walls(pos, vel)
-
-    return num_envs / _timeit(step, steps, repeats)
+    movable = torch.ones(num_envs, env.num_agents, dtype=torch.bool)
+    return num_envs / _timeit(lambda: env.physics_step(actions, movable), steps, repeats)
