@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import make_batch
 
 from learners.buffer import Batch, ReplayBuffer
+from tests.learners.conftest import make_batch
 
 
 def _rows(batch: Batch, lo: int, hi: int) -> Batch:

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import torch
-from conftest import make_batch
 
 from learners.maddpg import MADDPG, MADDPGConfig
 from learners.networks import BiRNNNet, LoopedMLP, StackedMLP, clip_grad_norm_per_agent_
 from learners.reference import LoopedMADDPG
+from tests.learners.conftest import make_batch
 
 
 def test_stacked_mlp_matches_separate_networks():

@@ -7,10 +7,10 @@ import csv
 
 import pytest
 import torch
-from conftest import TINY
 
 from learners.cli import add_evaluate_arguments, add_train_arguments, run_evaluate, run_train
 from learners.train import CSV_COLUMNS, TrainConfig, train
+from tests.learners.conftest import TINY
 
 
 def _cli(add, run, argv: list[str]) -> int:
