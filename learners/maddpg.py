@@ -22,7 +22,14 @@ from torch import Tensor
 
 from learners.buffer import Batch
 from learners.common import ActorCritic, OffPolicyConfig, movable_mask
-from learners.networks import StackedMLP, clip_grad_norm_per_agent_
+from learners.networks import (
+    StackedMLP,
+    Workspace,
+    clip_grad_norm_per_agent_,
+    grad_buffer,
+    stacked_backward_,
+    stacked_forward_,
+)
 
 __all__ = ["MADDPGConfig", "MADDPG"]
 
@@ -73,6 +80,7 @@ class MADDPG(ActorCritic):
         self.critic = StackedMLP(n, sizes[config.critic_input] + 2 * n, 1, h, config.layers)
         self._finish_init()
         self.register_buffer("_agents", torch.arange(n), persistent=False)
+        self._ws = Workspace()  # scratch tensors of :meth:`update`, reused between updates
 
     def _actor_out(self, obs: Tensor, target: bool = False) -> Tensor:
         """Pre-tanh actor outputs, (B, N, O) -> (N, B, 2).
@@ -118,8 +126,63 @@ class MADDPG(ActorCritic):
             h = layer(torch.relu(h))
         return h.squeeze(-1)
 
+    # ------------------------------------------------------------------ the update
+    def _critic_pass(self, net: StackedMLP, x: Tensor, tag: str, own: tuple[Tensor, Tensor]
+                     | None = None) -> list[Tensor]:
+        """All N critics on one shared input, into workspace tensors.
+
+        The first layer is one GEMM (B, D) @ (D, N H) written to a (B, N, H) tensor that is
+        read as (N, B, H) (no transposing copy); the bias is added inside the GEMM. With
+        ``own = (delta, w_own)`` the term ``delta @ w_own`` (N, B, 2) x (N, 2, H) is added to
+        the first pre-activation before its ReLU (the actor pass, see :meth:`update`).
+
+        Returns ``[x, h_1, ..., h_{L-1}, q]`` as :func:`stacked_forward_` does, q (N, B, 1).
+        """
+        first = net.layers[0]
+        n, d, h = first.weight.shape
+        bsz = x.shape[0]
+        z = self._ws.get(tag + "head", (bsz, n, h), x)
+        torch.addmm(first.bias.view(n * h), x, first.weight.transpose(0, 1).reshape(d, n * h),
+                    out=z.view(bsz, n * h))
+        z = z.transpose(0, 1)  # (N, B, H) view
+        if own is not None:
+            z.baddbmm_(*own)
+        if len(net.layers) == 1:
+            return [x, z]
+        z.relu_()
+        return [x, *stacked_forward_(net.layers[1:], z, self._ws, tag)]
+
+    def _joint_input(self, name: str, features: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
+        """The critics' input [features, a_1, ..., a_N] (B, C + 2N) in a workspace tensor, and
+        its action part viewed as (N, B, 2) (to be filled in place)."""
+        bsz, c = features.shape
+        x = self._ws.get(name, (bsz, c + 2 * self.num_agents), features)
+        x[:, :c].copy_(features)
+        slots = x[:, c:].view(bsz, self.num_agents, 2).transpose(0, 1)
+        if action is not None:
+            slots.copy_(action)
+        return x, slots
+
     def update(self, batch: Batch) -> dict[str, float]:
         """One MADDPG update of all agents from a sampled batch.
+
+        The N critics, then the N actors, take one clipped Adam step each, then the targets
+        move by tau; the same computation as the textbook loop of N networks
+        (:class:`learners.reference.LoopedMADDPG`, tested equal to 1e-6). How it is fast:
+
+        * every layer of all N networks is one batched matmul, the critics' first layer (one
+          input shared by all N) one GEMM with the bias folded in;
+        * the gradients are written by hand (the networks are plain ReLU MLPs): no autograd
+          graph, and every temporary and gradient lives in a :class:`Workspace` reused from
+          one update to the next (``out=`` and in-place ops), which on CPU saves more than
+          the graph does;
+        * in the actor pass, critic i needs [x, a_1, ..., mu_i(o_i), ..., a_N]; its first
+          layer is linear, so its pre-activation is the critic pass's shared GEMM on the
+          buffer's joint action plus (mu_i - a_i) W_i[a_i rows], a (N, B, 2) x (N, 2, H)
+          product: no per-agent copy of the joint action, and the gradient flows only through
+          that small product;
+        * per-agent clipping of stacked gradients is vectorised; Adam is fused; the soft update
+          is one multi-tensor lerp per network.
 
         Parameters
         ----------
@@ -132,47 +195,87 @@ class MADDPG(ActorCritic):
         dict
             ``critic_loss``, ``actor_loss`` (sums over agents) and ``q`` (mean Q).
         """
-        cfg = self.config
+        cfg, ws = self.config, self._ws
         n, bsz = self.num_agents, batch.obs.shape[0]
-        # Critics: one TD step each, all N in one batched forward.
+        mask = cfg.mask_parked
         with torch.no_grad():
-            next_action = self.policy(batch.next_obs, target=True)
-            next_features = self.critic_features(batch.next_obs, batch.next_state)
-            q_next = self.q_values(next_features, next_action, target=True)
-            y = self.td_target(batch, q_next)
-        features = self.critic_features(batch.obs, batch.state)
-        q = self.q_values(features, batch.action)
-        critic_loss = (q - y).pow(2).mean(0).sum()
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        clip_grad_norm_per_agent_(list(self.critic.parameters()), cfg.grad_clip)
+            # ---- TD targets: target actors, then target critics on the next joint action.
+            x_next, next_slots = self._joint_input(
+                "x_next", self.critic_features(batch.next_obs, batch.next_state), None)
+            next_pre = stacked_forward_(self.target_actor.layers, batch.next_obs.transpose(0, 1),
+                                        ws, "ta")[-1]  # (N, B, 2)
+            torch.tanh(next_pre, out=next_slots)
+            if mask:
+                next_slots.mul_(movable_mask(batch.next_obs).transpose(0, 1))
+            q_next = self._critic_pass(self.target_critic, x_next, "tc")[-1]  # (N, B, 1)
+            y = self.td_target(batch, q_next.squeeze(-1).transpose(0, 1))  # (B, N)
+
+            # ---- Critics: L = sum_i mean_b (Q_i - y_i)^2, dL/dQ_i = 2 (Q_i - y_i) / B.
+            x, _ = self._joint_input("x", self.critic_features(batch.obs, batch.state),
+                                     batch.action.transpose(0, 1))
+            acts = self._critic_pass(self.critic, x, "c")
+            q = acts[-1]  # (N, B, 1)
+            diff = torch.sub(q, y.transpose(0, 1).unsqueeze(-1), out=ws.get("diff", q.shape, q))
+            critic_loss = diff.pow(2).sum() / bsz
+            q_mean = q.mean()
+            self._critic_backward(acts, diff.mul_(2.0 / bsz))
+            clip_grad_norm_per_agent_(list(self.critic.parameters()), cfg.grad_clip)
         self.critic_optimizer.step()
 
-        # Actors: critic i sees mu_i(o_i) in slot i and the buffer's actions elsewhere. Its
-        # first layer is linear, so [x, a with a_i = mu_i] W_i = [x, a] W_i + (mu_i - a_i) W_i,a_i:
-        # the shared part is one GEMM without gradient, the own-action part one small bmm.
-        pre = self._actor_out(batch.obs)  # (N, B, 2)
-        movable = movable_mask(batch.obs).transpose(0, 1)  # (N, B, 1)
-        mu = torch.tanh(pre) * (movable if cfg.mask_parked else 1.0)
-        taken = batch.action.transpose(0, 1)  # (N, B, 2)
-        first = self.critic.layers[0].weight.detach()  # (N, C + 2N, H)
-        c = features.shape[1]
-        own = first[:, c:].reshape(n, n, 2, -1)[self._agents, self._agents]  # (N, 2, H)
         with torch.no_grad():
-            base = self._critic_head(self.critic, torch.cat(
-                [features, batch.action.reshape(bsz, -1)], dim=-1))
-        q_pi = self._critic_tail(self.critic, base + torch.bmm(mu - taken, own))  # (N, B)
-        weight = movable.squeeze(-1) if cfg.mask_parked else torch.ones_like(q_pi)
-        actor_loss = -(q_pi * weight).mean(1).sum()
-        reg = cfg.action_l2 * (pre.pow(2).mean(dim=(1, 2))).sum()
-        actor_params = list(self.actor.parameters())
-        grads = torch.autograd.grad(actor_loss + reg, actor_params)
-        for p, g in zip(actor_params, grads, strict=True):
-            p.grad = g
-        clip_grad_norm_per_agent_(actor_params, cfg.grad_clip)
+            # ---- Actors, against the updated critics.
+            obs = batch.obs.transpose(0, 1)  # (N, B, O)
+            actor_acts = stacked_forward_(self.actor.layers, obs, ws, "a")
+            pre = actor_acts[-1]  # (N, B, 2)
+            t = torch.tanh(pre, out=ws.get("tanh", pre.shape, pre))
+            movable = movable_mask(batch.obs).transpose(0, 1)  # (N, B, 1)
+            taken = batch.action.transpose(0, 1)  # (N, B, 2)
+            # Critic i with mu_i in slot i: the shared GEMM on x plus (mu_i - a_i) W_i[a_i rows].
+            first = self.critic.layers[0].weight  # (N, C + 2N, H)
+            c = x.shape[1] - 2 * n
+            own = first[:, c:].view(n, n, 2, -1)[self._agents, self._agents]  # (N, 2, H)
+            delta = torch.mul(t, movable) if mask else t.clone()
+            delta.sub_(taken)  # mu_i - a_i
+            pass_acts = self._critic_pass(self.critic, x, "p", own=(delta, own))
+            weight = movable if mask else torch.ones_like(pass_acts[-1])
+            actor_loss = -(pass_acts[-1] * weight).sum() / bsz
+            # d(-sum_i mean_b w Q_i)/dQ_i = -w / B, back to the first pre-activation, to mu_i.
+            dz = self._pass_backward(pass_acts, weight.mul(-1.0 / bsz))
+            dmu = torch.bmm(dz, own.transpose(1, 2), out=ws.get("dmu", pre.shape, pre))
+            # Through mu = tanh(pre) * movable, plus the regulariser action_l2 * mean(pre^2).
+            dpre = t.pow_(2).neg_().add_(1.0).mul_(dmu)
+            if mask:
+                dpre.mul_(movable)
+            dpre.add_(pre, alpha=cfg.action_l2 / bsz)
+            stacked_backward_(self.actor.layers, actor_acts, dpre, ws, "ag")
+            clip_grad_norm_per_agent_(list(self.actor.parameters()), cfg.grad_clip)
         self.actor_optimizer.step()
 
         self._soft_update()
         self.updates += 1
         return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(),
-                "q": q.mean().item()}
+                "q": q_mean.item()}
+
+    def _critic_backward(self, acts: list[Tensor], dq: Tensor) -> None:
+        """Gradients of every critic parameter from dL/dQ (N, B, 1), into their ``.grad``."""
+        layers = self.critic.layers
+        first = layers[0]
+        n, d, h = first.weight.shape
+        bsz = dq.shape[1]
+        if len(layers) == 1:
+            dz = dq
+        else:
+            dz = self._ws.get("cg_head", (bsz, n, h), dq).transpose(0, 1)
+            stacked_backward_(layers, acts, dq, self._ws, "cg", stop=1, grad_in_out=dz)
+        # First layer, shared input x (B, D): one GEMM x^T @ dz (B, N H) -> (D, N H).
+        dz_flat = dz.transpose(0, 1).reshape(bsz, n * h)
+        gw = torch.mm(acts[0].t(), dz_flat, out=self._ws.get("cg_w", (d, n * h), dq))
+        grad_buffer(first.weight).copy_(gw.view(d, n, h).transpose(0, 1))
+        torch.sum(dz_flat, dim=0, out=grad_buffer(first.bias).view(n * h))
+
+    def _pass_backward(self, acts: list[Tensor], dq: Tensor) -> Tensor:
+        """d loss / d (first pre-activation) of the actor pass, (N, B, H); no critic grads."""
+        if len(self.critic.layers) == 1:
+            return dq
+        return stacked_backward_(self.critic.layers, acts, dq, self._ws, "pg", stop=1,
+                                 param_grads=False)

@@ -8,6 +8,9 @@
   against :class:`LoopedMLP`, the textbook list of ``nn.Sequential``).
 * :class:`BiRNNNet`: BiCNet's shared per-agent input layers, a bidirectional GRU run over the
   agent axis, and shared per-agent output layers.
+* :class:`Workspace`, :func:`stacked_forward_` and :func:`stacked_backward_`: a stack of
+  layers run forward into reused scratch tensors and differentiated by hand (MADDPG's update;
+  see :meth:`learners.maddpg.MADDPG.update` for why).
 """
 
 from __future__ import annotations
@@ -19,7 +22,8 @@ import torch
 from torch import Tensor, nn
 
 __all__ = [
-    "StackedLinear", "StackedMLP", "LoopedMLP", "BiRNNNet", "clip_grad_norm_per_agent_",
+    "StackedLinear", "StackedMLP", "LoopedMLP", "BiRNNNet", "Workspace",
+    "clip_grad_norm_per_agent_", "grad_buffer", "stacked_backward_", "stacked_forward_",
 ]
 
 
@@ -215,7 +219,10 @@ class BiRNNNet(nn.Module):
 def clip_grad_norm_per_agent_(params: Sequence[Tensor], max_norm: float) -> Tensor:
     """Clip the gradient of each agent's slice of stacked parameters to ``max_norm``.
 
-    The same as calling ``torch.nn.utils.clip_grad_norm_`` on each of N separate networks.
+    The same as calling ``torch.nn.utils.clip_grad_norm_`` on each of N separate networks:
+    agent n's gradients are scaled by ``min(1, max_norm / (norm_n + 1e-6))``, where norm_n is
+    the 2-norm of all of agent n's gradients together. Vectorised over the agents (one norm
+    per parameter tensor, no loop over agents, no host synchronisation).
 
     Parameters
     ----------
@@ -229,9 +236,120 @@ def clip_grad_norm_per_agent_(params: Sequence[Tensor], max_norm: float) -> Tens
         The per-agent gradient norms before clipping.
     """
     grads = [p.grad for p in params if p.grad is not None]
-    sq = torch.stack([g.reshape(g.shape[0], -1).pow(2).sum(1) for g in grads]).sum(0)
-    norms = sq.sqrt()
-    scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    per_tensor = torch.stack([torch.linalg.vector_norm(g.reshape(g.shape[0], -1), dim=1)
+                              for g in grads])  # (P, N)
+    norms = torch.linalg.vector_norm(per_tensor, dim=0)
+    scale = (max_norm / (norms + 1e-6)).clamp_(max=1.0)
     for g in grads:
         g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))
     return norms
+
+
+class Workspace:
+    """Scratch tensors kept from one call to the next, by name.
+
+    Large temporaries that are allocated and freed on every update cost more than the
+    arithmetic on them on CPU (fresh pages are zero-filled by the kernel on first touch);
+    reusing them through ``out=`` arguments avoids that. A tensor is reallocated when the
+    requested shape, dtype or device changes. Not part of any ``state_dict``.
+    """
+
+    def __init__(self) -> None:
+        self._tensors: dict[str, Tensor] = {}
+
+    def get(self, name: str, shape: Sequence[int], like: Tensor) -> Tensor:
+        """An uninitialised tensor called ``name`` of ``shape``, with ``like``'s dtype and
+        device (the same storage as the last call with that name and shape)."""
+        shape = tuple(shape)
+        t = self._tensors.get(name)
+        if t is None or t.shape != shape or t.dtype != like.dtype or t.device != like.device:
+            t = self._tensors[name] = torch.empty(shape, dtype=like.dtype, device=like.device)
+        return t
+
+
+def grad_buffer(param: Tensor) -> Tensor:
+    """``param.grad``, allocated (uninitialised) if missing: a gradient written with ``out=``."""
+    if param.grad is None or param.grad.shape != param.shape:
+        param.grad = torch.empty_like(param)
+    return param.grad
+
+
+def stacked_forward_(
+    layers: Sequence[StackedLinear], x: Tensor, ws: Workspace, tag: str,
+) -> list[Tensor]:
+    """Forward pass of stacked layers (ReLU between them) into workspace tensors.
+
+    Parameters
+    ----------
+    layers : sequence of StackedLinear
+    x : Tensor, shape (N, B, in)
+        Input (any strides).
+    ws : Workspace
+    tag : str
+        Prefix of the workspace names (callers keep different passes apart).
+
+    Returns
+    -------
+    list of Tensor
+        ``[x, h_1, ..., h_{L-1}, out]``: entry k is the input of layer k (post-ReLU), the last
+        one the output of the last layer (no activation). Entries after ``x`` live in ``ws``.
+    """
+    acts = [x]
+    for k, layer in enumerate(layers):
+        n, _, d_out = layer.weight.shape
+        z = torch.baddbmm(layer.bias, acts[-1], layer.weight,
+                          out=ws.get(f"{tag}{k}", (n, x.shape[1], d_out), x))
+        if k < len(layers) - 1:
+            z.relu_()
+        acts.append(z)
+    return acts
+
+
+def stacked_backward_(
+    layers: Sequence[StackedLinear], acts: Sequence[Tensor], grad_out: Tensor, ws: Workspace,
+    tag: str, stop: int = 0, param_grads: bool = True, grad_in_out: Tensor | None = None,
+) -> Tensor | None:
+    """Backward pass of :func:`stacked_forward_`, by hand, gradients written in place.
+
+    Parameters
+    ----------
+    layers : sequence of StackedLinear
+    acts : sequence of Tensor
+        Inputs of the layers as returned by :func:`stacked_forward_` (``acts[k]`` feeds layer
+        k; post-ReLU for k >= 1, which also gives the ReLU mask).
+    grad_out : Tensor, shape (N, B, out)
+        Gradient of the loss with respect to the last layer's output.
+    ws : Workspace
+    tag : str
+        Prefix of the workspace names.
+    stop : int
+        Differentiate layers ``stop, ..., L - 1`` only; the gradient with respect to the
+        pre-activation of layer ``stop`` (``stop >= 1``) is returned.
+    param_grads : bool
+        Write the weight and bias gradients of those layers to their ``.grad`` (overwritten,
+        not accumulated); with False only the input gradient is computed.
+    grad_in_out : Tensor, optional
+        Where to write the returned gradient (any strides); a workspace tensor otherwise.
+
+    Returns
+    -------
+    Tensor or None
+        With ``stop >= 1``, d loss / d (pre-activation output of layer ``stop - 1``), i.e.
+        the gradient at the input of layer ``stop`` passed back through its ReLU; None for
+        ``stop == 0``.
+    """
+    dz = grad_out
+    for k in range(len(layers) - 1, stop - 1, -1):
+        layer = layers[k]
+        if param_grads:
+            torch.bmm(acts[k].transpose(1, 2), dz, out=grad_buffer(layer.weight))
+            torch.sum(dz, dim=1, keepdim=True, out=grad_buffer(layer.bias))
+        if k == 0:
+            return None
+        out = (grad_in_out if k == stop and grad_in_out is not None
+               else ws.get(f"{tag}{k}", acts[k].shape, dz))
+        torch.bmm(dz, layer.weight.transpose(1, 2), out=out)
+        # ReLU backward in place: keep the gradient where the activation is positive.
+        torch.ops.aten.threshold_backward.grad_input(out, acts[k], 0.0, grad_input=out)
+        dz = out
+    return dz
