@@ -25,6 +25,7 @@ from learners.common import ActorCritic, OffPolicyConfig, movable_mask
 from learners.networks import (
     StackedMLP,
     Workspace,
+    add_relu_,
     clip_grad_norm_per_agent_,
     grad_buffer,
     stacked_backward_,
@@ -132,7 +133,7 @@ class MADDPG(ActorCritic):
         """All N critics on one shared input, into workspace tensors.
 
         The first layer is one GEMM (B, D) @ (D, N H) written to a (B, N, H) tensor that is
-        read as (N, B, H) (no transposing copy); the bias is added inside the GEMM. With
+        read as (N, B, H) (no transposing copy); bias and ReLU are one in-place pass. With
         ``own = (delta, w_own)`` the term ``delta @ w_own`` (N, B, 2) x (N, 2, H) is added to
         the first pre-activation before its ReLU (the actor pass, see :meth:`update`).
 
@@ -142,14 +143,13 @@ class MADDPG(ActorCritic):
         n, d, h = first.weight.shape
         bsz = x.shape[0]
         z = self._ws.get(tag + "head", (bsz, n, h), x)
-        torch.addmm(first.bias.view(n * h), x, first.weight.transpose(0, 1).reshape(d, n * h),
-                    out=z.view(bsz, n * h))
+        torch.mm(x, first.weight.transpose(0, 1).reshape(d, n * h), out=z.view(bsz, n * h))
         z = z.transpose(0, 1)  # (N, B, H) view
         if own is not None:
             z.baddbmm_(*own)
         if len(net.layers) == 1:
-            return [x, z]
-        z.relu_()
+            return [x, z.add_(first.bias)]
+        add_relu_(z, first.bias)
         return [x, *stacked_forward_(net.layers[1:], z, self._ws, tag)]
 
     def _joint_input(self, name: str, features: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:

@@ -23,7 +23,8 @@ from torch import Tensor, nn
 
 __all__ = [
     "StackedLinear", "StackedMLP", "LoopedMLP", "BiRNNNet", "Workspace",
-    "clip_grad_norm_per_agent_", "grad_buffer", "stacked_backward_", "stacked_forward_",
+    "add_relu_", "clip_grad_norm_per_agent_", "grad_buffer", "linear_out_", "stacked_backward_",
+    "stacked_forward_",
 ]
 
 
@@ -297,12 +298,32 @@ def stacked_forward_(
     acts = [x]
     for k, layer in enumerate(layers):
         n, _, d_out = layer.weight.shape
-        z = torch.baddbmm(layer.bias, acts[-1], layer.weight,
-                          out=ws.get(f"{tag}{k}", (n, x.shape[1], d_out), x))
+        z = ws.get(f"{tag}{k}", (n, x.shape[1], d_out), x)
         if k < len(layers) - 1:
-            z.relu_()
+            torch.bmm(acts[-1], layer.weight, out=z)
+            add_relu_(z, layer.bias)
+        else:
+            linear_out_(acts[-1], layer, z)
         acts.append(z)
     return acts
+
+
+def add_relu_(z: Tensor, bias: Tensor) -> Tensor:
+    """``z <- relu(z + bias)`` in place, in one pass (bias broadcast)."""
+    return torch.ops.aten._add_relu_(z, bias)
+
+
+def linear_out_(x: Tensor, layer: StackedLinear, out: Tensor) -> Tensor:
+    """A stacked layer without activation, ``out <- x W + b``, (N, B, in) -> (N, B, out).
+
+    With one output (a critic's last layer) the N products are matrix-vector products, which
+    ``torch.mv`` does faster than a batched matmul with one column.
+    """
+    if layer.out_features == 1:
+        for i in range(layer.num_stacks):
+            torch.mv(x[i], layer.weight[i, :, 0], out=out[i, :, 0])
+        return out.add_(layer.bias)
+    return torch.baddbmm(layer.bias, x, layer.weight, out=out)
 
 
 def stacked_backward_(
@@ -341,14 +362,23 @@ def stacked_backward_(
     dz = grad_out
     for k in range(len(layers) - 1, stop - 1, -1):
         layer = layers[k]
+        single = layer.out_features == 1
         if param_grads:
-            torch.bmm(acts[k].transpose(1, 2), dz, out=grad_buffer(layer.weight))
+            gw = grad_buffer(layer.weight)
+            if single:
+                for i in range(layer.num_stacks):
+                    torch.mv(acts[k][i].t(), dz[i, :, 0], out=gw[i, :, 0])
+            else:
+                torch.bmm(acts[k].transpose(1, 2), dz, out=gw)
             torch.sum(dz, dim=1, keepdim=True, out=grad_buffer(layer.bias))
         if k == 0:
             return None
         out = (grad_in_out if k == stop and grad_in_out is not None
                else ws.get(f"{tag}{k}", acts[k].shape, dz))
-        torch.bmm(dz, layer.weight.transpose(1, 2), out=out)
+        if single:
+            torch.mul(dz, layer.weight.transpose(1, 2), out=out)
+        else:
+            torch.bmm(dz, layer.weight.transpose(1, 2), out=out)
         # ReLU backward in place: keep the gradient where the activation is positive.
         torch.ops.aten.threshold_backward.grad_input(out, acts[k], 0.0, grad_input=out)
         dz = out
