@@ -152,16 +152,15 @@ class MADDPG(ActorCritic):
         add_relu_(z, first.bias)
         return [x, *stacked_forward_(net.layers[1:], z, self._ws, tag)]
 
-    def _joint_input(self, name: str, features: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
-        """The critics' input [features, a_1, ..., a_N] (B, C + 2N) in a workspace tensor, and
-        its action part viewed as (N, B, 2) (to be filled in place)."""
+    def _joint_input(self, name: str, features: Tensor, action: Tensor | None) -> Tensor:
+        """The critics' input [features, a_1, ..., a_N] (B, C + 2N) in a workspace tensor
+        (with ``action`` None the action part is left to the caller)."""
         bsz, c = features.shape
         x = self._ws.get(name, (bsz, c + 2 * self.num_agents), features)
         x[:, :c].copy_(features)
-        slots = x[:, c:].view(bsz, self.num_agents, 2).transpose(0, 1)
         if action is not None:
-            slots.copy_(action)
-        return x, slots
+            x[:, c:].copy_(action.reshape(bsz, -1))
+        return x
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One MADDPG update of all agents from a sampled batch.
@@ -170,8 +169,8 @@ class MADDPG(ActorCritic):
         move by tau; the same computation as the textbook loop of N networks
         (:class:`learners.reference.LoopedMADDPG`, tested equal to 1e-6). How it is fast:
 
-        * every layer of all N networks is one batched matmul, the critics' first layer (one
-          input shared by all N) one GEMM with the bias folded in;
+        * every layer of all N networks is one batched matmul followed by one in-place
+          bias + ReLU pass; the critics' first layer (one input shared by all N) is one GEMM;
         * the gradients are written by hand (the networks are plain ReLU MLPs): no autograd
           graph, and every temporary and gradient lives in a :class:`Workspace` reused from
           one update to the next (``out=`` and in-place ops), which on CPU saves more than
@@ -200,19 +199,23 @@ class MADDPG(ActorCritic):
         mask = cfg.mask_parked
         with torch.no_grad():
             # ---- TD targets: target actors, then target critics on the next joint action.
-            x_next, next_slots = self._joint_input(
+            x_next = self._joint_input(
                 "x_next", self.critic_features(batch.next_obs, batch.next_state), None)
-            next_pre = stacked_forward_(self.target_actor.layers, batch.next_obs.transpose(0, 1),
-                                        ws, "ta")[-1]  # (N, B, 2)
-            torch.tanh(next_pre, out=next_slots)
+            # Actor outputs are written as (B, N, 2), the joint action's layout, so that the
+            # elementwise work is on contiguous memory.
+            next_action = ws.get("next_action", batch.action.shape, batch.action)
+            stacked_forward_(self.target_actor.layers, batch.next_obs.transpose(0, 1), ws, "ta",
+                             out=next_action.transpose(0, 1))
+            next_action.tanh_()
             if mask:
-                next_slots.mul_(movable_mask(batch.next_obs).transpose(0, 1))
+                next_action.mul_(movable_mask(batch.next_obs))
+            x_next[:, x_next.shape[1] - 2 * n:].copy_(next_action.view(bsz, 2 * n))
             q_next = self._critic_pass(self.target_critic, x_next, "tc")[-1]  # (N, B, 1)
             y = self.td_target(batch, q_next.squeeze(-1).transpose(0, 1))  # (B, N)
 
             # ---- Critics: L = sum_i mean_b (Q_i - y_i)^2, dL/dQ_i = 2 (Q_i - y_i) / B.
-            x, _ = self._joint_input("x", self.critic_features(batch.obs, batch.state),
-                                     batch.action.transpose(0, 1))
+            x = self._joint_input("x", self.critic_features(batch.obs, batch.state),
+                                  batch.action)
             acts = self._critic_pass(self.critic, x, "c")
             q = acts[-1]  # (N, B, 1)
             diff = torch.sub(q, y.transpose(0, 1).unsqueeze(-1), out=ws.get("diff", q.shape, q))
@@ -224,30 +227,34 @@ class MADDPG(ActorCritic):
 
         with torch.no_grad():
             # ---- Actors, against the updated critics.
-            obs = batch.obs.transpose(0, 1)  # (N, B, O)
-            actor_acts = stacked_forward_(self.actor.layers, obs, ws, "a")
-            pre = actor_acts[-1]  # (N, B, 2)
+            pre = ws.get("pre", batch.action.shape, batch.action)  # (B, N, 2)
+            actor_acts = stacked_forward_(self.actor.layers, batch.obs.transpose(0, 1), ws, "a",
+                                          out=pre.transpose(0, 1))
             t = torch.tanh(pre, out=ws.get("tanh", pre.shape, pre))
-            movable = movable_mask(batch.obs).transpose(0, 1)  # (N, B, 1)
-            taken = batch.action.transpose(0, 1)  # (N, B, 2)
+            movable = movable_mask(batch.obs)  # (B, N, 1)
             # Critic i with mu_i in slot i: the shared GEMM on x plus (mu_i - a_i) W_i[a_i rows].
             first = self.critic.layers[0].weight  # (N, C + 2N, H)
             c = x.shape[1] - 2 * n
             own = first[:, c:].view(n, n, 2, -1)[self._agents, self._agents]  # (N, 2, H)
-            delta = torch.mul(t, movable) if mask else t.clone()
-            delta.sub_(taken)  # mu_i - a_i
-            pass_acts = self._critic_pass(self.critic, x, "p", own=(delta, own))
-            weight = movable if mask else torch.ones_like(pass_acts[-1])
+            delta = ws.get("delta", pre.shape, pre)
+            if mask:
+                torch.mul(t, movable, out=delta)
+            else:
+                delta.copy_(t)
+            delta.sub_(batch.action)  # mu_i - a_i, (B, N, 2)
+            pass_acts = self._critic_pass(self.critic, x, "p", own=(delta.transpose(0, 1), own))
+            weight = movable.transpose(0, 1) if mask else torch.ones_like(pass_acts[-1])
             actor_loss = -(pass_acts[-1] * weight).sum() / bsz
             # d(-sum_i mean_b w Q_i)/dQ_i = -w / B, back to the first pre-activation, to mu_i.
             dz = self._pass_backward(pass_acts, weight.mul(-1.0 / bsz))
-            dmu = torch.bmm(dz, own.transpose(1, 2), out=ws.get("dmu", pre.shape, pre))
+            dmu = ws.get("dmu", pre.shape, pre)
+            torch.bmm(dz, own.transpose(1, 2), out=dmu.transpose(0, 1))
             # Through mu = tanh(pre) * movable, plus the regulariser action_l2 * mean(pre^2).
             dpre = t.pow_(2).neg_().add_(1.0).mul_(dmu)
             if mask:
                 dpre.mul_(movable)
             dpre.add_(pre, alpha=cfg.action_l2 / bsz)
-            stacked_backward_(self.actor.layers, actor_acts, dpre, ws, "ag")
+            stacked_backward_(self.actor.layers, actor_acts, dpre.transpose(0, 1), ws, "ag")
             clip_grad_norm_per_agent_(list(self.actor.parameters()), cfg.grad_clip)
         self.actor_optimizer.step()
 

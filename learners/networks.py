@@ -277,6 +277,7 @@ def grad_buffer(param: Tensor) -> Tensor:
 
 def stacked_forward_(
     layers: Sequence[StackedLinear], x: Tensor, ws: Workspace, tag: str,
+    out: Tensor | None = None,
 ) -> list[Tensor]:
     """Forward pass of stacked layers (ReLU between them) into workspace tensors.
 
@@ -288,6 +289,9 @@ def stacked_forward_(
     ws : Workspace
     tag : str
         Prefix of the workspace names (callers keep different passes apart).
+    out : Tensor, optional
+        Where to write the last layer's output (N, B, out), any strides (e.g. a transposed
+        view of a (B, N, out) tensor); a workspace tensor otherwise.
 
     Returns
     -------
@@ -298,8 +302,9 @@ def stacked_forward_(
     acts = [x]
     for k, layer in enumerate(layers):
         n, _, d_out = layer.weight.shape
-        z = ws.get(f"{tag}{k}", (n, x.shape[1], d_out), x)
-        if k < len(layers) - 1:
+        last = k == len(layers) - 1
+        z = out if last and out is not None else ws.get(f"{tag}{k}", (n, x.shape[1], d_out), x)
+        if not last:
             torch.bmm(acts[-1], layer.weight, out=z)
             add_relu_(z, layer.bias)
         else:
