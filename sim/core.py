@@ -49,8 +49,8 @@ class StepContext:
     prev_agent_task: Tensor  # (B, N) int64, tasks held before the step
     active: Tensor  # (B,) bool, environments that were running during the step
     agent_task_dist: Tensor  # (B, N, M) distances after the step
-    collisions_per_agent: Tensor  # (B, N) float, overlapping discs per AGV after the step
-    collision_pairs: Tensor  # (B,) float, overlapping pairs after the step
+    collisions_per_agent: Tensor  # (B, N) float, overlapping discs per AGV (0 where inactive)
+    collision_pairs: Tensor  # (B,) float, overlapping pairs after the step (0 where inactive)
     team_reward: Tensor  # (B,) float, the paper's R_t (0 where inactive)
 
 
@@ -69,6 +69,10 @@ class AGVEnv:
         Seed of the environment's ``torch.Generator``; every random draw comes from it.
     device : str or torch.device
         Where the state lives (default CPU).
+    native : bool, optional
+        Use the fused CPU kernels of :mod:`sim.native` for claims, collisions and observations
+        (and the IPF reward) instead of the torch reference path. Default: wherever they are
+        available (CPU tensors and a C compiler); ``True`` raises if they are not.
 
     Notes
     -----
@@ -84,7 +88,9 @@ class AGVEnv:
         reward: str | RewardFn = "minidist",
         seed: int | None = None,
         device: str | torch.device = "cpu",
+        native: bool | None = None,
     ) -> None:
+        from sim import native as native_kernels
         from sim.rewards import make_reward
         from sim.scenarios import get_scenario
 
@@ -119,6 +125,14 @@ class AGVEnv:
         self._eye = torch.eye(N, dtype=torch.bool, device=self.device)
         self._triu = torch.triu(torch.ones(N, N, dtype=torch.bool, device=self.device), 1)
         self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
+        self._native = None
+        if native or native is None:
+            lib = native_kernels.library() if self.device.type == "cpu" else None
+            if native and lib is None:
+                reason = ("the kernels run on CPU tensors only" if self.device.type != "cpu"
+                          else native_kernels.disabled_reason())
+                raise ValueError(f"native=True but the fused kernels are unavailable: {reason}")
+            self._native = lib
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -223,13 +237,17 @@ class AGVEnv:
         self._pair = None
         self._task_rel = None
 
+    @property
+    def native(self) -> bool:
+        """Whether this environment steps with the fused CPU kernels (see :mod:`sim.native`)."""
+        return self._native is not None
+
     # ------------------------------------------------------------------ geometry
-    def _pairwise(self) -> tuple[Tensor, Tensor]:
-        """Pairwise AGV offsets ``p_i - p_j`` (B, N, N, 2) and distances (B, N, N), cached."""
+    def _pairwise(self) -> Tensor:
+        """Pairwise AGV distances (B, N, N), cached until the AGVs move."""
         if self._pair is None:
-            delta = self.agent_pos.unsqueeze(2) - self.agent_pos.unsqueeze(1)
-            dist = torch.linalg.vector_norm(delta, dim=-1)
-            self._pair = (delta, dist)
+            self._pair = torch.cdist(self.agent_pos, self.agent_pos,
+                                     compute_mode="donot_use_mm_for_euclid_dist")
         return self._pair
 
     def _task_offsets(self) -> tuple[Tensor, Tensor]:
@@ -297,6 +315,12 @@ class AGVEnv:
             raise ValueError(
                 f"actions must have shape (B, N, 2) = {expected}, got {tuple(a.shape)}"
             )
+        if self._native is not None:
+            a = a.contiguous()
+            out = torch.empty_like(a)
+            if self._native.agv_clip_actions(a.numel(), a.data_ptr(), out.data_ptr()):
+                raise ValueError("actions contain NaN or infinite values; expected finite values")
+            return out
         if not torch.isfinite(a).all():
             raise ValueError("actions contain NaN or infinite values; expected finite values")
         return a.clamp(-1.0, 1.0)
@@ -329,23 +353,19 @@ class AGVEnv:
 
         self.physics_step(actions, movable)
 
-        # Task claiming: an idle AGV within the capture radius takes the task and parks.
-        _, dist = self._task_offsets()  # (B, N, M)
-        claimed_now = self._claim(dist, active)
-        self.steps = self.steps + active.long()
-        self.done = self.done | self.task_claimed.all(dim=1) | (self.steps >= self.max_steps)
-
-        # Collisions (discs overlapping) and the paper's team reward R_t.
-        _, pair_dist = self._pairwise()
-        overlap = (pair_dist < 2.0 * self.world.agent_radius) & ~self._eye
-        per_agent = overlap.sum(dim=2).to(self.dtype)
-        pairs = (overlap & self._triu).sum(dim=(1, 2)).to(self.dtype)
-        nearest = dist.min(dim=1).values.sum(dim=1) if self.num_tasks else pairs * 0
-        team = torch.where(active, -nearest - pairs, torch.zeros_like(pairs))
+        # Claims (an idle AGV within the capture radius takes the task and parks), the step
+        # counter and done, collisions (discs overlapping), the paper's team reward R_t and
+        # the observations: fused kernels or the torch reference.
+        if self._native is not None:
+            claimed_now, dist, per_agent, pairs, team, obs = self._post_step_native()
+        else:
+            claimed_now, dist, per_agent, pairs, team = self._post_step_torch(active)
+            obs = None
         ctx = StepContext(prev_pos, prev_claimed, prev_task, active, dist, per_agent, pairs, team)
         terms = self.reward_fn(self, ctx)
-        reward = torch.zeros(self.num_envs, self.num_agents, device=self.device, dtype=self.dtype)
-        for value in terms.values():
+        values = list(terms.values())
+        reward = values[0] if values else torch.zeros_like(per_agent)
+        for value in values[1:]:
             reward = reward + value
         reward = reward * active.unsqueeze(1)
         info = {
@@ -353,11 +373,57 @@ class AGVEnv:
             "team_reward": team,
             "claimed_now": claimed_now,
             "agent_task": self.agent_task,
-            "collision_pairs": pairs * active,
-            "collisions_per_agent": per_agent * active.unsqueeze(1),
+            "collision_pairs": pairs,
+            "collisions_per_agent": per_agent,
             "active": active,
         }
-        return self.observe(), reward, self.done.clone(), info
+        return self.observe() if obs is None else obs, reward, self.done.clone(), info
+
+    def _post_step_torch(self, active: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Claims, step counter, done, collisions and team reward in torch (the reference)."""
+        _, dist = self._task_offsets()  # (B, N, M)
+        claimed_now = self._claim(dist, active)
+        self.steps = self.steps + active.long()
+        self.done = self.done | self.task_claimed.all(dim=1) | (self.steps >= self.max_steps)
+        pair_dist = self._pairwise()
+        overlap = (pair_dist < 2.0 * self.world.agent_radius) & ~self._eye
+        overlap = overlap & active.view(-1, 1, 1)
+        per_agent = overlap.sum(dim=2).to(self.dtype)
+        pairs = (overlap & self._triu).sum(dim=(1, 2)).to(self.dtype)
+        nearest = dist.min(dim=1).values.sum(dim=1) if self.num_tasks else pairs * 0
+        team = torch.where(active, -nearest - pairs, torch.zeros_like(pairs))
+        return claimed_now, dist, per_agent, pairs, team
+
+    def _post_step_native(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """What :meth:`_post_step_torch` and :meth:`observe` do, in one fused kernel call.
+
+        Every output is a fresh tensor, so tensors handed out earlier never change.
+        """
+        B, N, M = self.num_envs, self.num_agents, self.num_tasks
+        f32 = torch.float32
+        vel = torch.empty_like(self.agent_vel)
+        agent_task = torch.empty_like(self.agent_task)
+        claimed = torch.empty_like(self.task_claimed)
+        claimed_now = torch.empty_like(self.task_claimed)
+        steps = torch.empty_like(self.steps)
+        done = torch.empty_like(self.done)
+        dist = torch.empty(B, N, M, dtype=f32)
+        per_agent = torch.empty(B, N, dtype=f32)
+        pairs = torch.empty(B, dtype=f32)
+        team = torch.empty(B, dtype=f32)
+        obs = torch.empty(B, N, self.obs_dim, dtype=f32)
+        state = (self.agent_pos, self.agent_vel, self.task_pos, self.task_claimed,
+                 self.agent_task, self.steps, self.done)
+        outputs = (vel, agent_task, claimed, claimed_now, steps, done, dist, per_agent, pairs,
+                   team, obs)
+        self._native.agv_post_step(
+            B, N, M, self.k_tasks, self.k_agents, self.scenario.sensing_range,
+            self.world.capture_radius, 2.0 * self.world.agent_radius, self.max_steps,
+            *[t.contiguous().data_ptr() for t in state], *[t.data_ptr() for t in outputs],
+        )
+        self.agent_vel, self.agent_task, self.task_claimed = vel, agent_task, claimed
+        self.steps, self.done = steps, done
+        return claimed_now, dist, per_agent, pairs, team, obs
 
     def physics_step(self, actions: Tensor, movable: Tensor) -> None:
         """Move the AGVs by one MPE physics step: action and contact forces, integration,
@@ -374,7 +440,7 @@ class AGVEnv:
         # MPE physics: force from the action and soft contacts, then integrate.
         force = actions * ph.sensitivity
         if ph.contact_force > 0 and self.num_agents > 1:
-            force = force + self._contact_forces(self._pairwise()[1])
+            force = force + self._contact_forces(self._pairwise())
         m = movable.unsqueeze(-1)
         pos = self.agent_pos + self.agent_vel * (ph.dt * m)
         vel = self.agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
@@ -426,6 +492,13 @@ class AGVEnv:
         """
         B, N = self.num_envs, self.num_agents
         rng = self.scenario.sensing_range
+        if self._native is not None:
+            obs = torch.empty(B, N, self.obs_dim, dtype=self.dtype)
+            state = (self.agent_pos, self.agent_vel, self.task_pos, self.task_claimed,
+                     self.agent_task)
+            self._native.agv_observe(B, N, self.num_tasks, self.k_tasks, self.k_agents, rng,
+                                     *[t.contiguous().data_ptr() for t in state], obs.data_ptr())
+            return obs
         parts = [self.agent_vel, self.agent_pos]
         if self.k_tasks:
             rel_t, d_t = self._task_offsets()
@@ -433,7 +506,8 @@ class AGVEnv:
             feats = torch.cat([rel_t, torch.ones_like(d_t).unsqueeze(-1)], dim=-1)
             parts.append(self._nearest(feats, d_t.masked_fill(hidden, float("inf")), self.k_tasks))
         if self.k_agents:
-            delta, d_a = self._pairwise()
+            d_a = self._pairwise()
+            delta = self.agent_pos.unsqueeze(2) - self.agent_pos.unsqueeze(1)
             vel_j = self.agent_vel.unsqueeze(1).expand(B, N, N, 2)
             feats = torch.cat([-delta, vel_j, torch.ones_like(d_a).unsqueeze(-1)], dim=-1)
             d_a = d_a.masked_fill(self._eye | (d_a > rng), float("inf"))
@@ -445,9 +519,10 @@ class AGVEnv:
     def _nearest(feats: Tensor, dist: Tensor, k: int) -> Tensor:
         """Features (B, N, C, F) of the k nearest finite-distance entries, flattened to
         (B, N, k F), zeroed where missing (the last feature is the mask bit, 1 when present).
-        A full sort is used: it is faster than ``topk`` for the small C of these scenes."""
+        A full stable sort is used (ties go to the lower index, as in the fused kernel); it is
+        faster than ``topk`` for the small C of these scenes."""
         B, N, C, F = feats.shape
-        d_sorted, idx = torch.sort(dist, dim=-1)
+        d_sorted, idx = torch.sort(dist, dim=-1, stable=True)
         kk = min(k, C)
         d_sorted, idx = d_sorted[..., :kk], idx[..., :kk]
         picked = feats.gather(2, idx.unsqueeze(-1).expand(B, N, kk, F))
@@ -474,6 +549,7 @@ def make_env(
     reward: str | RewardFn = "minidist",
     seed: int | None = None,
     device: str | torch.device = "cpu",
+    native: bool | None = None,
     **scenario_options: Any,
 ) -> AGVEnv:
     """Build a batched AGV environment.
@@ -488,6 +564,10 @@ def make_env(
         ``"minidist"``, ``"greedy"`` or ``"ipf"``.
     seed : int, optional
         Seed of the environment's generator.
+    device : str or torch.device
+        Where the state lives (default CPU).
+    native : bool, optional
+        Fused CPU kernels (default: when available) or the torch reference path (``False``).
     **scenario_options
         Overrides for the scenario (e.g. ``max_steps=50``, ``sensing_range=1.0``).
 
@@ -510,4 +590,5 @@ def make_env(
 
     if isinstance(scenario, str) or scenario_options:
         scenario = get_scenario(scenario, **scenario_options)
-    return AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=seed, device=device)
+    return AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=seed, device=device,
+                  native=native)

@@ -54,10 +54,11 @@ class MiniDist:
     """
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
-        n = env.num_agents
-        pairs = ctx.collision_pairs.unsqueeze(1).expand(-1, n)
-        dist = (ctx.team_reward.unsqueeze(1) + ctx.collision_pairs.unsqueeze(1)).expand(-1, n)
-        return _active_only({"distance": dist, "collision": -pairs}, ctx.active)
+        # Both inputs are 0 in environments that were not running, so the terms are too.
+        shape = (-1, env.num_agents)
+        pairs = ctx.collision_pairs.unsqueeze(1)
+        return {"distance": (ctx.team_reward.unsqueeze(1) + pairs).expand(shape),
+                "collision": (-pairs).expand(shape)}
 
 
 class Greedy:

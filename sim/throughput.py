@@ -4,46 +4,81 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import torch
 
 from sim.core import AGVEnv
 from sim.rewards import RewardFn
 
-__all__ = ["steps_per_second", "physics_only_steps_per_second"]
+__all__ = ["Throughput", "measure", "steps_per_second", "physics_only_steps_per_second"]
 
 
-def _timeit(step, steps: int, repeats: int) -> float:
-    step()  # warm-up
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            step()
-        best = min(best, time.perf_counter() - t0)
-    return best / steps
+@dataclass(frozen=True)
+class Throughput:
+    """Timings of a training-style loop: step every environment, reset the finished ones.
+
+    Attributes
+    ----------
+    num_envs : int
+        B, the number of parallel environments.
+    step_seconds : float
+        Seconds per batched :meth:`~sim.core.AGVEnv.step` (physics, claims, observations,
+        reward), resets excluded.
+    reset_seconds : float
+        Seconds spent in resets of finished environments, per batched step.
+    """
+
+    num_envs: int
+    step_seconds: float
+    reset_seconds: float
+
+    @property
+    def steps_per_second(self) -> float:
+        """Environment steps per second, resets included (``B`` per batched step)."""
+        return self.num_envs / (self.step_seconds + self.reset_seconds)
 
 
 @torch.no_grad()
+def measure(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
+            steps: int = 100, repeats: int = 3, seed: int = 0,
+            native: bool | None = None) -> Throughput:
+    """Time full steps with random actions and resets of finished environments, as in a
+    training loop; the best of ``repeats`` runs of ``steps`` batched steps.
+
+    Parameters
+    ----------
+    native : bool, optional
+        Passed to :class:`~sim.core.AGVEnv` (fused kernels or the torch path).
+    """
+    env = AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=seed, native=native)
+    gen = torch.Generator().manual_seed(seed)
+    shape = (num_envs, env.num_agents, 2)
+    actions = [torch.rand(shape, generator=gen) * 2 - 1 for _ in range(8)]
+    best: tuple[float, float] | None = None
+    for r in range(repeats + 1):  # the first run warms up
+        t_step = t_reset = 0.0
+        for k in range(steps):
+            t0 = time.perf_counter()
+            _, _, done, _ = env.step(actions[k % 8])
+            t1 = time.perf_counter()
+            if bool(done.any()):
+                env.reset(done)
+            t_step += t1 - t0
+            t_reset += time.perf_counter() - t1
+        if r and (best is None or t_step + t_reset < sum(best)):
+            best = (t_step, t_reset)
+    assert best is not None
+    return Throughput(num_envs, best[0] / steps, best[1] / steps)
+
+
 def steps_per_second(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
                      steps: int = 100, repeats: int = 3, seed: int = 0) -> float:
     """Environment steps per second (``num_envs`` x batched steps per second) of a full step:
     physics, claiming, observations and reward, with random actions and resets of finished
-    environments, as in a training loop.
+    environments, as in a training loop (see :func:`measure`).
     """
-    env = AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=seed)
-    gen = torch.Generator().manual_seed(seed)
-    shape = (num_envs, env.num_agents, 2)
-    actions = [torch.rand(shape, generator=gen) * 2 - 1 for _ in range(8)]
-    counter = [0]
-
-    def step() -> None:
-        counter[0] += 1
-        _, _, done, _ = env.step(actions[counter[0] % 8])
-        if bool(done.any()):
-            env.reset(done)
-
-    return num_envs / _timeit(step, steps, repeats)
+    return measure(scenario, num_envs, reward, steps, repeats, seed).steps_per_second
 
 
 @torch.no_grad()
@@ -56,4 +91,12 @@ def physics_only_steps_per_second(scenario: str, num_envs: int, steps: int = 100
     gen = torch.Generator().manual_seed(seed)
     actions = torch.rand((num_envs, env.num_agents, 2), generator=gen) * 2 - 1
     movable = torch.ones(num_envs, env.num_agents, dtype=torch.bool)
-    return num_envs / _timeit(lambda: env.physics_step(actions, movable), steps, repeats)
+    step = lambda: env.physics_step(actions, movable)  # noqa: E731
+    step()  # warm-up
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            step()
+        best = min(best, time.perf_counter() - t0)
+    return num_envs * steps / best

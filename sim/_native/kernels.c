@@ -1,0 +1,347 @@
+/* Fused CPU kernels of the AGV simulator (see sim/native.py, which builds and loads them).
+ *
+ * Each kernel loops over the B environments in C and does, per environment, what the torch
+ * reference in sim/core.py and sim/ipf.py does with some forty batched tensor operations. The
+ * torch code stays the definition; tests/sim/test_native.py checks both agree.
+ *
+ * Layouts are torch's contiguous row-major ones: positions (B, N, 2) float32, bool tensors as
+ * one byte per entry, indices int64. Nothing here allocates per environment.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define INF_F ((float)INFINITY)
+#define INF_BITS 0x7f800000u
+
+/* Sort keys: a non-negative float's bit pattern orders like the float (+inf last), so
+ * (bits(d) << 32 | j) orders by distance, then by index: a stable sort. */
+static inline uint64_t sort_key(float d, int64_t j) {
+    uint32_t bits;
+    memcpy(&bits, &d, sizeof bits);
+    return ((uint64_t)bits << 32) | (uint64_t)j;
+}
+
+#define CSWAP(a, b) do { const uint64_t x_ = (a), y_ = (b); (a) = x_ < y_ ? x_ : y_; \
+                         (b) = x_ < y_ ? y_ : x_; } while (0)
+
+/* Sort n keys ascending: optimal networks for n <= 4 (5 exchanges) and n <= 8 (19), on keys
+ * padded with the largest key; insertion for larger n. */
+static void sort_keys(uint64_t *key, int64_t n) {
+    if (n <= 4) {
+        for (int64_t j = n; j < 4; j++) key[j] = UINT64_MAX;
+        CSWAP(key[0], key[1]); CSWAP(key[2], key[3]);
+        CSWAP(key[0], key[2]); CSWAP(key[1], key[3]);
+        CSWAP(key[1], key[2]);
+        return;
+    }
+    if (n <= 8) {
+        for (int64_t j = n; j < 8; j++) key[j] = UINT64_MAX;
+        CSWAP(key[0], key[2]); CSWAP(key[1], key[3]); CSWAP(key[4], key[6]); CSWAP(key[5], key[7]);
+        CSWAP(key[0], key[4]); CSWAP(key[1], key[5]); CSWAP(key[2], key[6]); CSWAP(key[3], key[7]);
+        CSWAP(key[0], key[1]); CSWAP(key[2], key[3]); CSWAP(key[4], key[5]); CSWAP(key[6], key[7]);
+        CSWAP(key[2], key[4]); CSWAP(key[3], key[5]);
+        CSWAP(key[1], key[4]); CSWAP(key[3], key[6]);
+        CSWAP(key[1], key[2]); CSWAP(key[3], key[4]); CSWAP(key[5], key[6]);
+        return;
+    }
+    for (int64_t j = 1; j < n; j++) {
+        const uint64_t k = key[j];
+        int64_t pos = j;
+        while (pos > 0 && key[pos - 1] > k) {
+            key[pos] = key[pos - 1];
+            pos--;
+        }
+        key[pos] = k;
+    }
+}
+
+/* Observations of one environment, (N, O) with O = 5 + 3 kt + 5 ka; see AGVEnv.observe.
+ * dat (N, M) and daa (N, N) are the AGV-task and AGV-AGV distances; key holds max(N, M, 8). */
+static void observe_env(int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
+                        const float *pos, const float *vel, const float *task, const uint8_t *claimed,
+                        const int64_t *agent_task, const float *dat, const float *daa,
+                        float *obs, uint64_t *key) {
+    const int64_t O = 5 + 3 * kt + 5 * ka;
+    for (int64_t i = 0; i < N; i++) {
+        float *o = obs + i * O;
+        const float px = pos[2 * i], py = pos[2 * i + 1];
+        memset(o, 0, sizeof(float) * (size_t)O);
+        o[0] = vel[2 * i];
+        o[1] = vel[2 * i + 1];
+        o[2] = px;
+        o[3] = py;
+        float *ot = o + 4;
+        if (kt > 0) {
+            for (int64_t j = 0; j < M; j++) {
+                const float d = dat[i * M + j];
+                key[j] = sort_key((claimed[j] || d > range) ? INF_F : d, j);
+            }
+            sort_keys(key, M);
+            for (int64_t r = 0; r < kt && r < M && (key[r] >> 32) != INF_BITS; r++) {
+                const int64_t j = (int64_t)(key[r] & 0xffffffffu);
+                ot[3 * r] = task[2 * j] - px;
+                ot[3 * r + 1] = task[2 * j + 1] - py;
+                ot[3 * r + 2] = 1.0f;
+            }
+        }
+        float *oa = ot + 3 * kt;
+        if (ka > 0) {
+            for (int64_t j = 0; j < N; j++) {
+                const float d = daa[i * N + j];
+                key[j] = sort_key((j == i || d > range) ? INF_F : d, j);
+            }
+            sort_keys(key, N);
+            for (int64_t r = 0; r < ka && r < N && (key[r] >> 32) != INF_BITS; r++) {
+                const int64_t j = (int64_t)(key[r] & 0xffffffffu);
+                oa[5 * r] = pos[2 * j] - px;
+                oa[5 * r + 1] = pos[2 * j + 1] - py;
+                oa[5 * r + 2] = vel[2 * j];
+                oa[5 * r + 3] = vel[2 * j + 1];
+                oa[5 * r + 4] = 1.0f;
+            }
+        }
+        o[O - 1] = agent_task[i] >= 0 ? 1.0f : 0.0f;
+    }
+}
+
+/* AGV-task distances dat (N, M) and AGV-AGV distances daa (N, N) of one environment. */
+static void distances(int64_t N, int64_t M, const float *pos, const float *task, float *dat,
+                      float *daa) {
+    for (int64_t i = 0; i < N; i++) {
+        const float px = pos[2 * i], py = pos[2 * i + 1];
+        for (int64_t j = 0; j < M; j++) {
+            const float dx = task[2 * j] - px, dy = task[2 * j + 1] - py;
+            dat[i * M + j] = sqrtf(dx * dx + dy * dy);
+        }
+        daa[i * N + i] = 0.0f;
+        for (int64_t j = i + 1; j < N; j++) {
+            const float dx = px - pos[2 * j], dy = py - pos[2 * j + 1];
+            daa[i * N + j] = daa[j * N + i] = sqrtf(dx * dx + dy * dy);
+        }
+    }
+}
+
+/* Observations of B environments from their state (AGVEnv.observe). */
+void agv_observe(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
+                 const float *pos, const float *vel, const float *task, const uint8_t *claimed,
+                 const int64_t *agent_task, float *obs) {
+    const int64_t O = 5 + 3 * kt + 5 * ka;
+    float *dat = malloc(sizeof(float) * (size_t)(N * M + N * N));
+    float *daa = dat + N * M;
+    uint64_t *key = malloc(sizeof(uint64_t) * (size_t)(N + M + 8));
+    for (int64_t b = 0; b < B; b++) {
+        const float *p = pos + b * N * 2, *t = task + b * M * 2;
+        distances(N, M, p, t, dat, daa);
+        observe_env(N, M, kt, ka, range, p, vel + b * N * 2, t, claimed + b * M,
+                    agent_task + b * N, dat, daa, obs + b * N * O, key);
+    }
+    free(dat);
+    free(key);
+}
+
+/* Everything the step does after the physics (AGVEnv.step): claims, step counter and done,
+ * collisions, the team reward R_t, the AGV-task distances and the observations. Inputs are the
+ * state after the physics and before the claims; every output is a fresh tensor. Collision
+ * counts and the team reward are 0 in environments that were already done. */
+void agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
+                   float capture, float collide, int64_t max_steps,
+                   const float *pos, const float *vel, const float *task, const uint8_t *claimed,
+                   const int64_t *agent_task, const int64_t *steps, const uint8_t *done,
+                   float *vel_out, int64_t *agent_task_out, uint8_t *claimed_out,
+                   uint8_t *claimed_now, int64_t *steps_out, uint8_t *done_out, float *dist,
+                   float *per_agent, float *pairs, float *team, float *obs) {
+    const int64_t O = 5 + 3 * kt + 5 * ka;
+    float *daa = malloc(sizeof(float) * (size_t)(N * N));
+    uint64_t *key = malloc(sizeof(uint64_t) * (size_t)(N + M + 8));
+    int64_t *best_agent = malloc(sizeof(int64_t) * (size_t)(M + 1));
+    for (int64_t b = 0; b < B; b++) {
+        const float *p = pos + b * N * 2, *v = vel + b * N * 2, *t = task + b * M * 2;
+        const uint8_t *cl = claimed + b * M;
+        const int64_t *at = agent_task + b * N;
+        float *vo = vel_out + b * N * 2, *d = dist + b * N * M;
+        int64_t *ato = agent_task_out + b * N;
+        uint8_t *clo = claimed_out + b * M, *now = claimed_now + b * M;
+        const int active = !done[b];
+        distances(N, M, p, t, d, daa);
+        memcpy(vo, v, sizeof(float) * (size_t)(N * 2));
+        memcpy(ato, at, sizeof(int64_t) * (size_t)N);
+        memcpy(clo, cl, (size_t)M);
+        memset(now, 0, (size_t)M);
+        /* Claims in one round: each task goes to its nearest eligible AGV, and an AGV that wins
+         * several takes its nearest (first index on ties, as torch's min). */
+        if (active) {
+            for (int64_t j = 0; j < M; j++) {
+                best_agent[j] = -1;
+                if (cl[j]) continue;
+                float best = INF_F;
+                for (int64_t i = 0; i < N; i++) {
+                    const float dij = d[i * M + j];
+                    if (at[i] < 0 && dij <= capture && dij < best) {
+                        best = dij;
+                        best_agent[j] = i;
+                    }
+                }
+            }
+            for (int64_t i = 0; i < N; i++) {
+                float best = INF_F;
+                int64_t take = -1;
+                for (int64_t j = 0; j < M; j++) {
+                    if (best_agent[j] == i && d[i * M + j] < best) {
+                        best = d[i * M + j];
+                        take = j;
+                    }
+                }
+                if (take >= 0) {
+                    ato[i] = take;
+                    vo[2 * i] *= 0.0f;
+                    vo[2 * i + 1] *= 0.0f;
+                    now[take] = 1;
+                    clo[take] = 1;
+                }
+            }
+        }
+        steps_out[b] = steps[b] + (active ? 1 : 0);
+        int all_claimed = 1;
+        for (int64_t j = 0; j < M; j++) all_claimed &= clo[j] != 0;
+        done_out[b] = done[b] || all_claimed || steps_out[b] >= max_steps;
+        /* Collisions (discs overlapping) and the team reward R_t. */
+        int64_t npairs = 0;
+        for (int64_t i = 0; i < N; i++) {
+            int64_t hits = 0;
+            for (int64_t j = 0; j < N; j++) {
+                const int hit = j != i && daa[i * N + j] < collide;
+                hits += hit;
+                npairs += hit && j > i;
+            }
+            per_agent[b * N + i] = active ? (float)hits : 0.0f;
+        }
+        pairs[b] = active ? (float)npairs : 0.0f;
+        float nearest = 0.0f;
+        for (int64_t j = 0; j < M; j++) {
+            float m = INF_F;
+            for (int64_t i = 0; i < N; i++) m = d[i * M + j] < m ? d[i * M + j] : m;
+            nearest += m;
+        }
+        team[b] = active ? -nearest - (float)npairs : 0.0f;
+        observe_env(N, M, kt, ka, range, p, vo, t, clo, ato, d, daa, obs + b * N * O, key);
+    }
+    free(daa);
+    free(key);
+    free(best_agent);
+}
+
+/* r_IPF of every AGV (IPFGrid.agent_potentials): AGV i's own field at its own cell.
+ *
+ * Per environment: the sources (AGVs first, then open tasks) on free cells, deduplicated
+ * (the earlier source on a cell wins); K = G[S, S] over the kept sources with the tasks
+ * ordered first, factored K = C C^T; then AGV i's value is v_i - (P v)_i / P_ii with P = K^-1,
+ * from z = C^-1 v and y = C^-1 e_i (zero above AGV i's row, so AGVs last keeps this short).
+ * An AGV whose cell holds another source reads that source's value (an AGV's if any); an AGV
+ * on a fixed cell reads 0. g is the padded Green's function (F + 1) x (F + 1), free_index maps
+ * a flat cell to its free index or -1. Returns 0, or 1 if a factorization failed. */
+int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float *task_pos,
+            const uint8_t *task_open, const double *g, int64_t F, const int64_t *free_index,
+            int64_t H, int64_t W, double xmin, double ymin, double dx, double dy,
+            double agent_value, double task_value, double *out) {
+    const int64_t T = N + M, F1 = F + 1;
+    int64_t *cell = malloc(sizeof(int64_t) * (size_t)T);
+    int64_t *fidx = malloc(sizeof(int64_t) * (size_t)T);
+    uint8_t *cand = malloc((size_t)T);
+    int64_t *slot = malloc(sizeof(int64_t) * (size_t)T);
+    int64_t *src = malloc(sizeof(int64_t) * (size_t)T);
+    double *val = malloc(sizeof(double) * (size_t)T);
+    double *c = malloc(sizeof(double) * (size_t)(T * T));
+    double *z = malloc(sizeof(double) * (size_t)T);
+    double *y = malloc(sizeof(double) * (size_t)T);
+    int status = 0;
+    for (int64_t b = 0; b < B; b++) {
+        for (int64_t s = 0; s < T; s++) {
+            const float *q = s < N ? agent_pos + (b * N + s) * 2 : task_pos + (b * M + s - N) * 2;
+            int64_t col = (int64_t)floor(((double)q[0] - xmin) / dx);
+            int64_t row = (int64_t)floor(((double)q[1] - ymin) / dy);
+            col = col < 0 ? 0 : (col > W - 1 ? W - 1 : col);
+            row = row < 0 ? 0 : (row > H - 1 ? H - 1 : row);
+            cell[s] = row * W + col;
+            fidx[s] = free_index[cell[s]];
+            cand[s] = fidx[s] >= 0 && (s < N || task_open == NULL || task_open[b * M + s - N]);
+        }
+        /* Kept sources: tasks first, then AGVs (the order of the factor, not of precedence). */
+        int64_t S = 0;
+        for (int pass = 0; pass < 2; pass++) {
+            const int64_t lo = pass == 0 ? N : 0, hi = pass == 0 ? T : N;
+            for (int64_t s = lo; s < hi; s++) {
+                slot[s] = -1;
+                if (!cand[s]) continue;
+                int shadowed = 0;
+                for (int64_t e = 0; e < s && !shadowed; e++) shadowed = cand[e] && cell[e] == cell[s];
+                if (shadowed) continue;
+                slot[s] = S;
+                src[S] = fidx[s];
+                val[S] = s < N ? agent_value : task_value;
+                S++;
+            }
+        }
+        /* Cholesky factor of K = G[src, src], lower triangle, row by row. */
+        for (int64_t r = 0; r < S; r++) {
+            const double *grow = g + src[r] * F1;
+            for (int64_t q = 0; q <= r; q++) {
+                double sum = grow[src[q]];
+                for (int64_t u = 0; u < q; u++) sum -= c[r * T + u] * c[q * T + u];
+                if (q < r) {
+                    c[r * T + q] = sum / c[q * T + q];
+                } else {
+                    if (!(sum > 0.0)) status = 1;
+                    c[r * T + r] = sqrt(sum);
+                }
+            }
+        }
+        for (int64_t r = 0; r < S; r++) {
+            double sum = val[r];
+            for (int64_t u = 0; u < r; u++) sum -= c[r * T + u] * z[u];
+            z[r] = sum / c[r * T + r];
+        }
+        for (int64_t i = 0; i < N; i++) {
+            double phi = 0.0;
+            int on_agent = 0, on_task = 0;
+            if (cand[i]) {
+                for (int64_t s = 0; s < T; s++) {
+                    if (s == i || !cand[s] || cell[s] != cell[i]) continue;
+                    if (s < N) on_agent = 1; else on_task = 1;
+                }
+            }
+            if (on_agent) {
+                phi = agent_value;
+            } else if (on_task) {
+                phi = task_value;
+            } else if (slot[i] >= 0) {
+                const int64_t k = slot[i];
+                double pii = 0.0, pv = 0.0;
+                for (int64_t r = k; r < S; r++) {
+                    double sum = r == k ? 1.0 : 0.0;
+                    for (int64_t u = k; u < r; u++) sum -= c[r * T + u] * y[u];
+                    y[r] = sum / c[r * T + r];
+                    pii += y[r] * y[r];
+                    pv += y[r] * z[r];
+                }
+                phi = val[k] - pv / pii;
+            }
+            out[b * N + i] = phi;
+        }
+    }
+    free(cell); free(fidx); free(cand); free(slot); free(src); free(val); free(c); free(z); free(y);
+    return status;
+}
+
+/* Clip n actions to [-1, 1] into out; returns how many were NaN or infinite (out is then
+ * not to be used). */
+int64_t agv_clip_actions(int64_t n, const float *a, float *out) {
+    int64_t bad = 0;
+    for (int64_t k = 0; k < n; k++) {
+        const float x = a[k];
+        bad += !isfinite(x);
+        out[k] = x < -1.0f ? -1.0f : (x > 1.0f ? 1.0f : x);
+    }
+    return bad;
+}

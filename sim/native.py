@@ -1,0 +1,121 @@
+"""Fused CPU kernels for the simulator's step and the IPF reward, built on first use.
+
+The step's claims, collisions, team reward and K-nearest observations, and the IPF reward's
+small per-environment solves, are a few dozen tiny tensor operations each in torch; on the
+CPU their dispatch and memory traffic cost several times the physics itself. The C source in
+``sim/_native/kernels.c`` does the same work in one pass per environment. It is compiled with
+the system's C compiler the first time it is needed (about a second) and cached in
+``$AGV_CACHE_DIR`` (default ``~/.cache/agv-allocation``), keyed by a hash of the source, the
+flags and the machine.
+
+The torch code in :mod:`sim.core` and :mod:`sim.ipf` stays the definition and runs wherever
+the kernels cannot: tensors on another device, no C compiler, or ``AGV_NATIVE=0`` in the
+environment. Tests check that both paths agree.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+__all__ = ["available", "library", "disabled_reason"]
+
+SOURCE = Path(__file__).parent / "_native" / "kernels.c"
+FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
+
+_lib: ctypes.CDLL | None = None
+_tried = False
+_reason: str | None = None
+
+_P, _I, _F, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_double
+_SIGNATURES = {
+    "agv_observe": (None, [_I, _I, _I, _I, _I, _F] + [_P] * 6),
+    "agv_post_step": (None, [_I, _I, _I, _I, _I, _F, _F, _F, _I] + [_P] * 18),
+    "agv_clip_actions": (ctypes.c_int64, [_I, _P, _P]),
+    "agv_ipf": (ctypes.c_int, [_I, _I, _I, _P, _P, _P, _P, _I, _P, _I, _I]
+                + [_D] * 6 + [_P]),
+}
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("AGV_CACHE_DIR")
+    return Path(root) if root else Path.home() / ".cache" / "agv-allocation"
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if name and shutil.which(name):
+            return name
+    return None
+
+
+def _build() -> ctypes.CDLL:
+    cc = _compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (tried $CC, cc, gcc, clang)")
+    source = SOURCE.read_bytes()
+    key = hashlib.sha256(
+        source + " ".join([cc, *FLAGS, platform.machine(), platform.system()]).encode()
+    ).hexdigest()[:16]
+    target = _cache_dir() / f"agv_kernels_{key}.so"
+    if not target.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+        os.close(fd)
+        try:
+            result = subprocess.run(
+                [cc, *FLAGS, str(SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True
+            )
+            if result.returncode != 0:
+                raise RuntimeError(f"{cc} failed: {result.stderr.strip()[:2000]}")
+            os.replace(tmp, target)  # atomic: a concurrent build never loads a partial file
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    lib = ctypes.CDLL(str(target))
+    for name, (restype, argtypes) in _SIGNATURES.items():
+        fn = getattr(lib, name)
+        fn.restype = restype
+        fn.argtypes = argtypes
+    return lib
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded kernels, or None where they are unavailable (see :func:`disabled_reason`).
+
+    The first call builds or loads the library; a failed build warns once and the callers use
+    their torch path.
+    """
+    global _lib, _tried, _reason
+    if not _tried:
+        _tried = True
+        if os.environ.get("AGV_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
+            _reason = "disabled by AGV_NATIVE=0"
+        else:
+            try:
+                _lib = _build()
+            except (OSError, RuntimeError) as err:
+                _reason = str(err)
+                warnings.warn(
+                    f"sim: fused CPU kernels unavailable ({err}); using the slower torch path",
+                    stacklevel=2,
+                )
+    return _lib
+
+
+def available() -> bool:
+    """Whether the fused CPU kernels can be used in this process."""
+    return library() is not None
+
+
+def disabled_reason() -> str | None:
+    """Why the kernels are not used (None when they are)."""
+    library()
+    return _reason
