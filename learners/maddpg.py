@@ -196,6 +196,10 @@ class MADDPG(ActorCritic):
         """
         cfg, ws = self.config, self._ws
         n, bsz = self.num_agents, batch.obs.shape[0]
+        # Workspace names: "a" actor passes (target, then online), "p" critic passes whose
+        # activations die early (target, then the actor pass), "c" the critic pass kept for
+        # its backward, "g" gradients. Phases that do not overlap share tensors, which keeps
+        # the update's memory footprint (and its cache misses) small.
         mask = cfg.mask_parked
         with torch.no_grad():
             # ---- TD targets: target actors, then target critics on the next joint action.
@@ -204,13 +208,13 @@ class MADDPG(ActorCritic):
             # Actor outputs are written as (B, N, 2), the joint action's layout, so that the
             # elementwise work is on contiguous memory.
             next_action = ws.get("next_action", batch.action.shape, batch.action)
-            stacked_forward_(self.target_actor.layers, batch.next_obs.transpose(0, 1), ws, "ta",
+            stacked_forward_(self.target_actor.layers, batch.next_obs.transpose(0, 1), ws, "a",
                              out=next_action.transpose(0, 1))
             next_action.tanh_()
             if mask:
                 next_action.mul_(movable_mask(batch.next_obs))
             x_next[:, x_next.shape[1] - 2 * n:].copy_(next_action.view(bsz, 2 * n))
-            q_next = self._critic_pass(self.target_critic, x_next, "tc")[-1]  # (N, B, 1)
+            q_next = self._critic_pass(self.target_critic, x_next, "p")[-1]  # (N, B, 1)
             y = self.td_target(batch, q_next.squeeze(-1).transpose(0, 1))  # (B, N)
 
             # ---- Critics: L = sum_i mean_b (Q_i - y_i)^2, dL/dQ_i = 2 (Q_i - y_i) / B.
@@ -254,7 +258,7 @@ class MADDPG(ActorCritic):
             if mask:
                 dpre.mul_(movable)
             dpre.add_(pre, alpha=cfg.action_l2 / bsz)
-            stacked_backward_(self.actor.layers, actor_acts, dpre.transpose(0, 1), ws, "ag")
+            stacked_backward_(self.actor.layers, actor_acts, dpre.transpose(0, 1), ws, "g")
             clip_grad_norm_per_agent_(list(self.actor.parameters()), cfg.grad_clip)
         self.actor_optimizer.step()
 
@@ -272,11 +276,11 @@ class MADDPG(ActorCritic):
         if len(layers) == 1:
             dz = dq
         else:
-            dz = self._ws.get("cg_head", (bsz, n, h), dq).transpose(0, 1)
-            stacked_backward_(layers, acts, dq, self._ws, "cg", stop=1, grad_in_out=dz)
+            dz = self._ws.get("ghead", (bsz, n, h), dq).transpose(0, 1)
+            stacked_backward_(layers, acts, dq, self._ws, "g", stop=1, grad_in_out=dz)
         # First layer, shared input x (B, D): one GEMM x^T @ dz (B, N H) -> (D, N H).
         dz_flat = dz.transpose(0, 1).reshape(bsz, n * h)
-        gw = torch.mm(acts[0].t(), dz_flat, out=self._ws.get("cg_w", (d, n * h), dq))
+        gw = torch.mm(acts[0].t(), dz_flat, out=self._ws.get("gw", (d, n * h), dq))
         grad_buffer(first.weight).copy_(gw.view(d, n, h).transpose(0, 1))
         torch.sum(dz_flat, dim=0, out=grad_buffer(first.bias).view(n * h))
 
@@ -284,5 +288,5 @@ class MADDPG(ActorCritic):
         """d loss / d (first pre-activation) of the actor pass, (N, B, H); no critic grads."""
         if len(self.critic.layers) == 1:
             return dq
-        return stacked_backward_(self.critic.layers, acts, dq, self._ws, "pg", stop=1,
+        return stacked_backward_(self.critic.layers, acts, dq, self._ws, "g", stop=1,
                                  param_grads=False)
