@@ -314,8 +314,10 @@ def stacked_forward_(
 
 
 def add_relu_(z: Tensor, bias: Tensor) -> Tensor:
-    """``z <- relu(z + bias)`` in place, in one pass (bias broadcast)."""
-    return torch.ops.aten._add_relu_(z, bias)
+    """``z <- relu(z + bias)`` in place (bias broadcast); one pass over ``z`` on CPU."""
+    if z.device.type == "cpu":
+        return torch.ops.aten._add_relu_(z, bias)
+    return z.add_(bias).relu_()
 
 
 def linear_out_(x: Tensor, layer: StackedLinear, out: Tensor) -> Tensor:
