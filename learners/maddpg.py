@@ -196,10 +196,9 @@ class MADDPG(ActorCritic):
         """
         cfg, ws = self.config, self._ws
         n, bsz = self.num_agents, batch.obs.shape[0]
-        # Workspace names: "a" actor passes (target, then online), "p" critic passes whose
-        # activations die early (target, then the actor pass), "c" the critic pass kept for
-        # its backward, "g" gradients. Phases that do not overlap share tensors, which keeps
-        # the update's memory footprint (and its cache misses) small.
+        # Workspace names: "a" actor passes (target, then online), "c" critic passes (target,
+        # online, then the actor pass), "g" gradients. Phases that do not overlap share
+        # tensors, which keeps the update's memory footprint (and its cache misses) small.
         mask = cfg.mask_parked
         with torch.no_grad():
             # ---- TD targets: target actors, then target critics on the next joint action.
@@ -214,7 +213,7 @@ class MADDPG(ActorCritic):
             if mask:
                 next_action.mul_(movable_mask(batch.next_obs))
             x_next[:, x_next.shape[1] - 2 * n:].copy_(next_action.view(bsz, 2 * n))
-            q_next = self._critic_pass(self.target_critic, x_next, "p")[-1]  # (N, B, 1)
+            q_next = self._critic_pass(self.target_critic, x_next, "c")[-1]  # (N, B, 1)
             y = self.td_target(batch, q_next.squeeze(-1).transpose(0, 1))  # (B, N)
 
             # ---- Critics: L = sum_i mean_b (Q_i - y_i)^2, dL/dQ_i = 2 (Q_i - y_i) / B.
@@ -246,7 +245,7 @@ class MADDPG(ActorCritic):
             else:
                 delta.copy_(t)
             delta.sub_(batch.action)  # mu_i - a_i, (B, N, 2)
-            pass_acts = self._critic_pass(self.critic, x, "p", own=(delta.transpose(0, 1), own))
+            pass_acts = self._critic_pass(self.critic, x, "c", own=(delta.transpose(0, 1), own))
             weight = movable.transpose(0, 1) if mask else torch.ones_like(pass_acts[-1])
             actor_loss = -(pass_acts[-1] * weight).sum() / bsz
             # d(-sum_i mean_b w Q_i)/dQ_i = -w / B, back to the first pre-activation, to mu_i.
