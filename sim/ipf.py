@@ -189,6 +189,7 @@ class IPFGrid:
         self.free_index[free] = np.arange(self.num_free)
         self._green: Tensor | None = None
         self._torch: dict[torch.device, tuple[Tensor, Tensor]] = {}
+        self._free_index_t: Tensor | None = None
 
     # ------------------------------------------------------------------ the graph
     @functools.cached_property
@@ -323,6 +324,7 @@ class IPFGrid:
         task_value: float = TASK_VALUE,
         agent_value: float = AGENT_VALUE,
         cache: TaskBlockCache | None = None,
+        native: bool | None = None,
     ) -> Tensor:
         """``r_IPF`` of every AGV in every environment: its own field at its own cell.
 
@@ -351,6 +353,10 @@ class IPFGrid:
             The fixed potentials (+5 and -3 in the paper).
         cache : TaskBlockCache, optional
             Reused task factors (see :class:`TaskBlockCache`); updated in place.
+        native : bool, optional
+            Use the fused CPU kernel of :mod:`sim.native` (one Cholesky factor of ``K`` per
+            environment, the general path's formula, in C) for float32 CPU tensors. Default:
+            when available; ``False`` forces the torch paths below.
 
         Returns
         -------
@@ -358,6 +364,14 @@ class IPFGrid:
             ``Phi_i(cell of AGV i)``. Where AGV i's cell holds one of its sources the value is
             that source's (AGV wins over task); on a fixed cell it is 0.
         """
+        if native or native is None:
+            phi = self._potentials_native(agent_pos, task_pos, task_open, task_value,
+                                          agent_value, cache)
+            if phi is not None:
+                return phi.to(agent_pos.dtype)
+            if native:
+                raise ValueError("native=True needs float32 CPU tensors and the fused kernels "
+                                 "(see sim.native.disabled_reason())")
         N = agent_pos.shape[1]
         T = N + task_pos.shape[1]
         device = agent_pos.device
@@ -377,6 +391,52 @@ class IPFGrid:
                 cells[collide], fidx[collide], candidate[collide], N, task_value, agent_value
             )
         return phi.to(agent_pos.dtype)
+
+    def _potentials_native(self, agent_pos: Tensor, task_pos: Tensor, task_open: Tensor | None,
+                           task_value: float, agent_value: float,
+                           cache: TaskBlockCache | None = None, agent_task: Tensor | None = None,
+                           active: Tensor | None = None) -> Tensor | None:
+        """:meth:`agent_potentials` through the fused kernel, float64 (B, N); None where the
+        kernel cannot run (it needs float32 CPU positions).
+
+        For the reward: where ``agent_task`` (B, N) is >= 0 the value is ``task_value`` (a
+        parked AGV), and environments where ``active`` (B,) is False are skipped and read 0.
+        """
+        from sim import native
+
+        tensors = [agent_pos, task_pos] + ([] if task_open is None else [task_open])
+        if any(t.device.type != "cpu" for t in tensors) or agent_pos.dtype != torch.float32 \
+                or task_pos.dtype != torch.float32:
+            return None
+        lib = native.library()
+        if lib is None:
+            return None
+        green, _ = self._tables(agent_pos.device)
+        if self._free_index_t is None:
+            self._free_index_t = torch.from_numpy(self.free_index)
+        B, N = agent_pos.shape[:2]
+        M = task_pos.shape[1]
+        agents, tasks = agent_pos.contiguous(), task_pos.contiguous()
+        open_ = None if task_open is None else task_open.to(torch.bool).contiguous()
+        held = None if agent_task is None else agent_task.to(torch.int64).contiguous()
+        run = None if active is None else active.to(torch.bool).contiguous()
+        out = torch.empty(B, N, dtype=torch.float64)
+        tcache, dcache = (cache or TaskBlockCache()).native_buffers(self, B, M, task_value)
+        H, W = self.shape
+        xmin, ymin, _, _ = self.world.bounds
+        status = lib.agv_ipf(
+            B, N, M, agents.data_ptr(), tasks.data_ptr(),
+            None if open_ is None else open_.data_ptr(), green.data_ptr(), self.num_free,
+            self._free_index_t.data_ptr(), H, W, float(xmin), float(ymin), float(self.dx),
+            float(self.dy), float(agent_value), float(task_value),
+            None if held is None else held.data_ptr(), None if run is None else run.data_ptr(),
+            tcache.data_ptr(), dcache.data_ptr(), out.data_ptr(),
+        )
+        if status < 0:
+            raise MemoryError(f"IPF kernel: no memory for the scratch of {B} environments")
+        if status:
+            raise RuntimeError("IPF kernel: a source block was not positive definite")
+        return out
 
     def _gather(self, rows: Tensor, cols: Tensor) -> Tensor:
         """``G[rows[b, j], cols[b, k]]`` as (B, J, K) from the padded G (index F reads 0)."""
@@ -479,6 +539,20 @@ class TaskBlockCache:
         self.f_tasks: Tensor | None = None  # (B, M) int64
         self.inv_chol: Tensor | None = None  # (B, M, M) float64
         self.u: Tensor | None = None  # (B, M) float64
+        self._native: tuple[Any, ...] | None = None  # (grid, key, cells, factors)
+
+    def native_buffers(self, grid: IPFGrid, B: int, M: int,
+                       task_value: float) -> tuple[Tensor, Tensor]:
+        """The fused kernel's per-environment task factors (see ``agv_ipf`` in
+        ``sim/_native/kernels.c``): cells (B, 1 + M) int64 (count, then free indices; count
+        -1 = empty) and factors (B, M * M + M) float64, kept while grid, B, M and the task
+        value stay the same. The kernel checks the cells and refreshes stale entries itself."""
+        key = (B, M, float(task_value))
+        if self._native is None or self._native[0] is not grid or self._native[1] != key:
+            cells = torch.full((B, 1 + M), -1, dtype=torch.int64)
+            factors = torch.zeros(B, M * M + M, dtype=torch.float64)
+            self._native = (grid, key, cells, factors)
+        return self._native[2], self._native[3]
 
     def update(self, grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
         """Factors for the open tasks ``f_tasks`` (B, M), recomputed only where they changed.
@@ -818,22 +892,23 @@ class IPFReward:
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
         grid = ipf_grid(env.world, self.resolution)
-        n = env.num_agents
-        active = ctx.active.unsqueeze(1)
-        potential = grid.agent_potentials(
-            env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value, self.agent_value,
-            cache=self._cache,
-        )
-        potential = torch.where(env.agent_task >= 0, potential.new_tensor(self.task_value),
-                                potential)
-        goal = (ctx.team_reward + ctx.collision_pairs).unsqueeze(1).expand(-1, n)
-        collision = -(ctx.collisions_per_agent > 0).to(potential.dtype)
-        zero = torch.zeros((), dtype=potential.dtype, device=potential.device)
-        return {
-            "ipf": torch.where(active, potential, zero),
-            "goal": torch.where(active, goal, zero),
-            "collision": torch.where(active, collision, zero),
-        }
+        # ctx's collision counts and team reward are already 0 where the env was not running.
+        goal = (ctx.team_reward + ctx.collision_pairs).unsqueeze(1).expand(-1, env.num_agents)
+        collision = -ctx.collisions_per_agent.clamp_max(1.0)
+        potential = None
+        if env.native:
+            potential = grid._potentials_native(
+                env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value,
+                self.agent_value, self._cache, agent_task=env.agent_task, active=ctx.active,
+            )
+        if potential is None:
+            potential = grid.agent_potentials(
+                env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value,
+                self.agent_value, cache=self._cache, native=False,
+            ).double()
+            potential = torch.where(env.agent_task >= 0, self.task_value, potential)
+            potential = potential * ctx.active.unsqueeze(1)
+        return {"ipf": potential.to(goal.dtype), "goal": goal, "collision": collision}
 
 
 # ---------------------------------------------------------------------- the picture

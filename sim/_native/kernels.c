@@ -13,6 +13,19 @@
 #include <string.h>
 
 #define INF_F ((float)INFINITY)
+
+/* A per-thread scratch buffer that only grows (released at exit). */
+static __thread unsigned char *arena_buf = NULL;
+static __thread size_t arena_len = 0;
+
+static void *arena_reserve(size_t bytes) {
+    if (bytes > arena_len) {
+        free(arena_buf);
+        arena_buf = malloc(bytes);
+        arena_len = arena_buf ? bytes : 0;
+    }
+    return arena_buf;
+}
 #define INF_BITS 0x7f800000u
 
 /* Sort keys: a non-negative float's bit pattern orders like the float (+inf last), so
@@ -234,80 +247,183 @@ void agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, floa
 
 /* r_IPF of every AGV (IPFGrid.agent_potentials): AGV i's own field at its own cell.
  *
- * Per environment: the sources (AGVs first, then open tasks) on free cells, deduplicated
- * (the earlier source on a cell wins); K = G[S, S] over the kept sources with the tasks
- * ordered first, factored K = C C^T; then AGV i's value is v_i - (P v)_i / P_ii with P = K^-1,
- * from z = C^-1 v and y = C^-1 e_i (zero above AGV i's row, so AGVs last keeps this short).
+ * Per environment: the sources (AGVs first, then open tasks) on free cells, deduplicated (a
+ * source is dropped when an earlier candidate shares its cell). With the kept tasks' block
+ * D = G[T, T] = L L^T, X = G[A, T] L^-T, the Schur complement S = G[A, A] - X X^T and
+ * r = v_A - X L^-1 v_T, AGV a's value is v_a - (S^-1 r)_a / (S^-1)_aa (the module notes of
+ * sim/ipf.py derive it). Tasks move only at resets and claims, so L^-1 and L^-1 v_T are kept
+ * in `cache` per environment, with the task cells they were built for: tcache (B, 1 + M)
+ * int64 = count, cells; dcache (B, M * M + M) float64 = L^-1 (row-major), L^-1 v_T. A count
+ * of -1 marks an empty entry. Everything after that is independent dot products, which
+ * pipeline far better than a full Cholesky factor of G[T u A, T u A].
+ *
  * An AGV whose cell holds another source reads that source's value (an AGV's if any); an AGV
- * on a fixed cell reads 0. g is the padded Green's function (F + 1) x (F + 1), free_index maps
- * a flat cell to its free index or -1. Returns 0, or 1 if a factorization failed. */
+ * on a fixed cell reads 0. g is the padded Green's function (F + 1) x (F + 1); free_index maps
+ * a flat cell to its free index or -1. Optional (NULL to leave out): agent_task (B, N), where
+ * an AGV holding a task reads task_value (the reward's parked rule); active (B,), where an
+ * inactive environment is skipped and reads 0. Returns 0; 1 if a factor was not positive
+ * definite; -1 if scratch memory could not be allocated. */
 int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float *task_pos,
             const uint8_t *task_open, const double *g, int64_t F, const int64_t *free_index,
             int64_t H, int64_t W, double xmin, double ymin, double dx, double dy,
-            double agent_value, double task_value, double *out) {
+            double agent_value, double task_value, const int64_t *agent_task,
+            const uint8_t *active, int64_t *tcache, double *dcache, double *out) {
     const int64_t T = N + M, F1 = F + 1;
-    int64_t *cell = malloc(sizeof(int64_t) * (size_t)T);
-    int64_t *fidx = malloc(sizeof(int64_t) * (size_t)T);
-    uint8_t *cand = malloc((size_t)T);
-    int64_t *slot = malloc(sizeof(int64_t) * (size_t)T);
-    int64_t *src = malloc(sizeof(int64_t) * (size_t)T);
-    double *val = malloc(sizeof(double) * (size_t)T);
-    double *c = malloc(sizeof(double) * (size_t)(T * T));
-    double *z = malloc(sizeof(double) * (size_t)T);
-    double *y = malloc(sizeof(double) * (size_t)T);
+    /* Entries of G one environment needs: the task block (only when its factor is stale),
+     * G[A, T] and the lower triangle of G[A, A]. */
+    const int64_t GT = M * (M + 1) / 2, GA = N * M + N * (N + 1) / 2;
+    /* Scratch from a per-thread arena kept between calls: fresh B-sized buffers on every
+     * step would be fresh pages, and the kernel zeroing them cost as much as the work. */
+    const size_t n64 = (size_t)(3 * B * T + B * N + 3 * B + 1), nd = (size_t)(B * (GT + GA) + 1);
+    const size_t small = (size_t)(N * M + N * N + 4 * N + T + M * M + 7);
+    unsigned char *arena = arena_reserve(8 * (n64 + nd + small));
+    if (arena == NULL) return -1;
+    int64_t *cell = (int64_t *)arena;
+    int64_t *src = cell + B * T;  /* kept tasks, then AGVs */
+    int64_t *aslot = src + B * T;
+    int64_t *cnt = aslot + B * N;  /* mt, na, stale */
+    uint8_t *cand = (uint8_t *)(cnt + 3 * B);  /* B T bytes in the last B T + 1 slots */
+    double *stage = (double *)(cell + n64);
+    double *x = stage + nd, *sc = x + N * M, *r = sc + N * N, *z = r + N + 1, *y = z + N + 1;
+    double *inv = y + N + 1, *l = inv + T + 1;
     int status = 0;
+    /* Pass 1: cells, candidates, kept sources, and whether the cached task factor is stale. */
     for (int64_t b = 0; b < B; b++) {
+        int64_t *ce = cell + b * T, *sr = src + b * T, *as = aslot + b * N;
+        uint8_t *ca = cand + b * T;
         for (int64_t s = 0; s < T; s++) {
             const float *q = s < N ? agent_pos + (b * N + s) * 2 : task_pos + (b * M + s - N) * 2;
             int64_t col = (int64_t)floor(((double)q[0] - xmin) / dx);
             int64_t row = (int64_t)floor(((double)q[1] - ymin) / dy);
             col = col < 0 ? 0 : (col > W - 1 ? W - 1 : col);
             row = row < 0 ? 0 : (row > H - 1 ? H - 1 : row);
-            cell[s] = row * W + col;
-            fidx[s] = free_index[cell[s]];
-            cand[s] = fidx[s] >= 0 && (s < N || task_open == NULL || task_open[b * M + s - N]);
+            ce[s] = row * W + col;
+            ca[s] = free_index[ce[s]] >= 0
+                    && (s < N || task_open == NULL || task_open[b * M + s - N]);
         }
-        /* Kept sources: tasks first, then AGVs (the order of the factor, not of precedence). */
-        int64_t S = 0;
-        for (int pass = 0; pass < 2; pass++) {
+        int64_t mt = 0, na = 0;
+        for (int pass = 0; pass < 2; pass++) {  /* tasks first in src, AGVs after */
             const int64_t lo = pass == 0 ? N : 0, hi = pass == 0 ? T : N;
             for (int64_t s = lo; s < hi; s++) {
-                slot[s] = -1;
-                if (!cand[s]) continue;
+                if (s < N) as[s] = -1;
+                if (!ca[s]) continue;
                 int shadowed = 0;
-                for (int64_t e = 0; e < s && !shadowed; e++) shadowed = cand[e] && cell[e] == cell[s];
+                for (int64_t e = 0; e < s && !shadowed; e++) shadowed = ca[e] && ce[e] == ce[s];
                 if (shadowed) continue;
-                slot[s] = S;
-                src[S] = fidx[s];
-                val[S] = s < N ? agent_value : task_value;
-                S++;
-            }
-        }
-        /* Cholesky factor of K = G[src, src], lower triangle, row by row. */
-        for (int64_t r = 0; r < S; r++) {
-            const double *grow = g + src[r] * F1;
-            for (int64_t q = 0; q <= r; q++) {
-                double sum = grow[src[q]];
-                for (int64_t u = 0; u < q; u++) sum -= c[r * T + u] * c[q * T + u];
-                if (q < r) {
-                    c[r * T + q] = sum / c[q * T + q];
+                if (s < N) {
+                    as[s] = na;
+                    sr[mt + na++] = free_index[ce[s]];
                 } else {
-                    if (!(sum > 0.0)) status = 1;
-                    c[r * T + r] = sqrt(sum);
+                    sr[mt++] = free_index[ce[s]];
                 }
             }
         }
-        for (int64_t r = 0; r < S; r++) {
-            double sum = val[r];
-            for (int64_t u = 0; u < r; u++) sum -= c[r * T + u] * z[u];
-            z[r] = sum / c[r * T + r];
+        const int64_t *tc = tcache + b * (M + 1);
+        int fresh = tc[0] == mt;
+        for (int64_t p = 0; p < mt && fresh; p++) fresh = tc[1 + p] == sr[p];
+        const int skip = active != NULL && !active[b];
+        cnt[3 * b] = mt;
+        cnt[3 * b + 1] = skip ? 0 : na;
+        cnt[3 * b + 2] = !fresh && !skip;
+    }
+    /* Pass 2: gather every entry of G needed, in one loop of independent loads (far more
+     * loads in flight than when they are interleaved with the factorizations). */
+    for (int64_t b = 0; b < B; b++) {
+        const int64_t *sr = src + b * T, mt = cnt[3 * b], na = cnt[3 * b + 1];
+        double *st = stage + b * (GT + GA);
+        if (cnt[3 * b + 2])
+            for (int64_t p = 0; p < mt; p++)
+                for (int64_t q = 0; q <= p; q++) *st++ = g[sr[p] * F1 + sr[q]];
+        st = stage + b * (GT + GA) + GT;
+        for (int64_t a = 0; a < na; a++) {
+            const double *grow = g + sr[mt + a] * F1;
+            for (int64_t q = 0; q < mt + a + 1; q++) *st++ = grow[sr[q]];
+        }
+    }
+    /* Pass 3: factorizations and values. */
+    for (int64_t b = 0; b < B; b++) {
+        const int64_t *ce = cell + b * T, *sr = src + b * T, *as = aslot + b * N;
+        const uint8_t *ca = cand + b * T;
+        const int64_t mt = cnt[3 * b], na = cnt[3 * b + 1];
+        int64_t *tc = tcache + b * (M + 1);
+        double *linv = dcache + b * (M * M + M), *u = linv + M * M;
+        if (cnt[3 * b + 2]) {  /* the tasks' factor L (row by row), L^-1, u = L^-1 v_T */
+            const double *st = stage + b * (GT + GA);
+            for (int64_t p = 0; p < mt; p++) {
+                double *lp = l + p * M;
+                for (int64_t q = 0; q <= p; q++) {
+                    double sum = *st++;
+                    for (int64_t k = 0; k < q; k++) sum -= lp[k] * l[q * M + k];
+                    if (q < p) {
+                        lp[q] = sum * inv[q];
+                    } else {
+                        if (!(sum > 0.0)) status = 1;
+                        lp[p] = sqrt(sum);
+                        inv[p] = 1.0 / lp[p];
+                    }
+                }
+            }
+            for (int64_t q = 0; q < mt; q++) {
+                for (int64_t p = 0; p < mt; p++) {
+                    double sum = p == q ? 1.0 : 0.0;
+                    if (p > q)
+                        for (int64_t k = q; k < p; k++) sum -= l[p * M + k] * linv[k * M + q];
+                    linv[p * M + q] = p < q ? 0.0 : sum * inv[p];
+                }
+            }
+            for (int64_t p = 0; p < mt; p++) {
+                double sum = 0.0;
+                for (int64_t q = 0; q <= p; q++) sum += linv[p * M + q];
+                u[p] = sum * task_value;
+            }
+            tc[0] = mt;
+            for (int64_t p = 0; p < mt; p++) tc[1 + p] = sr[p];
+        }
+        /* X = G[A, T] L^-T, r = v_A - X u, S = G[A, A] - X X^T. */
+        const double *st = stage + b * (GT + GA) + GT;
+        for (int64_t a = 0; a < na; a++) {
+            const double *gt = st, *gaa = st + mt;
+            st += mt + a + 1;
+            double *xa = x + a * M;
+            double ra = agent_value;
+            for (int64_t p = 0; p < mt; p++) {
+                const double *lp = linv + p * M;
+                double sum = 0.0;
+                for (int64_t q = 0; q <= p; q++) sum += lp[q] * gt[q];
+                xa[p] = sum;
+                ra -= sum * u[p];
+            }
+            r[a] = ra;
+            for (int64_t c = 0; c <= a; c++) {
+                const double *xc = x + c * M;
+                double sum = gaa[c];
+                for (int64_t p = 0; p < mt; p++) sum -= xa[p] * xc[p];
+                sc[a * N + c] = sum;
+            }
+        }
+        /* S = C C^T in place (lower), z = C^-1 r. */
+        for (int64_t a = 0; a < na; a++) {
+            double *cr = sc + a * N;
+            for (int64_t c = 0; c < a; c++) {
+                double sum = cr[c];
+                for (int64_t k = 0; k < c; k++) sum -= cr[k] * sc[c * N + k];
+                cr[c] = sum * inv[c];
+            }
+            double sum = cr[a];
+            for (int64_t k = 0; k < a; k++) sum -= cr[k] * cr[k];
+            if (!(sum > 0.0)) status = 1;
+            cr[a] = sqrt(sum);
+            inv[a] = 1.0 / cr[a];
+            double zs = r[a];
+            for (int64_t k = 0; k < a; k++) zs -= cr[k] * z[k];
+            z[a] = zs * inv[a];
         }
         for (int64_t i = 0; i < N; i++) {
             double phi = 0.0;
             int on_agent = 0, on_task = 0;
-            if (cand[i]) {
+            if (ca[i]) {
                 for (int64_t s = 0; s < T; s++) {
-                    if (s == i || !cand[s] || cell[s] != cell[i]) continue;
+                    if (s == i || !ca[s] || ce[s] != ce[i]) continue;
                     if (s < N) on_agent = 1; else on_task = 1;
                 }
             }
@@ -315,22 +431,24 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
                 phi = agent_value;
             } else if (on_task) {
                 phi = task_value;
-            } else if (slot[i] >= 0) {
-                const int64_t k = slot[i];
+            } else if (as[i] >= 0) {
+                /* y = C^-1 e_k is zero above row k: P_kk = |y|^2, (S^-1 r)_k = y . z. */
+                const int64_t k = as[i];
                 double pii = 0.0, pv = 0.0;
-                for (int64_t r = k; r < S; r++) {
-                    double sum = r == k ? 1.0 : 0.0;
-                    for (int64_t u = k; u < r; u++) sum -= c[r * T + u] * y[u];
-                    y[r] = sum / c[r * T + r];
-                    pii += y[r] * y[r];
-                    pv += y[r] * z[r];
+                for (int64_t a = k; a < na; a++) {
+                    double sum = a == k ? 1.0 : 0.0;
+                    for (int64_t c = k; c < a; c++) sum -= sc[a * N + c] * y[c];
+                    y[a] = sum * inv[a];
+                    pii += y[a] * y[a];
+                    pv += y[a] * z[a];
                 }
-                phi = val[k] - pv / pii;
+                phi = agent_value - pv / pii;
             }
+            if (agent_task != NULL && agent_task[b * N + i] >= 0) phi = task_value;
+            if (active != NULL && !active[b]) phi = 0.0;
             out[b * N + i] = phi;
         }
     }
-    free(cell); free(fidx); free(cand); free(slot); free(src); free(val); free(c); free(z); free(y);
     return status;
 }
 
