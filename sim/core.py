@@ -178,7 +178,8 @@ class AGVEnv:
             self.generator.manual_seed(int(seed))
         idx = self._env_index(env_ids)
         if idx.numel():
-            agents, tasks = self.scenario.spawn(len(idx), self.generator, self.device)
+            agents, tasks = self.scenario.spawn(len(idx), self.generator, self.device,
+                                               native=self.native)
             self._place(idx, agents, tasks, torch.zeros_like(agents))
         return self.observe()
 

@@ -190,6 +190,7 @@ class IPFGrid:
         self._green: Tensor | None = None
         self._torch: dict[torch.device, tuple[Tensor, Tensor]] = {}
         self._free_index_t: Tensor | None = None
+        self._green_diag: Tensor | None = None
 
     # ------------------------------------------------------------------ the graph
     @functools.cached_property
@@ -414,6 +415,7 @@ class IPFGrid:
         green, _ = self._tables(agent_pos.device)
         if self._free_index_t is None:
             self._free_index_t = torch.from_numpy(self.free_index)
+            self._green_diag = green.diagonal().contiguous()
         B, N = agent_pos.shape[:2]
         M = task_pos.shape[1]
         agents, tasks = agent_pos.contiguous(), task_pos.contiguous()
@@ -426,7 +428,8 @@ class IPFGrid:
         xmin, ymin, _, _ = self.world.bounds
         status = lib.agv_ipf(
             B, N, M, agents.data_ptr(), tasks.data_ptr(),
-            None if open_ is None else open_.data_ptr(), green.data_ptr(), self.num_free,
+            None if open_ is None else open_.data_ptr(), green.data_ptr(),
+            self._green_diag.data_ptr(), self.num_free,
             self._free_index_t.data_ptr(), H, W, float(xmin), float(ymin), float(self.dx),
             float(self.dy), float(agent_value), float(task_value),
             None if held is None else held.data_ptr(), None if run is None else run.data_ptr(),

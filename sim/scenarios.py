@@ -116,19 +116,30 @@ class Scenario:
         except RuntimeError as err:
             raise ValueError(f"scenario {self.name!r}: {err}") from None
 
-    def spawn(self, B: int, gen: torch.Generator, device: torch.device) -> tuple[Tensor, Tensor]:
+    def spawn(self, B: int, gen: torch.Generator, device: torch.device,
+              native: bool | None = None) -> tuple[Tensor, Tensor]:
         """Draw B scenes.
+
+        Parameters
+        ----------
+        native : bool, optional
+            Check candidates with the fused CPU kernel of :mod:`sim.native` (default: where
+            available); the same draws give the same scenes either way.
 
         Returns
         -------
         agents : Tensor, shape (B, N, 2)
         tasks : Tensor, shape (B, M, 2)
         """
+        from sim import native as native_kernels
+
         w = self.world
         agent_sampler, task_sampler = self._samplers()
         obstacles = torch.tensor(np.array(w.obstacles), dtype=torch.float32, device=device)
         r, cap = w.agent_radius, w.capture_radius
         n, m = self.num_agents, self.num_tasks
+        lib = (native_kernels.library() if (native or native is None) and device.type == "cpu"
+               else None)
         # Entities are placed one at a time (agents, then tasks), each for all B scenes at once.
         # gap[k, j]: minimum distance between entity k and an earlier entity j.
         kinds = torch.tensor([True] * n + [False] * m, device=device)
@@ -140,17 +151,30 @@ class Scenario:
         for k in range(n + m):
             sampler = agent_sampler if k < n else task_sampler
             todo = rows
+            gap_k = gap[k, :k].contiguous()
             for _ in range(_ROUNDS):
                 cand = sampler(len(todo), _CANDIDATES, gen, device).float()  # (b, C, 2)
-                ok = _clear_of_obstacles(cand, obstacles, r)
-                if k:
-                    prev = placed[todo, :k]  # (b, k, 2)
-                    d2 = ((cand.unsqueeze(2) - prev.unsqueeze(1)) ** 2).sum(-1)  # (b, C, k)
-                    ok &= (d2 >= gap[k, :k]).all(dim=2)
-                found = ok.any(dim=1)
-                first = ok.to(torch.uint8).argmax(dim=1)
-                chosen = cand[torch.arange(len(todo), device=device), first]
-                placed[todo[found], k] = chosen[found]
+                ok = _clear_of_obstacles(cand, obstacles, r) if len(obstacles) else None
+                if lib is not None:  # the same rule, one pass in C
+                    cand = cand.contiguous()
+                    ok = None if ok is None else ok.contiguous()
+                    found = torch.empty(len(todo), dtype=torch.bool)
+                    lib.agv_spawn_pick(
+                        len(todo), _CANDIDATES, n + m, k, cand.data_ptr(),
+                        None if ok is None else ok.data_ptr(), todo.data_ptr(),
+                        gap_k.data_ptr(), placed.data_ptr(), found.data_ptr(),
+                    )
+                else:
+                    if ok is None:
+                        ok = torch.ones(cand.shape[:2], dtype=torch.bool, device=device)
+                    if k:
+                        prev = placed[todo, :k]  # (b, k, 2)
+                        d2 = ((cand.unsqueeze(2) - prev.unsqueeze(1)) ** 2).sum(-1)  # (b, C, k)
+                        ok &= (d2 >= gap_k).all(dim=2)
+                    found = ok.any(dim=1)
+                    first = ok.to(torch.uint8).argmax(dim=1)
+                    chosen = cand[torch.arange(len(todo), device=device), first]
+                    placed[todo[found], k] = chosen[found]
                 todo = todo[~found]
                 if not len(todo):
                     break

@@ -264,13 +264,14 @@ void agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, floa
  * inactive environment is skipped and reads 0. Returns 0; 1 if a factor was not positive
  * definite; -1 if scratch memory could not be allocated. */
 int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float *task_pos,
-            const uint8_t *task_open, const double *g, int64_t F, const int64_t *free_index,
-            int64_t H, int64_t W, double xmin, double ymin, double dx, double dy,
-            double agent_value, double task_value, const int64_t *agent_task,
+            const uint8_t *task_open, const double *g, const double *gdiag, int64_t F,
+            const int64_t *free_index, int64_t H, int64_t W, double xmin, double ymin,
+            double dx, double dy, double agent_value, double task_value, const int64_t *agent_task,
             const uint8_t *active, int64_t *tcache, double *dcache, double *out) {
     const int64_t T = N + M, F1 = F + 1;
     /* Entries of G one environment needs: the task block (only when its factor is stale),
-     * G[A, T] and the lower triangle of G[A, A]. */
+     * G[A, T] and the lower triangle of G[A, A] (its diagonal from gdiag, G's diagonal, which
+     * stays in cache). */
     const int64_t GT = M * (M + 1) / 2, GA = N * M + N * (N + 1) / 2;
     /* Scratch from a per-thread arena kept between calls: fresh B-sized buffers on every
      * step would be fresh pages, and the kernel zeroing them cost as much as the work. */
@@ -293,10 +294,10 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
         uint8_t *ca = cand + b * T;
         for (int64_t s = 0; s < T; s++) {
             const float *q = s < N ? agent_pos + (b * N + s) * 2 : task_pos + (b * M + s - N) * 2;
-            int64_t col = (int64_t)floor(((double)q[0] - xmin) / dx);
-            int64_t row = (int64_t)floor(((double)q[1] - ymin) / dy);
-            col = col < 0 ? 0 : (col > W - 1 ? W - 1 : col);
-            row = row < 0 ? 0 : (row > H - 1 ? H - 1 : row);
+            /* floor, then clip to the grid (a truncation is the floor of values >= 0) */
+            const double fx = ((double)q[0] - xmin) / dx, fy = ((double)q[1] - ymin) / dy;
+            const int64_t col = fx < 0.0 ? 0 : (fx >= (double)(W - 1) ? W - 1 : (int64_t)fx);
+            const int64_t row = fy < 0.0 ? 0 : (fy >= (double)(H - 1) ? H - 1 : (int64_t)fy);
             ce[s] = row * W + col;
             ca[s] = free_index[ce[s]] >= 0
                     && (s < N || task_open == NULL || task_open[b * M + s - N]);
@@ -337,7 +338,8 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
         st = stage + b * (GT + GA) + GT;
         for (int64_t a = 0; a < na; a++) {
             const double *grow = g + sr[mt + a] * F1;
-            for (int64_t q = 0; q < mt + a + 1; q++) *st++ = grow[sr[q]];
+            for (int64_t q = 0; q < mt + a; q++) *st++ = grow[sr[q]];
+            *st++ = gdiag[sr[mt + a]];
         }
     }
     /* Pass 3: factorizations and values. */
@@ -462,4 +464,33 @@ int64_t agv_clip_actions(int64_t n, const float *a, float *out) {
         out[k] = x < -1.0f ? -1.0f : (x > 1.0f ? 1.0f : x);
     }
     return bad;
+}
+
+/* One round of spawning for entity k (Scenario.spawn): for each of the b environments still
+ * to place, the first of its C candidates (b, C, 2) that passes ok (b, C; NULL = all) and
+ * keeps squared distance >= gap2[j] to every earlier entity j < k of placed (B, E, 2). The
+ * squared distance is summed as torch does, (dx * dx) + (dy * dy) in float32, so both paths
+ * accept the same candidates. Writes placed[todo[i], k] and found[i]. */
+void agv_spawn_pick(int64_t b, int64_t C, int64_t E, int64_t k, const float *cand,
+                    const uint8_t *ok, const int64_t *todo, const float *gap2, float *placed,
+                    uint8_t *found) {
+    for (int64_t i = 0; i < b; i++) {
+        float *row = placed + todo[i] * E * 2;
+        found[i] = 0;
+        for (int64_t c = 0; c < C && !found[i]; c++) {
+            if (ok != NULL && !ok[i * C + c]) continue;
+            const float cx = cand[(i * C + c) * 2], cy = cand[(i * C + c) * 2 + 1];
+            int clear = 1;
+            for (int64_t j = 0; j < k && clear; j++) {
+                const float dx = cx - row[2 * j], dy = cy - row[2 * j + 1];
+                const float sx = dx * dx, sy = dy * dy;
+                clear = sx + sy >= gap2[j];
+            }
+            if (clear) {
+                row[2 * k] = cx;
+                row[2 * k + 1] = cy;
+                found[i] = 1;
+            }
+        }
+    }
 }
