@@ -1,6 +1,12 @@
 """Learning works: on 1 AGV and 1 task, a short run goes from random (about 10 % of tasks
 reached) to most tasks reached (0.84 for MADDPG, 0.95 for BiCNet at 400 episodes, seed 0).
-Fails if the losses, targets or updates are broken."""
+Fails if the losses, targets or updates are broken.
+
+One short run is a knife edge: rounding differences of 1e-8 (the same update computed in
+another order, e.g. the stacked MADDPG update against the textbook loop, or a simulator
+change) grow to weight differences of 0.1 within 1000 updates, and MADDPG's 400-episode 1v1
+result over seeds 0-11 ranged from 0.40 to 1.00 (mean 0.86-0.91). So the quick test asks
+two of three seeds to learn, which a broken update does not (a random policy reaches 0.07)."""
 
 from __future__ import annotations
 
@@ -21,12 +27,19 @@ def test_learns_to_reach_a_single_task(tmp_path, algo, updates_per_step):
     random_policy = sim.evaluate(lambda obs: obs.new_zeros(*obs.shape[:2], 2).uniform_(-1, 1),
                                  "1v1", episodes=200, seed=12345)
     assert random_policy.response_rate < 0.25
-    result = train(TrainConfig(algo=algo, reward="ipf", scenario="1v1", episodes=400, seed=0,
-                               run_dir=str(tmp_path / algo), eval_every=100, eval_episodes=200,
-                               progress=False), {**FAST, "updates_per_step": updates_per_step})
-    assert result.best_response_rate >= 0.6, (
-        f"{algo} reached only {result.best_response_rate:.2f} of the tasks on 1v1 after "
-        f"{result.updates} updates (random policy: {random_policy.response_rate:.2f})")
+    best = []
+    for seed in (0, 1, 2):
+        result = train(TrainConfig(algo=algo, reward="ipf", scenario="1v1", episodes=400,
+                                   seed=seed, run_dir=str(tmp_path / f"{algo}-{seed}"),
+                                   eval_every=100, eval_episodes=200, progress=False),
+                       {**FAST, "updates_per_step": updates_per_step})
+        best.append(result.best_response_rate)
+        if sum(b >= 0.6 for b in best) >= 2:
+            break
+    assert sum(b >= 0.6 for b in best) >= 2, (
+        f"{algo} reached only {', '.join(f'{b:.2f}' for b in best)} of the tasks on 1v1 "
+        f"(seeds 0-2, {result.updates} updates each; random policy: "
+        f"{random_policy.response_rate:.2f})")
 
 
 @pytest.mark.slow
