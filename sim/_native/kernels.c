@@ -39,34 +39,38 @@ static inline uint64_t sort_key(float d, int64_t j) {
 #define CSWAP(a, b) do { const uint64_t x_ = (a), y_ = (b); (a) = x_ < y_ ? x_ : y_; \
                          (b) = x_ < y_ ? y_ : x_; } while (0)
 
-/* Sort n keys ascending: optimal networks for n <= 4 (5 exchanges) and n <= 8 (19), on keys
- * padded with the largest key; insertion for larger n. */
-static void sort_keys(uint64_t *key, int64_t n) {
+/* Sort n keys ascending: optimal networks for n <= 4 (5 exchanges) and n <= 8 (19) on keys
+ * padded with the largest key, held in registers; insertion for larger n. */
+static inline __attribute__((always_inline)) void sort_keys(uint64_t *key, int64_t n) {
     if (n <= 4) {
-        for (int64_t j = n; j < 4; j++) key[j] = UINT64_MAX;
-        CSWAP(key[0], key[1]); CSWAP(key[2], key[3]);
-        CSWAP(key[0], key[2]); CSWAP(key[1], key[3]);
-        CSWAP(key[1], key[2]);
+        uint64_t k0 = key[0], k1 = n > 1 ? key[1] : UINT64_MAX;
+        uint64_t k2 = n > 2 ? key[2] : UINT64_MAX, k3 = n > 3 ? key[3] : UINT64_MAX;
+        CSWAP(k0, k1); CSWAP(k2, k3);
+        CSWAP(k0, k2); CSWAP(k1, k3);
+        CSWAP(k1, k2);
+        key[0] = k0; key[1] = k1; key[2] = k2; key[3] = k3;
         return;
     }
     if (n <= 8) {
-        for (int64_t j = n; j < 8; j++) key[j] = UINT64_MAX;
-        CSWAP(key[0], key[2]); CSWAP(key[1], key[3]); CSWAP(key[4], key[6]); CSWAP(key[5], key[7]);
-        CSWAP(key[0], key[4]); CSWAP(key[1], key[5]); CSWAP(key[2], key[6]); CSWAP(key[3], key[7]);
-        CSWAP(key[0], key[1]); CSWAP(key[2], key[3]); CSWAP(key[4], key[5]); CSWAP(key[6], key[7]);
-        CSWAP(key[2], key[4]); CSWAP(key[3], key[5]);
-        CSWAP(key[1], key[4]); CSWAP(key[3], key[6]);
-        CSWAP(key[1], key[2]); CSWAP(key[3], key[4]); CSWAP(key[5], key[6]);
+        uint64_t k[8];
+        for (int64_t j = 0; j < 8; j++) k[j] = j < n ? key[j] : UINT64_MAX;
+        CSWAP(k[0], k[2]); CSWAP(k[1], k[3]); CSWAP(k[4], k[6]); CSWAP(k[5], k[7]);
+        CSWAP(k[0], k[4]); CSWAP(k[1], k[5]); CSWAP(k[2], k[6]); CSWAP(k[3], k[7]);
+        CSWAP(k[0], k[1]); CSWAP(k[2], k[3]); CSWAP(k[4], k[5]); CSWAP(k[6], k[7]);
+        CSWAP(k[2], k[4]); CSWAP(k[3], k[5]);
+        CSWAP(k[1], k[4]); CSWAP(k[3], k[6]);
+        CSWAP(k[1], k[2]); CSWAP(k[3], k[4]); CSWAP(k[5], k[6]);
+        for (int64_t j = 0; j < 8; j++) key[j] = k[j];
         return;
     }
     for (int64_t j = 1; j < n; j++) {
-        const uint64_t k = key[j];
+        const uint64_t kj = key[j];
         int64_t pos = j;
-        while (pos > 0 && key[pos - 1] > k) {
+        while (pos > 0 && key[pos - 1] > kj) {
             key[pos] = key[pos - 1];
             pos--;
         }
-        key[pos] = k;
+        key[pos] = kj;
     }
 }
 
