@@ -1,0 +1,209 @@
+"""The fused C kernels (sim.native) against the torch reference paths they replace."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import sim
+from sim import native
+from sim.core import AGVEnv
+from sim.ipf import AGENT_VALUE, TASK_VALUE, TaskBlockCache, ipf_grid, jacobi_field
+from sim.scenarios import get_scenario
+
+pytestmark = pytest.mark.skipif(not native.available(),
+                                reason=f"kernels unavailable: {native.disabled_reason()}")
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _pair(scenario: str, reward: str = "minidist", num_envs: int = 32) -> tuple[AGVEnv, AGVEnv]:
+    fast = AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=3, native=True)
+    ref = AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=3, native=False)
+    assert fast.native and not ref.native
+    return fast, ref
+
+
+def _assert_same_step(out_fast, out_ref) -> None:
+    (o1, r1, d1, i1), (o2, r2, d2, i2) = out_fast, out_ref
+    torch.testing.assert_close(o1, o2, atol=1e-6, rtol=0)
+    torch.testing.assert_close(r1, r2, atol=1e-5, rtol=0)
+    assert torch.equal(d1, d2)
+    for key in ("claimed_now", "agent_task", "collision_pairs", "collisions_per_agent",
+                "active"):
+        assert torch.equal(i1[key], i2[key]), key
+    torch.testing.assert_close(i1["team_reward"], i2["team_reward"], atol=1e-5, rtol=0)
+    assert i1["reward_terms"].keys() == i2["reward_terms"].keys()
+    for key in i1["reward_terms"]:
+        torch.testing.assert_close(i1["reward_terms"][key], i2["reward_terms"][key],
+                                   atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("scenario", ["3v3", "6v6", "warehouse", "10v4", "2v7", "1v1"])
+def test_step_matches_torch_path(scenario: str) -> None:
+    fast, ref = _pair(scenario)
+    assert torch.equal(fast.reset(), ref.reset())
+    gen = torch.Generator().manual_seed(1)
+    claimed = 0
+    for t in range(50):
+        actions = torch.rand(32, fast.num_agents, 2, generator=gen) * 2 - 1
+        out_fast, out_ref = fast.step(actions), ref.step(actions)
+        _assert_same_step(out_fast, out_ref)
+        for name in ("agent_pos", "agent_vel", "task_claimed", "agent_task", "steps", "done"):
+            assert torch.equal(getattr(fast, name), getattr(ref, name)), name
+        claimed += int(out_fast[3]["claimed_now"].sum())
+        if t % 20 == 19:
+            for env in (fast, ref):
+                env.reset(out_fast[2])
+    assert claimed > 0 or scenario == "1v1"
+
+
+@pytest.mark.parametrize("scenario", ["3v3", "warehouse"])
+def test_ipf_step_matches_torch_path(scenario: str) -> None:
+    fast, ref = _pair(scenario, reward="ipf")
+    fast.reset(), ref.reset()
+    gen = torch.Generator().manual_seed(2)
+    for t in range(30):
+        actions = torch.rand(32, fast.num_agents, 2, generator=gen) * 2 - 1
+        out_fast, out_ref = fast.step(actions), ref.step(actions)
+        _assert_same_step(out_fast, out_ref)
+        if t % 10 == 9:
+            for env in (fast, ref):
+                env.reset(env_ids=[0, 5, 7])
+
+
+def test_observation_ties_go_to_the_lower_index() -> None:
+    fast, ref = _pair("3v3", num_envs=1)
+    # Tasks 0 and 2 at the same distance from AGV 0, AGVs 1 and 2 too: lower index first.
+    agents = torch.tensor([[[0.0, 0.0], [0.5, 0.0], [-0.5, 0.0]]])
+    tasks = torch.tensor([[[0.0, 0.6], [0.9, 0.9], [0.0, -0.6]]])
+    for env in (fast, ref):
+        env.set_state(agents, tasks)
+    obs_fast, obs_ref = fast.observe(), ref.observe()
+    assert torch.equal(obs_fast, obs_ref)
+    first_task = obs_fast[0, 0, 4:6]
+    assert first_task.tolist() == pytest.approx([0.0, 0.6])  # task 0 before task 2
+    first_agent = obs_fast[0, 0, 4 + 3 * fast.k_tasks: 6 + 3 * fast.k_tasks]
+    assert first_agent.tolist() == pytest.approx([0.5, 0.0])  # AGV 1 before AGV 2
+
+
+@pytest.mark.parametrize("scenario", ["3v3", "6v6", "warehouse", "20v20"])
+def test_spawn_gives_the_same_scenes(scenario: str) -> None:
+    sc = get_scenario(scenario)
+    scenes = [sc.spawn(256, torch.Generator().manual_seed(5), torch.device("cpu"), native=flag)
+              for flag in (True, False)]
+    assert torch.equal(scenes[0][0], scenes[1][0])
+    assert torch.equal(scenes[0][1], scenes[1][1])
+
+
+def _random_sources(world: sim.World, B: int, N: int, M: int, seed: int):
+    gen = torch.Generator().manual_seed(seed)
+    xmin, ymin, xmax, ymax = world.bounds
+    lo, span = torch.tensor([xmin, ymin]), torch.tensor([xmax - xmin, ymax - ymin])
+    agents = lo + span * torch.rand(B, N, 2, generator=gen)
+    tasks = lo + span * torch.rand(B, M, 2, generator=gen)
+    agents[: B // 4, 1] = agents[: B // 4, 0] + 1e-3  # two AGVs on one cell
+    agents[B // 4: B // 2, 0] = tasks[B // 4: B // 2, 1]  # an AGV on a task's cell
+    tasks[B // 2: 3 * B // 4, 1] = tasks[B // 2: 3 * B // 4, 0]  # two tasks on one cell
+    open_ = torch.rand(B, M, generator=gen) < 0.7
+    return agents.float(), tasks.float(), open_
+
+
+@pytest.mark.parametrize("scenario", ["6v6", "warehouse", "12v5"])
+def test_ipf_kernel_matches_torch_paths(scenario: str) -> None:
+    world = get_scenario(scenario).world
+    grid = ipf_grid(world)
+    n, m = get_scenario(scenario).num_agents, get_scenario(scenario).num_tasks
+    agents, tasks, open_ = _random_sources(world, 64, n, m, seed=len(scenario))
+    for mask in (open_, None):
+        kernel = grid._potentials_native(agents, tasks, mask, TASK_VALUE, AGENT_VALUE)
+        torch_path = grid.agent_potentials(agents.double(), tasks.double(), mask, native=False)
+        torch.testing.assert_close(kernel, torch_path, atol=1e-10, rtol=0)
+
+
+def test_ipf_kernel_matches_jacobi() -> None:
+    world = sim.World(obstacles=np.array([[-0.6, -0.2, -0.1, 0.2]]))
+    grid = ipf_grid(world, 0.1)
+    agents = torch.tensor([[[-0.8, -0.7], [0.3, 0.4], [0.7, -0.5]]], dtype=torch.float32)
+    tasks = torch.tensor([[[0.0, 0.7], [0.6, 0.0]]], dtype=torch.float32)
+    pot = grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE)
+    for i in range(3):
+        others = np.delete(agents[0].double().numpy(), i, axis=0)
+        cells = grid.cell_of(np.concatenate([others, tasks[0].double().numpy()])).numpy()
+        values = np.r_[np.full(2, AGENT_VALUE), np.full(2, TASK_VALUE)]
+        reference = jacobi_field(grid, cells, values, tol=1e-10)
+        own = int(grid.cell_of(agents[0, i].double()))
+        assert abs(float(pot[0, i]) - reference.ravel()[own]) < 1e-8
+
+
+def test_ipf_kernel_cache_follows_resets_and_claims() -> None:
+    env = sim.make_env("6v6", num_envs=16, seed=3)
+    grid = ipf_grid(env.world)
+    cache = TaskBlockCache()
+    gen = torch.Generator().manual_seed(0)
+    for k in range(15):
+        if k % 5 == 4:
+            env.reset(env_ids=[0, 3, 5])
+        env.step(torch.rand(16, 6, 2, generator=gen) * 2 - 1)
+        args = (env.agent_pos, env.task_pos, ~env.task_claimed, TASK_VALUE, AGENT_VALUE)
+        cached = grid._potentials_native(*args, cache=cache)
+        fresh = grid._potentials_native(*args)
+        assert torch.equal(cached, fresh)
+    assert env.task_claimed.any()
+
+
+def test_ipf_kernel_parked_and_inactive_rules() -> None:
+    grid = ipf_grid()
+    agents = torch.tensor([[[-0.5, 0.0], [0.5, 0.1]]] * 2)
+    tasks = torch.tensor([[[0.0, 0.6], [0.5, -0.6]]] * 2)
+    plain = grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE)
+    held = torch.tensor([[-1, 0], [-1, -1]])
+    active = torch.tensor([True, False])
+    ruled = grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE,
+                                    agent_task=held, active=active)
+    assert ruled[0, 0] == plain[0, 0] and ruled[0, 1] == TASK_VALUE
+    assert ruled[1].tolist() == [0.0, 0.0]
+
+
+def test_clear_error_when_kernels_are_forced_but_unusable(monkeypatch) -> None:
+    monkeypatch.setattr(native, "_lib", None)
+    monkeypatch.setattr(native, "_reason", "no compiler here")
+    with pytest.raises(ValueError, match="native=True.*no compiler here"):
+        sim.make_env("3v3", native=True)
+    assert not sim.make_env("3v3").native  # the default falls back to torch
+    monkeypatch.undo()
+    grid = ipf_grid()
+    with pytest.raises(ValueError, match="native=True"):
+        grid.agent_potentials(torch.zeros(1, 2, 2, dtype=torch.float64),
+                              torch.ones(1, 1, 2, dtype=torch.float64) * 0.5, native=True)
+
+
+def _run(code: str, **env: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=ROOT, env={**os.environ, **env}, timeout=120)
+
+
+def test_agv_native_0_switches_the_kernels_off() -> None:
+    code = ("import sim; env = sim.make_env('3v3'); print(env.native)\n"
+            "try:\n    sim.make_env('3v3', native=True)\nexcept ValueError as e:\n"
+            "    print('refused:', e)")
+    out = _run(code, AGV_NATIVE="0")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[0] == "False"
+    assert "AGV_NATIVE=0" in out.stdout
+
+
+def test_failed_build_warns_and_falls_back(tmp_path) -> None:
+    code = ("import warnings, torch, sim\nwarnings.simplefilter('always')\n"
+            "env = sim.make_env('3v3', num_envs=2, seed=0)\n"
+            "print(env.native, env.step(torch.zeros(2, 3, 2))[0].shape)")
+    out = _run(code, CC="false", AGV_CACHE_DIR=str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[0] == "False"
+    assert "kernels unavailable" in out.stderr
