@@ -50,17 +50,28 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", default="6v6")
     p.add_argument("--envs", type=int, nargs="+", default=[1, 32, 1024])
     p.add_argument("--reward", default="minidist")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads (default 1: steadier, and what the benchmarks use)")
     p.set_defaults(func=_run_bench)
 
 
 def _run_bench(args: argparse.Namespace) -> int:
-    from sim.throughput import physics_only_steps_per_second, steps_per_second
+    import torch
 
-    print(f"{'B':>6} {'env steps/s':>14} {'physics only':>14}  ({args.scenario}, {args.reward})")
+    from sim import native
+    from sim.throughput import measure, physics_only_steps_per_second
+
+    torch.set_num_threads(args.threads)
+    kernels = "fused kernels" if native.available() else "torch path"
+    print(f"{args.scenario}, reward {args.reward}, {kernels}")
+    print(f"{'B':>6} {'env steps/s':>14} {'step us':>10} {'reset us':>10} {'physics us':>11}"
+          f" {'overhead':>9}")
     for b in args.envs:
-        full = steps_per_second(args.scenario, b, reward=args.reward)
-        bare = physics_only_steps_per_second(args.scenario, b)
-        print(f"{b:>6} {full:>14,.0f} {bare:>14,.0f}")
+        m = measure(args.scenario, b, reward=args.reward)
+        physics = b / physics_only_steps_per_second(args.scenario, b)
+        print(f"{b:>6} {m.steps_per_second:>14,.0f} {1e6 * m.step_seconds:>10,.0f} "
+              f"{1e6 * m.reset_seconds:>10,.0f} {1e6 * physics:>11,.0f} "
+              f"{m.step_seconds / physics - 1:>+9.0%}")
     return 0
 
 

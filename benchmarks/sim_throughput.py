@@ -4,7 +4,8 @@
 
 Random actions, 25-step episodes with resets, N = 3 and 6, B = 1, 32, 1024, 4096 on the CPU.
 Also the bare physics step of this simulator, to measure what observations, rewards and claims
-add. Writes ``benchmarks/results/sim_throughput.md``.
+add, and the torch reference path (``native=False``) beside the fused kernels of
+:mod:`sim.native`. Writes ``benchmarks/results/sim_throughput.md``.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sim import native
 from sim.io import atomic_write_text
-from sim.throughput import physics_only_steps_per_second, steps_per_second
+from sim.throughput import measure, physics_only_steps_per_second
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -90,28 +92,44 @@ def main() -> None:
         mpe = mpe2_steps_per_second(n, 200 if args.quick else 1000, repeats)
         for b in args.batches:
             steps = max(10, min(300, 30_000 // b)) // (2 if args.quick else 1)
-            ours = steps_per_second(scenario, b, steps=steps, repeats=repeats)
+            ours = measure(scenario, b, steps=steps, repeats=repeats)
+            ref = measure(scenario, b, steps=steps, repeats=repeats, native=False)
             bare = physics_only_steps_per_second(scenario, b, steps=steps, repeats=repeats)
             vmas = vmas_steps_per_second(n, b, steps, repeats)
-            rows.append((n, b, ours, bare, vmas, mpe))
-            print(f"N={n} B={b:5d}  ours {ours:12,.0f}  physics {bare:12,.0f}  vmas {vmas:12,.0f}"
-                  f"  mpe2(1 env) {mpe:8,.0f}  ours/vmas {ours / vmas:5.2f}", flush=True)
+            rows.append((n, b, ours, ref, bare, vmas, mpe))
+            print(f"N={n} B={b:5d}  ours {ours.steps_per_second:12,.0f}  torch path "
+                  f"{ref.steps_per_second:12,.0f}  physics {bare:12,.0f}  vmas {vmas:12,.0f}"
+                  f"  mpe2(1 env) {mpe:8,.0f}  ours/vmas {ours.steps_per_second / vmas:5.2f}",
+                  flush=True)
+    kernels = ("fused C kernels of `sim.native`" if native.available()
+               else f"torch path only ({native.disabled_reason()})")
     lines = [
         "# Simulator throughput (environment steps per second, CPU)",
         "",
         f"`python benchmarks/sim_throughput.py{' --quick' if args.quick else ''}` on "
         f"{platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"{args.threads} thread(s), {datetime.date.today()}. Random actions, 25-step episodes "
-        "with resets. Best of repeated timings; peers measured in the same run.",
+        f"{args.threads} thread(s), {datetime.date.today()}; {kernels}. Random actions, "
+        "25-step episodes, finished environments reset as in a training loop. Best of "
+        "repeated timings; peers measured in the same run.",
         "",
-        "| N | B | ours (full step) | ours (bare physics) | overhead of obs+reward+claims "
-        "| VMAS simple_spread | ours / VMAS | mpe2 (1 env) | ours / mpe2 |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "- *ours*: `env.step` plus the resets, in environment steps per second (B per batched "
+        "step); *torch path*: the same with `native=False`, the reference implementation;",
+        "- *step* and *reset*: microseconds per batched step spent in `env.step` and in resets;",
+        "- *overhead*: what claims, observations and the reward add to the bare physics step "
+        "(`AGVEnv.physics_step`, the same physics the step runs): step / physics - 1.",
+        "",
+        "| N | B | ours | torch path | step (us) | reset (us) | physics (us) "
+        "| overhead | VMAS simple_spread | ours / VMAS | mpe2 (1 env) | ours / mpe2 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for n, b, ours, bare, vmas, mpe in rows:
+    for n, b, ours, ref, bare, vmas, mpe in rows:
+        physics_s = b / bare
         lines.append(
-            f"| {n} | {b} | {ours:,.0f} | {bare:,.0f} | {bare / ours - 1:+.0%} | {vmas:,.0f} "
-            f"| {ours / vmas:.2f} | {mpe:,.0f} | {ours / mpe:.1f} |"
+            f"| {n} | {b} | {ours.steps_per_second:,.0f} | {ref.steps_per_second:,.0f} "
+            f"| {1e6 * ours.step_seconds:,.0f} | {1e6 * ours.reset_seconds:,.0f} "
+            f"| {1e6 * physics_s:,.0f} | {ours.step_seconds / physics_s - 1:+.0%} "
+            f"| {vmas:,.0f} | {ours.steps_per_second / vmas:.2f} | {mpe:,.0f} "
+            f"| {ours.steps_per_second / mpe:.1f} |"
         )
     lines += [
         "",
