@@ -7,7 +7,8 @@ Measures, in one run and on a fixed number of threads:
    whole fields (``IPFGrid.fields``) and for the reward path (``IPFGrid.agent_potentials``);
 2. speed-up of the fast solver over Jacobi, per field and per reward value;
 3. a full ``env.step`` with ``reward="ipf"`` against ``reward="minidist"`` at B = 1024, N = 6
-   (target: ratio <= 1.5), interleaved, median of repeats.
+   (target: ratio <= 1.5), interleaved, median of repeats, with the fused kernels of
+   :mod:`sim.native` (the default) and on the torch reference path.
 
 Run: ``python benchmarks/ipf_speed.py [--threads 1 [2]] [--quick]``.
 """
@@ -25,6 +26,7 @@ import numpy as np
 import torch
 
 import sim
+from sim import native
 from sim.io import atomic_write_text
 from sim.ipf import AGENT_VALUE, TASK_VALUE, IPFGrid, ipf_grid, jacobi_field
 from sim.scenarios import warehouse_world
@@ -76,14 +78,23 @@ def accuracy(quick: bool) -> list[dict]:
         for n in sizes:
             if quick and n not in (6, 20):
                 continue
-            field_err = reward_err = 0.0
+            field_err = reward_err = kernel_err = 0.0
             jacobi_s: list[float] = []
             checked = 0
             for _ in range(seeds):
-                agents, tasks = random_scene(world, n, n, rng)
+                # float32-representable points, so that the kernel (float32 positions) and the
+                # torch path (float64) see the same cells
+                agents, tasks = (x.astype(np.float32).astype(np.float64)
+                                 for x in random_scene(world, n, n, rng))
                 pot = grid.agent_potentials(
-                    torch.from_numpy(agents)[None], torch.from_numpy(tasks)[None]
+                    torch.from_numpy(agents)[None], torch.from_numpy(tasks)[None], native=False
                 )[0].numpy()
+                pot_kernel = None
+                if native.available():
+                    pot_kernel = grid._potentials_native(
+                        torch.from_numpy(agents).float()[None],
+                        torch.from_numpy(tasks).float()[None], None, TASK_VALUE, AGENT_VALUE,
+                    )[0].numpy()
                 check = range(n) if n <= 3 else rng.choice(n, size=2 if "warehouse" in name
                                                            else 3, replace=False)
                 for i in check:
@@ -96,10 +107,15 @@ def accuracy(quick: bool) -> list[dict]:
                     field_err = max(field_err, float(np.abs(fast - ref).max()))
                     own = int(grid.cell_of(agents[i]))
                     reward_err = max(reward_err, abs(float(pot[i]) - ref.ravel()[own]))
+                    if pot_kernel is not None:
+                        kernel_err = max(kernel_err,
+                                         abs(float(pot_kernel[i]) - ref.ravel()[own]))
                     checked += 1
             rows.append(dict(world=name, grid=f"{grid.shape[0]}x{grid.shape[1]}",
                              free=grid.num_free, n=n, fields=checked, field_err=field_err,
-                             reward_err=reward_err, jacobi_ms=1e3 * statistics.median(jacobi_s)))
+                             reward_err=reward_err,
+                             kernel_err=kernel_err if native.available() else float("nan"),
+                             jacobi_ms=1e3 * statistics.median(jacobi_s)))
             print(rows[-1], flush=True)
     return rows
 
@@ -135,23 +151,28 @@ def solver_speed(quick: bool) -> dict:
     env = sim.make_env("6v6", num_envs=1024, seed=0)
     pos, tasks = env.agent_pos, env.task_pos
     open_ = ~env.task_claimed
-    reward = median_time(lambda: grid.agent_potentials(pos, tasks, open_), 10 if quick else 30)
-    per_value = reward / (1024 * 6)
+    reward = median_time(lambda: grid.agent_potentials(pos, tasks, open_, native=False),
+                         10 if quick else 30)
+    kernel = (median_time(lambda: grid.agent_potentials(pos, tasks, open_, native=True),
+                          10 if quick else 30) if native.available() else float("nan"))
+    per_value = min(reward, kernel) / (1024 * 6)
     return dict(green_s=green_s, green_warehouse_s=green_warehouse_s,
                 warehouse=f"{wgrid.shape[0]}x{wgrid.shape[1]}, F={wgrid.num_free}, "
                           f"{wgrid.num_free**2 * 8 / 2**20:.0f} MiB",
                 jacobi_ms=1e3 * jac, fields_ms=1e3 * fields, reward_batch_ms=1e3 * reward,
+                kernel_batch_ms=1e3 * kernel,
                 reward_us=1e6 * per_value, speedup_field=jac / fields,
                 speedup_reward=jac / per_value)
 
 
-def step_ratio(scenario: str, num_envs: int, repeats: int) -> dict:
-    """Median env.step time with ipf and with minidist, steps interleaved.
+def step_ratio(scenario: str, num_envs: int, repeats: int, use_native: bool = True) -> dict:
+    """Median env.step time with ipf and with minidist, steps interleaved (both with the fused
+    kernels, or both on the torch path).
 
     Both wall-clock and process CPU time are recorded: on a machine shared with other jobs the
     CPU time is the steadier of the two (it does not count time the process waited).
     """
-    envs = {r: sim.make_env(scenario, num_envs=num_envs, reward=r, seed=0)
+    envs = {r: sim.make_env(scenario, num_envs=num_envs, reward=r, seed=0, native=use_native)
             for r in ("minidist", "ipf")}
     gen = torch.Generator().manual_seed(0)
     n = envs["ipf"].num_agents
@@ -168,7 +189,8 @@ def step_ratio(scenario: str, num_envs: int, repeats: int) -> dict:
             if k >= 3:
                 wall[r].append(w1 - w0)
                 cpu[r].append(c1 - c0)
-    out = dict(scenario=scenario, B=num_envs, N=n)
+    out = dict(scenario=scenario, B=num_envs, N=n,
+               path="fused kernels" if use_native else "torch path")
     for kind, times in (("wall", wall), ("cpu", cpu)):
         mini, ipf = statistics.median(times["minidist"]), statistics.median(times["ipf"])
         out.update({f"minidist_{kind}_ms": 1e3 * mini, f"ipf_{kind}_ms": 1e3 * ipf,
@@ -186,16 +208,19 @@ def main() -> None:
     steps = []
     for threads in args.threads:
         torch.set_num_threads(threads)
-        for scenario, repeats in (("6v6", 100), ("warehouse", 50)):
-            s = step_ratio(scenario, 1024, repeats // 3 if args.quick else repeats)
-            steps.append(dict(s, threads=threads))
-            print(steps[-1], flush=True)
+        for use_native in ((True, False) if native.available() else (False,)):
+            for scenario, repeats in (("6v6", 100), ("warehouse", 50)):
+                s = step_ratio(scenario, 1024, repeats // 3 if args.quick else repeats,
+                               use_native)
+                steps.append(dict(s, threads=threads))
+                print(steps[-1], flush=True)
     torch.set_num_threads(1)
     speed = solver_speed(args.quick)
     print(speed, flush=True)
     acc = accuracy(args.quick)
 
-    worst = max(max(r["field_err"], r["reward_err"]) for r in acc)
+    worst = max(max(r["field_err"], r["reward_err"], np.nan_to_num(r["kernel_err"]))
+                for r in acc)
     lines = [
         "# IPF solver: accuracy and speed",
         "",
@@ -210,13 +235,13 @@ def main() -> None:
         "Wall-clock and process CPU time per `env.step` (random actions, resets every 10 "
         "steps). CPU time is the steadier measure on a shared machine.",
         "",
-        "| scenario | B | N | threads | minidist wall (ms) | ipf wall (ms) | ratio wall | "
+        "| path | scenario | B | N | threads | minidist wall (ms) | ipf wall (ms) | ratio wall | "
         "minidist CPU (ms) | ipf CPU (ms) | ratio CPU |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in steps:
         lines.append(
-            f"| {s['scenario']} | {s['B']} | {s['N']} | {s['threads']} | "
+            f"| {s['path']} | {s['scenario']} | {s['B']} | {s['N']} | {s['threads']} | "
             f"{s['minidist_wall_ms']:.2f} | {s['ipf_wall_ms']:.2f} | **{s['ratio_wall']:.2f}** | "
             f"{s['minidist_cpu_ms']:.2f} | {s['ipf_cpu_ms']:.2f} | **{s['ratio_cpu']:.2f}** |")
     lines += [
@@ -232,8 +257,11 @@ def main() -> None:
         f"{speed['green_warehouse_s']:.2f} s |",
         f"| Jacobi to a guaranteed 1e-9, one field | {speed['jacobi_ms']:.1f} ms |",
         f"| fast, whole field, batched 64 fields, per field | {speed['fields_ms']:.3f} ms |",
-        f"| fast, reward path, B=1024 x N=6 values in one call | "
-        f"{speed['reward_batch_ms']:.2f} ms ({speed['reward_us']:.2f} us per value) |",
+        f"| fast, reward path (torch), B=1024 x N=6 values in one call | "
+        f"{speed['reward_batch_ms']:.2f} ms |",
+        f"| fast, reward path (C kernel, no cached task factors), the same call | "
+        f"{speed['kernel_batch_ms']:.2f} ms |",
+        f"| per r_IPF value, the faster of the two | {speed['reward_us']:.2f} us |",
         f"| speed-up, whole field | **{speed['speedup_field']:.0f}x** |",
         f"| speed-up, one r_IPF value (reward path vs a Jacobi field) | "
         f"**{speed['speedup_reward']:.0f}x** |",
@@ -244,13 +272,14 @@ def main() -> None:
         "AGVs (all for N <= 3) are compared over the whole grid, and the reward path's value "
         "at each checked AGV's cell against the Jacobi field there.",
         "",
-        "| world | grid | N = M | fields checked | whole field | reward path | "
-        "Jacobi per field (ms) |",
-        "|---|---|---|---|---|---|---|",
+        "| world | grid | N = M | fields checked | whole field | reward path (torch) | "
+        "reward path (C kernel) | Jacobi per field (ms) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in acc:
         lines.append(f"| {r['world']} | {r['grid']} | {r['n']} | {r['fields']} | "
-                     f"{r['field_err']:.1e} | {r['reward_err']:.1e} | {r['jacobi_ms']:.0f} |")
+                     f"{r['field_err']:.1e} | {r['reward_err']:.1e} | {r['kernel_err']:.1e} | "
+                     f"{r['jacobi_ms']:.0f} |")
     lines += ["", f"Worst difference: **{worst:.1e}** (Jacobi's own guaranteed error is "
               "below 1e-9).", ""]
     args.out.parent.mkdir(parents=True, exist_ok=True)
