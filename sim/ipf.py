@@ -396,18 +396,19 @@ class IPFGrid:
     def _potentials_native(self, agent_pos: Tensor, task_pos: Tensor, task_open: Tensor | None,
                            task_value: float, agent_value: float,
                            cache: TaskBlockCache | None = None, agent_task: Tensor | None = None,
-                           active: Tensor | None = None) -> Tensor | None:
-        """:meth:`agent_potentials` through the fused kernel, float64 (B, N); None where the
-        kernel cannot run (it needs float32 CPU positions).
+                           active: Tensor | None = None, task_claimed: Tensor | None = None,
+                           dtype: torch.dtype = torch.float64) -> Tensor | None:
+        """:meth:`agent_potentials` through the fused kernel, (B, N) of ``dtype`` (float64 or
+        float32); None where the kernel cannot run (it needs float32 CPU positions).
 
-        For the reward: where ``agent_task`` (B, N) is >= 0 the value is ``task_value`` (a
-        parked AGV), and environments where ``active`` (B,) is False are skipped and read 0.
+        For the reward: ``task_claimed`` (B, M) may stand in for ``task_open``; where
+        ``agent_task`` (B, N) is >= 0 the value is ``task_value`` (a parked AGV); environments
+        where ``active`` (B,) is False are skipped and read 0.
         """
         from sim import native
 
-        tensors = [agent_pos, task_pos] + ([] if task_open is None else [task_open])
-        if any(t.device.type != "cpu" for t in tensors) or agent_pos.dtype != torch.float32 \
-                or task_pos.dtype != torch.float32:
+        if agent_pos.dtype != torch.float32 or task_pos.dtype != torch.float32 \
+                or agent_pos.device.type != "cpu" or task_pos.device.type != "cpu":
             return None
         lib = native.library()
         if lib is None:
@@ -418,22 +419,24 @@ class IPFGrid:
             self._green_diag = green.diagonal().contiguous()
         B, N = agent_pos.shape[:2]
         M = task_pos.shape[1]
-        agents, tasks = agent_pos.contiguous(), task_pos.contiguous()
-        open_ = None if task_open is None else task_open.to(torch.bool).contiguous()
-        held = None if agent_task is None else agent_task.to(torch.int64).contiguous()
-        run = None if active is None else active.to(torch.bool).contiguous()
-        out = torch.empty(B, N, dtype=torch.float64)
+        mask, is_claimed = (task_claimed, 1) if task_claimed is not None else (task_open, 0)
+
+        def ptr(t: Tensor | None, kind: torch.dtype) -> int | None:
+            return None if t is None else t.to(device="cpu", dtype=kind).contiguous().data_ptr()
+
+        out = torch.empty(B, N, dtype=dtype)
         tcache, dcache = (cache or TaskBlockCache()).native_buffers(self, B, M, task_value)
         H, W = self.shape
         xmin, ymin, _, _ = self.world.bounds
+        wide = out.dtype == torch.float64
         status = lib.agv_ipf(
-            B, N, M, agents.data_ptr(), tasks.data_ptr(),
-            None if open_ is None else open_.data_ptr(), green.data_ptr(),
-            self._green_diag.data_ptr(), self.num_free,
-            self._free_index_t.data_ptr(), H, W, float(xmin), float(ymin), float(self.dx),
-            float(self.dy), float(agent_value), float(task_value),
-            None if held is None else held.data_ptr(), None if run is None else run.data_ptr(),
-            tcache.data_ptr(), dcache.data_ptr(), out.data_ptr(),
+            B, N, M, agent_pos.contiguous().data_ptr(), task_pos.contiguous().data_ptr(),
+            ptr(mask, torch.bool), is_claimed, green.data_ptr(), self._green_diag.data_ptr(),
+            self.num_free, self._free_index_t.data_ptr(), H, W, float(xmin), float(ymin),
+            float(self.dx), float(self.dy), float(agent_value), float(task_value),
+            ptr(agent_task, torch.int64), ptr(active, torch.bool), tcache.data_ptr(),
+            dcache.data_ptr(), out.data_ptr() if wide else None,
+            None if wide else out.data_ptr(),
         )
         if status < 0:
             raise MemoryError(f"IPF kernel: no memory for the scratch of {B} environments")
@@ -901,8 +904,9 @@ class IPFReward:
         potential = None
         if env.native:
             potential = grid._potentials_native(
-                env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value,
-                self.agent_value, self._cache, agent_task=env.agent_task, active=ctx.active,
+                env.agent_pos, env.task_pos, None, self.task_value, self.agent_value,
+                self._cache, agent_task=env.agent_task, active=ctx.active,
+                task_claimed=env.task_claimed, dtype=goal.dtype,
             )
         if potential is None:
             potential = grid.agent_potentials(
@@ -911,7 +915,8 @@ class IPFReward:
             ).double()
             potential = torch.where(env.agent_task >= 0, self.task_value, potential)
             potential = potential * ctx.active.unsqueeze(1)
-        return {"ipf": potential.to(goal.dtype), "goal": goal, "collision": collision}
+            potential = potential.to(goal.dtype)
+        return {"ipf": potential, "goal": goal, "collision": collision}
 
 
 # ---------------------------------------------------------------------- the picture

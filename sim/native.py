@@ -40,8 +40,8 @@ _SIGNATURES = {
     "agv_post_step": (None, [_I, _I, _I, _I, _I, _F, _F, _F, _I] + [_P] * 18),
     "agv_clip_actions": (ctypes.c_int64, [_I, _P, _P]),
     "agv_spawn_pick": (None, [_I, _I, _I, _I] + [_P] * 6),
-    "agv_ipf": (ctypes.c_int, [_I, _I, _I, _P, _P, _P, _P, _P, _I, _P, _I, _I]
-                + [_D] * 6 + [_P] * 5),
+    "agv_ipf": (ctypes.c_int, [_I, _I, _I, _P, _P, _P, _I, _P, _P, _I, _P, _I, _I]
+                + [_D] * 6 + [_P] * 6),
 }
 
 

@@ -263,31 +263,34 @@ void agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, floa
  *
  * An AGV whose cell holds another source reads that source's value (an AGV's if any); an AGV
  * on a fixed cell reads 0. g is the padded Green's function (F + 1) x (F + 1); free_index maps
- * a flat cell to its free index or -1. Optional (NULL to leave out): agent_task (B, N), where
+ * a flat cell to its free index or -1. task_mask (B, M) marks the open tasks, or the claimed
+ * ones if mask_is_claimed (NULL: all open). The values go to out (float64) and/or out32
+ * (float32), either may be NULL. Optional (NULL to leave out): agent_task (B, N), where
  * an AGV holding a task reads task_value (the reward's parked rule); active (B,), where an
  * inactive environment is skipped and reads 0. Returns 0; 1 if a factor was not positive
  * definite; -1 if scratch memory could not be allocated. */
 int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float *task_pos,
-            const uint8_t *task_open, const double *g, const double *gdiag, int64_t F,
-            const int64_t *free_index, int64_t H, int64_t W, double xmin, double ymin,
-            double dx, double dy, double agent_value, double task_value, const int64_t *agent_task,
-            const uint8_t *active, int64_t *tcache, double *dcache, double *out) {
-    const int64_t T = N + M, F1 = F + 1;
+            const uint8_t *task_mask, int64_t mask_is_claimed, const double *g,
+            const double *gdiag, int64_t F, const int64_t *free_index, int64_t H, int64_t W,
+            double xmin, double ymin, double dx, double dy, double agent_value,
+            double task_value, const int64_t *agent_task, const uint8_t *active,
+            int64_t *tcache, double *dcache, double *out, float *out32) {
+    const int64_t T = N + M, F1 = F + 1, AHEAD = 4;
     /* Entries of G one environment needs: the task block (only when its factor is stale),
      * G[A, T] and the lower triangle of G[A, A] (its diagonal from gdiag, G's diagonal, which
      * stays in cache). */
     const int64_t GT = M * (M + 1) / 2, GA = N * M + N * (N + 1) / 2;
     /* Scratch from a per-thread arena kept between calls: fresh B-sized buffers on every
      * step would be fresh pages, and the kernel zeroing them cost as much as the work. */
-    const size_t n64 = (size_t)(3 * B * T + B * N + 3 * B + 1), nd = (size_t)(B * (GT + GA) + 1);
+    const size_t n64 = (size_t)(3 * B * T + B * N + 4 * B + 1), nd = (size_t)(B * (GT + GA) + 1);
     const size_t small = (size_t)(N * M + N * N + 4 * N + T + M * M + 7);
     unsigned char *arena = arena_reserve(8 * (n64 + nd + small));
     if (arena == NULL) return -1;
     int64_t *cell = (int64_t *)arena;
     int64_t *src = cell + B * T;  /* kept tasks, then AGVs */
     int64_t *aslot = src + B * T;
-    int64_t *cnt = aslot + B * N;  /* mt, na, stale */
-    uint8_t *cand = (uint8_t *)(cnt + 3 * B);  /* B T bytes in the last B T + 1 slots */
+    int64_t *cnt = aslot + B * N;  /* mt, na, stale, shared */
+    uint8_t *cand = (uint8_t *)(cnt + 4 * B);  /* B T bytes in the last B T + 1 slots */
     double *stage = (double *)(cell + n64);
     double *x = stage + nd, *sc = x + N * M, *r = sc + N * N, *z = r + N + 1, *y = z + N + 1;
     double *inv = y + N + 1, *l = inv + T + 1;
@@ -304,9 +307,10 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
             const int64_t row = fy < 0.0 ? 0 : (fy >= (double)(H - 1) ? H - 1 : (int64_t)fy);
             ce[s] = row * W + col;
             ca[s] = free_index[ce[s]] >= 0
-                    && (s < N || task_open == NULL || task_open[b * M + s - N]);
+                    && (s < N || task_mask == NULL
+                        || (task_mask[b * M + s - N] != 0) != (mask_is_claimed != 0));
         }
-        int64_t mt = 0, na = 0;
+        int64_t mt = 0, na = 0, shared = 0;
         for (int pass = 0; pass < 2; pass++) {  /* tasks first in src, AGVs after */
             const int64_t lo = pass == 0 ? N : 0, hi = pass == 0 ? T : N;
             for (int64_t s = lo; s < hi; s++) {
@@ -314,6 +318,7 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
                 if (!ca[s]) continue;
                 int shadowed = 0;
                 for (int64_t e = 0; e < s && !shadowed; e++) shadowed = ca[e] && ce[e] == ce[s];
+                shared |= shadowed;
                 if (shadowed) continue;
                 if (s < N) {
                     as[s] = na;
@@ -327,19 +332,34 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
         int fresh = tc[0] == mt;
         for (int64_t p = 0; p < mt && fresh; p++) fresh = tc[1 + p] == sr[p];
         const int skip = active != NULL && !active[b];
-        cnt[3 * b] = mt;
-        cnt[3 * b + 1] = skip ? 0 : na;
-        cnt[3 * b + 2] = !fresh && !skip;
+        cnt[4 * b] = mt;
+        cnt[4 * b + 1] = skip ? 0 : na;
+        cnt[4 * b + 2] = !fresh && !skip;
+        cnt[4 * b + 3] = shared;  /* some candidates share a cell */
     }
-    /* Pass 2: gather every entry of G needed, in one loop of independent loads (far more
-     * loads in flight than when they are interleaved with the factorizations). */
-    for (int64_t b = 0; b < B; b++) {
-        const int64_t *sr = src + b * T, mt = cnt[3 * b], na = cnt[3 * b + 1];
-        double *st = stage + b * (GT + GA);
-        if (cnt[3 * b + 2])
+    /* Pass 2: gather every entry of G needed into `stage`, one loop of independent loads,
+     * with each environment's entries prefetched (to L2) AHEAD environments earlier: the
+     * entries miss the caches (G is several MiB); this keeps more misses in flight than
+     * loads interleaved with the factorizations could. */
+    for (int64_t b = 0; b < B + AHEAD; b++) {
+        if (b < B) {
+            const int64_t *sp = src + b * T, mt = cnt[4 * b], na = cnt[4 * b + 1];
+            if (cnt[4 * b + 2])
+                for (int64_t p = 0; p < mt; p++)
+                    for (int64_t q = 0; q <= p; q++) __builtin_prefetch(g + sp[p] * F1 + sp[q], 0, 2);
+            for (int64_t a = 0; a < na; a++) {
+                const double *grow = g + sp[mt + a] * F1;
+                for (int64_t q = 0; q < mt + a; q++) __builtin_prefetch(grow + sp[q], 0, 2);
+            }
+        }
+        const int64_t e = b - AHEAD;
+        if (e < 0) continue;
+        const int64_t *sr = src + e * T, mt = cnt[4 * e], na = cnt[4 * e + 1];
+        double *st = stage + e * (GT + GA);
+        if (cnt[4 * e + 2])
             for (int64_t p = 0; p < mt; p++)
                 for (int64_t q = 0; q <= p; q++) *st++ = g[sr[p] * F1 + sr[q]];
-        st = stage + b * (GT + GA) + GT;
+        st = stage + e * (GT + GA) + GT;
         for (int64_t a = 0; a < na; a++) {
             const double *grow = g + sr[mt + a] * F1;
             for (int64_t q = 0; q < mt + a; q++) *st++ = grow[sr[q]];
@@ -350,10 +370,10 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
     for (int64_t b = 0; b < B; b++) {
         const int64_t *ce = cell + b * T, *sr = src + b * T, *as = aslot + b * N;
         const uint8_t *ca = cand + b * T;
-        const int64_t mt = cnt[3 * b], na = cnt[3 * b + 1];
+        const int64_t mt = cnt[4 * b], na = cnt[4 * b + 1];
         int64_t *tc = tcache + b * (M + 1);
         double *linv = dcache + b * (M * M + M), *u = linv + M * M;
-        if (cnt[3 * b + 2]) {  /* the tasks' factor L (row by row), L^-1, u = L^-1 v_T */
+        if (cnt[4 * b + 2]) {  /* the tasks' factor L (row by row), L^-1, u = L^-1 v_T */
             const double *st = stage + b * (GT + GA);
             for (int64_t p = 0; p < mt; p++) {
                 double *lp = l + p * M;
@@ -425,9 +445,15 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
             z[a] = zs * inv[a];
         }
         for (int64_t i = 0; i < N; i++) {
+            if (agent_task != NULL && agent_task[b * N + i] >= 0) {  /* parked: its task's */
+                const double held = active == NULL || active[b] ? task_value : 0.0;
+                if (out != NULL) out[b * N + i] = held;
+                if (out32 != NULL) out32[b * N + i] = (float)held;
+                continue;
+            }
             double phi = 0.0;
             int on_agent = 0, on_task = 0;
-            if (ca[i]) {
+            if (ca[i] && cnt[4 * b + 3]) {
                 for (int64_t s = 0; s < T; s++) {
                     if (s == i || !ca[s] || ce[s] != ce[i]) continue;
                     if (s < N) on_agent = 1; else on_task = 1;
@@ -450,9 +476,9 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
                 }
                 phi = agent_value - pv / pii;
             }
-            if (agent_task != NULL && agent_task[b * N + i] >= 0) phi = task_value;
             if (active != NULL && !active[b]) phi = 0.0;
-            out[b * N + i] = phi;
+            if (out != NULL) out[b * N + i] = phi;
+            if (out32 != NULL) out32[b * N + i] = (float)phi;
         }
     }
     return status;
