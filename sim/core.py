@@ -413,14 +413,17 @@ class AGVEnv:
         pairs = torch.empty(B, dtype=f32)
         team = torch.empty(B, dtype=f32)
         obs = torch.empty(B, N, self.obs_dim, dtype=f32)
-        state = (self.agent_pos, self.agent_vel, self.task_pos, self.task_claimed,
-                 self.agent_task, self.steps, self.done)
+        # The state tensors are contiguous (the env creates them); the list keeps any copy
+        # alive until the call returns.
+        state = [t.contiguous() for t in (self.agent_pos, self.agent_vel, self.task_pos,
+                                          self.task_claimed, self.agent_task, self.steps,
+                                          self.done)]
         outputs = (vel, agent_task, claimed, claimed_now, steps, done, dist, per_agent, pairs,
                    team, obs)
         self._native.agv_post_step(
             B, N, M, self.k_tasks, self.k_agents, self.scenario.sensing_range,
             self.world.capture_radius, 2.0 * self.world.agent_radius, self.max_steps,
-            *[t.contiguous().data_ptr() for t in state], *[t.data_ptr() for t in outputs],
+            *[t.data_ptr() for t in state], *[t.data_ptr() for t in outputs],
         )
         self.agent_vel, self.agent_task, self.task_claimed = vel, agent_task, claimed
         self.steps, self.done = steps, done
@@ -495,10 +498,10 @@ class AGVEnv:
         rng = self.scenario.sensing_range
         if self._native is not None:
             obs = torch.empty(B, N, self.obs_dim, dtype=self.dtype)
-            state = (self.agent_pos, self.agent_vel, self.task_pos, self.task_claimed,
-                     self.agent_task)
+            state = [t.contiguous() for t in (self.agent_pos, self.agent_vel, self.task_pos,
+                                              self.task_claimed, self.agent_task)]
             self._native.agv_observe(B, N, self.num_tasks, self.k_tasks, self.k_agents, rng,
-                                     *[t.contiguous().data_ptr() for t in state], obs.data_ptr())
+                                     *[t.data_ptr() for t in state], obs.data_ptr())
             return obs
         parts = [self.agent_vel, self.agent_pos]
         if self.k_tasks:

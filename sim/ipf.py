@@ -365,6 +365,7 @@ class IPFGrid:
             ``Phi_i(cell of AGV i)``. Where AGV i's cell holds one of its sources the value is
             that source's (AGV wins over task); on a fixed cell it is 0.
         """
+        _check_batch_shapes(agent_pos, task_pos, task_open)
         if native or native is None:
             phi = self._potentials_native(agent_pos, task_pos, task_open, task_value,
                                           agent_value, cache)
@@ -420,24 +421,34 @@ class IPFGrid:
         B, N = agent_pos.shape[:2]
         M = task_pos.shape[1]
         mask, is_claimed = (task_claimed, 1) if task_claimed is not None else (task_open, 0)
-
-        def ptr(t: Tensor | None, kind: torch.dtype) -> int | None:
-            return None if t is None else t.to(device="cpu", dtype=kind).contiguous().data_ptr()
-
+        _check_batch_shapes(agent_pos, task_pos, mask)
+        for name, t, shape in (("agent_task", agent_task, (B, N)), ("active", active, (B,))):
+            if t is not None and tuple(t.shape) != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+        # Converted inputs are kept in `keep` so that they outlive the call (a pointer to a
+        # temporary would dangle).
+        keep = {
+            "agents": agent_pos.contiguous(), "tasks": task_pos.contiguous(),
+            "mask": None if mask is None else mask.to(device="cpu", dtype=torch.bool).contiguous(),
+            "held": None if agent_task is None
+            else agent_task.to(device="cpu", dtype=torch.int64).contiguous(),
+            "active": None if active is None
+            else active.to(device="cpu", dtype=torch.bool).contiguous(),
+        }
+        ptr = {k: None if t is None else t.data_ptr() for k, t in keep.items()}
         out = torch.empty(B, N, dtype=dtype)
         tcache, dcache = (cache or TaskBlockCache()).native_buffers(self, B, M, task_value)
         H, W = self.shape
         xmin, ymin, _, _ = self.world.bounds
         wide = out.dtype == torch.float64
         status = lib.agv_ipf(
-            B, N, M, agent_pos.contiguous().data_ptr(), task_pos.contiguous().data_ptr(),
-            ptr(mask, torch.bool), is_claimed, green.data_ptr(), self._green_diag.data_ptr(),
-            self.num_free, self._free_index_t.data_ptr(), H, W, float(xmin), float(ymin),
-            float(self.dx), float(self.dy), float(agent_value), float(task_value),
-            ptr(agent_task, torch.int64), ptr(active, torch.bool), tcache.data_ptr(),
-            dcache.data_ptr(), out.data_ptr() if wide else None,
-            None if wide else out.data_ptr(),
+            B, N, M, ptr["agents"], ptr["tasks"], ptr["mask"], is_claimed, green.data_ptr(),
+            self._green_diag.data_ptr(), self.num_free, self._free_index_t.data_ptr(), H, W,
+            float(xmin), float(ymin), float(self.dx), float(self.dy), float(agent_value),
+            float(task_value), ptr["held"], ptr["active"], tcache.data_ptr(), dcache.data_ptr(),
+            out.data_ptr() if wide else None, None if wide else out.data_ptr(),
         )
+        del keep
         if status < 0:
             raise MemoryError(f"IPF kernel: no memory for the scratch of {B} environments")
         if status:
@@ -527,6 +538,18 @@ class IPFGrid:
     @functools.lru_cache(maxsize=16)
     def _eye(n: int, device: torch.device, dtype: torch.dtype = torch.float64) -> Tensor:
         return torch.eye(n, dtype=dtype, device=device)
+
+
+def _check_batch_shapes(agent_pos: Tensor, task_pos: Tensor, task_mask: Tensor | None) -> None:
+    """Refuse positions that are not (B, N, 2) and (B, M, 2), or a task mask not (B, M)."""
+    if agent_pos.dim() != 3 or agent_pos.shape[-1] != 2:
+        raise ValueError(f"agent_pos must have shape (B, N, 2), got {tuple(agent_pos.shape)}")
+    B = agent_pos.shape[0]
+    if task_pos.dim() != 3 or task_pos.shape[-1] != 2 or task_pos.shape[0] != B:
+        raise ValueError(f"task_pos must have shape ({B}, M, 2), got {tuple(task_pos.shape)}")
+    if task_mask is not None and tuple(task_mask.shape) != tuple(task_pos.shape[:2]):
+        raise ValueError(f"the task mask must have shape {tuple(task_pos.shape[:2])}, "
+                         f"got {tuple(task_mask.shape)}")
 
 
 class TaskBlockCache:

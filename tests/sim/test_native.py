@@ -158,6 +158,26 @@ def test_ipf_kernel_cache_follows_resets_and_claims() -> None:
     assert env.task_claimed.any()
 
 
+def test_ipf_kernel_refuses_bad_shapes_and_converts_masks() -> None:
+    grid = ipf_grid()
+    agents, tasks = torch.zeros(2, 3, 2), torch.full((2, 2, 2), 0.5)
+    with pytest.raises(ValueError, match=r"task mask must have shape \(2, 2\)"):
+        grid.agent_potentials(agents, tasks, torch.ones(2, 3, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"agent_pos must have shape \(B, N, 2\)"):
+        grid.agent_potentials(torch.zeros(2, 3), tasks)
+    with pytest.raises(ValueError, match=r"task_pos must have shape \(2, M, 2\)"):
+        grid.agent_potentials(agents, torch.zeros(3, 2, 2))
+    with pytest.raises(ValueError, match=r"active must have shape \(2,\)"):
+        grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE,
+                                active=torch.ones(3, dtype=torch.bool))
+    # A float mask (converted inside) gives the same values as the bool mask.
+    agents = torch.tensor([[[-0.5, 0.0], [0.5, 0.1], [0.0, -0.5]]] * 2)
+    mask = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+    as_float = grid.agent_potentials(agents, tasks + torch.tensor([0.0, 0.2]), mask)
+    as_bool = grid.agent_potentials(agents, tasks + torch.tensor([0.0, 0.2]), mask.bool())
+    assert torch.equal(as_float, as_bool)
+
+
 def test_ipf_kernel_parked_and_inactive_rules() -> None:
     grid = ipf_grid()
     agents = torch.tensor([[[-0.5, 0.0], [0.5, 0.1]]] * 2)
