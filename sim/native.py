@@ -66,7 +66,14 @@ def _build() -> ctypes.CDLL:
         source + " ".join([cc, *FLAGS, platform.machine(), platform.system()]).encode()
     ).hexdigest()[:16]
     target = _cache_dir() / f"agv_kernels_{key}.so"
-    if not target.exists():
+    if target.exists():
+        try:
+            lib = ctypes.CDLL(str(target))
+        except OSError:  # a damaged cache entry: build it again
+            lib = None
+    else:
+        lib = None
+    if lib is None:
         target.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
         os.close(fd)
@@ -80,7 +87,7 @@ def _build() -> ctypes.CDLL:
         finally:
             if os.path.exists(tmp):
                 os.unlink(tmp)
-    lib = ctypes.CDLL(str(target))
+        lib = ctypes.CDLL(str(target))
     for name, (restype, argtypes) in _SIGNATURES.items():
         fn = getattr(lib, name)
         fn.restype = restype

@@ -227,3 +227,14 @@ def test_failed_build_warns_and_falls_back(tmp_path) -> None:
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0] == "False"
     assert "kernels unavailable" in out.stderr
+
+
+def test_damaged_cache_entry_is_rebuilt(tmp_path) -> None:
+    code = "import sim; print(sim.make_env('3v3').native)"
+    first = _run(code, AGV_CACHE_DIR=str(tmp_path))
+    assert first.stdout.strip() == "True", first.stderr
+    (built,) = tmp_path.glob("agv_kernels_*.so")
+    built.write_bytes(b"not a shared library")
+    second = _run(code, AGV_CACHE_DIR=str(tmp_path))
+    assert second.stdout.strip() == "True", second.stderr
+    assert built.read_bytes()[:4] == b"\x7fELF" or sys.platform != "linux"
