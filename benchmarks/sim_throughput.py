@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import platform
-import time
 from pathlib import Path
 
 import numpy as np
@@ -21,20 +20,9 @@ import torch
 
 from sim import native
 from sim.io import atomic_write_text
-from sim.throughput import measure, physics_only_steps_per_second
+from sim.throughput import best_rate, measure, physics_only_steps_per_second
 
 RESULTS = Path(__file__).parent / "results"
-
-
-def _best_rate(step, steps: int, repeats: int, per_call: int) -> float:
-    step()
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            step()
-        best = min(best, time.perf_counter() - t0)
-    return per_call * steps / best
 
 
 def mpe2_steps_per_second(n: int, steps: int, repeats: int) -> float:
@@ -53,7 +41,7 @@ def mpe2_steps_per_second(n: int, steps: int, repeats: int) -> float:
             env.reset()
         env.step(acts[k[0] % 8])
 
-    return _best_rate(step, steps, repeats, 1)
+    return best_rate(step, steps, repeats, 1)
 
 
 def vmas_steps_per_second(n: int, b: int, steps: int, repeats: int) -> float:
@@ -75,7 +63,7 @@ def vmas_steps_per_second(n: int, b: int, steps: int, repeats: int) -> float:
             for i in torch.nonzero(done).flatten().tolist():
                 env.reset_at(i)
 
-    return _best_rate(step, steps, repeats, b)
+    return best_rate(step, steps, repeats, b)
 
 
 def main() -> None:

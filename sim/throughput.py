@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -11,7 +12,21 @@ import torch
 from sim.core import AGVEnv
 from sim.rewards import RewardFn
 
-__all__ = ["Throughput", "measure", "steps_per_second", "physics_only_steps_per_second"]
+__all__ = ["Throughput", "best_rate", "measure", "steps_per_second",
+           "physics_only_steps_per_second"]
+
+
+def best_rate(step: Callable[[], object], steps: int, repeats: int, per_call: int) -> float:
+    """Calls per second of ``step`` times ``per_call`` (e.g. B environment steps per batched
+    step): one warm-up call, then the best of ``repeats`` timed runs of ``steps`` calls."""
+    step()
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            step()
+        best = min(best, time.perf_counter() - t0)
+    return per_call * steps / best
 
 
 @dataclass(frozen=True)
@@ -91,12 +106,4 @@ def physics_only_steps_per_second(scenario: str, num_envs: int, steps: int = 100
     gen = torch.Generator().manual_seed(seed)
     actions = torch.rand((num_envs, env.num_agents, 2), generator=gen) * 2 - 1
     movable = torch.ones(num_envs, env.num_agents, dtype=torch.bool)
-    step = lambda: env.physics_step(actions, movable)  # noqa: E731
-    step()  # warm-up
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            step()
-        best = min(best, time.perf_counter() - t0)
-    return num_envs * steps / best
+    return best_rate(lambda: env.physics_step(actions, movable), steps, repeats, num_envs)
