@@ -125,14 +125,11 @@ class AGVEnv:
         self._eye = torch.eye(N, dtype=torch.bool, device=self.device)
         self._triu = torch.triu(torch.ones(N, N, dtype=torch.bool, device=self.device), 1)
         self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
-        self._native = None
-        if native or native is None:
-            lib = native_kernels.library() if self.device.type == "cpu" else None
-            if native and lib is None:
-                reason = ("the kernels run on CPU tensors only" if self.device.type != "cpu"
-                          else native_kernels.disabled_reason())
-                raise ValueError(f"native=True but the fused kernels are unavailable: {reason}")
-            self._native = lib
+        self._native = native_kernels.library_for(self.device, native)
+        if native and self._native is None:
+            reason = ("the kernels run on CPU tensors only" if self.device.type != "cpu"
+                      else native_kernels.disabled_reason())
+            raise ValueError(f"native=True but the fused kernels are unavailable: {reason}")
         self.reset()
 
     # ------------------------------------------------------------------ state

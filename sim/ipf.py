@@ -355,9 +355,9 @@ class IPFGrid:
         cache : TaskBlockCache, optional
             Reused task factors (see :class:`TaskBlockCache`); updated in place.
         native : bool, optional
-            Use the fused CPU kernel of :mod:`sim.native` (one Cholesky factor of ``K`` per
-            environment, the general path's formula, in C) for float32 CPU tensors. Default:
-            when available; ``False`` forces the torch paths below.
+            Use the fused CPU kernel of :mod:`sim.native` (the block formula below, one
+            environment at a time in C, colliding sources handled in the same pass) for float32
+            CPU tensors. Default: when available; ``False`` forces the torch paths below.
 
         Returns
         -------
@@ -365,8 +365,7 @@ class IPFGrid:
             ``Phi_i(cell of AGV i)``. Where AGV i's cell holds one of its sources the value is
             that source's (AGV wins over task); on a fixed cell it is 0.
         """
-        _check_batch_shapes(agent_pos, task_pos, task_open)
-        if native or native is None:
+        if native or native is None:  # checks the shapes itself before it runs
             phi = self._potentials_native(agent_pos, task_pos, task_open, task_value,
                                           agent_value, cache)
             if phi is not None:
@@ -374,6 +373,7 @@ class IPFGrid:
             if native:
                 raise ValueError("native=True needs float32 CPU tensors and the fused kernels "
                                  "(see sim.native.disabled_reason())")
+        _check_batch_shapes(agent_pos, task_pos, task_open)
         N = agent_pos.shape[1]
         T = N + task_pos.shape[1]
         device = agent_pos.device
@@ -409,9 +409,9 @@ class IPFGrid:
         from sim import native
 
         if agent_pos.dtype != torch.float32 or task_pos.dtype != torch.float32 \
-                or agent_pos.device.type != "cpu" or task_pos.device.type != "cpu":
+                or task_pos.device.type != "cpu":
             return None
-        lib = native.library()
+        lib = native.library_for(agent_pos.device)
         if lib is None:
             return None
         green, _ = self._tables(agent_pos.device)

@@ -24,8 +24,12 @@ import subprocess
 import tempfile
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-__all__ = ["available", "library", "disabled_reason"]
+if TYPE_CHECKING:  # pragma: no cover
+    import torch
+
+__all__ = ["available", "library", "library_for", "disabled_reason"]
 
 SOURCE = Path(__file__).parent / "_native" / "kernels.c"
 FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
@@ -116,6 +120,14 @@ def library() -> ctypes.CDLL | None:
                     stacklevel=2,
                 )
     return _lib
+
+
+def library_for(device: torch.device, wanted: bool | None = None) -> ctypes.CDLL | None:
+    """The kernels for tensors on ``device``: None off the CPU, when ``wanted`` is False, or
+    where they are unavailable (``wanted=None`` means: when available)."""
+    if wanted is False or device.type != "cpu":
+        return None
+    return library()
 
 
 def available() -> bool:

@@ -138,8 +138,7 @@ class Scenario:
         obstacles = torch.tensor(np.array(w.obstacles), dtype=torch.float32, device=device)
         r, cap = w.agent_radius, w.capture_radius
         n, m = self.num_agents, self.num_tasks
-        lib = (native_kernels.library() if (native or native is None) and device.type == "cpu"
-               else None)
+        lib = native_kernels.library_for(device, native)
         # Entities are placed one at a time (agents, then tasks), each for all B scenes at once.
         # gap[k, j]: minimum distance between entity k and an earlier entity j.
         kinds = torch.tensor([True] * n + [False] * m, device=device)
@@ -154,19 +153,15 @@ class Scenario:
             gap_k = gap[k, :k].contiguous()
             for _ in range(_ROUNDS):
                 cand = sampler(len(todo), _CANDIDATES, gen, device).float()  # (b, C, 2)
-                ok = _clear_of_obstacles(cand, obstacles, r) if len(obstacles) else None
+                ok = _clear_of_obstacles(cand, obstacles, r)  # (b, C)
                 if lib is not None:  # the same rule, one pass in C
-                    cand = cand.contiguous()
-                    ok = None if ok is None else ok.contiguous()
+                    cand, ok = cand.contiguous(), ok.contiguous()
                     found = torch.empty(len(todo), dtype=torch.bool)
                     lib.agv_spawn_pick(
-                        len(todo), _CANDIDATES, n + m, k, cand.data_ptr(),
-                        None if ok is None else ok.data_ptr(), todo.data_ptr(),
-                        gap_k.data_ptr(), placed.data_ptr(), found.data_ptr(),
+                        len(todo), _CANDIDATES, n + m, k, cand.data_ptr(), ok.data_ptr(),
+                        todo.data_ptr(), gap_k.data_ptr(), placed.data_ptr(), found.data_ptr(),
                     )
                 else:
-                    if ok is None:
-                        ok = torch.ones(cand.shape[:2], dtype=torch.bool, device=device)
                     if k:
                         prev = placed[todo, :k]  # (b, k, 2)
                         d2 = ((cand.unsqueeze(2) - prev.unsqueeze(1)) ** 2).sum(-1)  # (b, C, k)
