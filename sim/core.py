@@ -52,6 +52,8 @@ class StepContext:
     collisions_per_agent: Tensor  # (B, N) float, overlapping discs per AGV (0 where inactive)
     collision_pairs: Tensor  # (B,) float, overlapping pairs after the step (0 where inactive)
     team_reward: Tensor  # (B,) float, the paper's R_t (0 where inactive)
+    team_distance: Tensor  # (B, N) float, R_t + collision_pairs for every AGV (0 where inactive)
+    team_collision: Tensor  # (B, N) float, -collision_pairs for every AGV
 
 
 class AGVEnv:
@@ -109,6 +111,8 @@ class AGVEnv:
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(0 if seed is None else int(seed))
         self.reward_fn = make_reward(reward)
+        # Rewards that promise zero terms in finished environments skip the step's mask.
+        self._reward_zeroes_inactive = bool(getattr(self.reward_fn, "zeroes_inactive", False))
         self.k_tasks = scenario.k_tasks
         self.k_agents = scenario.k_agents
         self.obs_dim = 5 + 3 * self.k_tasks + 5 * self.k_agents
@@ -126,6 +130,10 @@ class AGVEnv:
         self._triu = torch.triu(torch.ones(N, N, dtype=torch.bool, device=self.device), 1)
         self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
         self._native = native_kernels.library_for(self.device, native)
+        self._spare: tuple[Tensor, Tensor, Tensor] | None = None
+        self._post_args = (B, N, M, self.k_tasks, self.k_agents, scenario.sensing_range,
+                           self.world.capture_radius, 2.0 * self.world.agent_radius,
+                           self.max_steps)
         if native and self._native is None:
             reason = ("the kernels run on CPU tensors only" if self.device.type != "cpu"
                       else native_kernels.disabled_reason())
@@ -306,22 +314,29 @@ class AGVEnv:
         return clamped, vel
 
     # ------------------------------------------------------------------ step
-    def _check_actions(self, actions: Any) -> Tensor:
+    def _prepare(self, actions: Any) -> tuple[Tensor, Tensor, Tensor]:
+        """Checked actions clipped to [-1, 1] (B, N, 2), the AGVs that move (B, N) bool and the
+        running environments (B,) bool."""
         a = torch.as_tensor(actions, device=self.device, dtype=self.dtype)
-        expected = (self.num_envs, self.num_agents, 2)
-        if tuple(a.shape) != expected:
+        B, N = self.num_envs, self.num_agents
+        if tuple(a.shape) != (B, N, 2):
             raise ValueError(
-                f"actions must have shape (B, N, 2) = {expected}, got {tuple(a.shape)}"
+                f"actions must have shape (B, N, 2) = {(B, N, 2)}, got {tuple(a.shape)}"
             )
         if self._native is not None:
             a = a.contiguous()
-            out = torch.empty_like(a)
-            if self._native.agv_clip_actions(a.numel(), a.data_ptr(), out.data_ptr()):
+            movable = torch.empty(B, N, dtype=torch.bool)
+            active = torch.empty(B, dtype=torch.bool)
+            code = self._native.agv_prepare(B, N, a.data_ptr(), self.agent_task.data_ptr(),
+                                            self.done.data_ptr(), movable.data_ptr(),
+                                            active.data_ptr())
+            if code > 0:
                 raise ValueError("actions contain NaN or infinite values; expected finite values")
-            return out
+            return (a.clamp(-1.0, 1.0) if code else a), movable, active
         if not torch.isfinite(a).all():
             raise ValueError("actions contain NaN or infinite values; expected finite values")
-        return a.clamp(-1.0, 1.0)
+        active = ~self.done
+        return a.clamp(-1.0, 1.0), (self.agent_task < 0) & active.unsqueeze(1), active
 
     def step(self, actions: Tensor | np.ndarray) -> tuple[Tensor, Tensor, Tensor, dict]:
         """Advance every running environment by one step.
@@ -343,11 +358,9 @@ class AGVEnv:
             ``claimed_now`` (B, M) bool, ``agent_task`` (B, N), ``collision_pairs`` (B,),
             ``collisions_per_agent`` (B, N), ``active`` (B,) bool.
         """
-        actions = self._check_actions(actions)
-        active = ~self.done
+        actions, movable, active = self._prepare(actions)
         # The step rebinds every state tensor (never writes in place), so these stay as they were.
         prev_pos, prev_claimed, prev_task = self.agent_pos, self.task_claimed, self.agent_task
-        movable = (self.agent_task < 0) & active.unsqueeze(1)  # (B, N)
 
         self.physics_step(actions, movable)
 
@@ -355,17 +368,24 @@ class AGVEnv:
         # counter and done, collisions (discs overlapping), the paper's team reward R_t and
         # the observations: fused kernels or the torch reference.
         if self._native is not None:
-            claimed_now, dist, per_agent, pairs, team, obs = self._post_step_native()
+            claimed_now, dist, per_agent, pairs, team, team_terms, obs = self._post_step_native()
         else:
-            claimed_now, dist, per_agent, pairs, team = self._post_step_torch(active)
+            claimed_now, dist, per_agent, pairs, team, team_terms = self._post_step_torch(active)
             obs = None
-        ctx = StepContext(prev_pos, prev_claimed, prev_task, active, dist, per_agent, pairs, team)
+        ctx = StepContext(prev_pos, prev_claimed, prev_task, active, dist, per_agent, pairs, team,
+                          *team_terms)
         terms = self.reward_fn(self, ctx)
         values = list(terms.values())
-        reward = values[0] if values else torch.zeros_like(per_agent)
-        for value in values[1:]:
-            reward = reward + value
-        reward = reward * active.unsqueeze(1)
+        if not values:
+            reward = torch.zeros_like(per_agent)
+        elif len(values) == 1:
+            reward = values[0] * active.unsqueeze(1)
+        else:
+            reward = values[0] + values[1]
+            for value in values[2:]:
+                reward = reward + value
+            if not self._reward_zeroes_inactive:
+                reward = reward * active.unsqueeze(1)
         info = {
             "reward_terms": terms,
             "team_reward": team,
@@ -377,7 +397,9 @@ class AGVEnv:
         }
         return self.observe() if obs is None else obs, reward, self.done.clone(), info
 
-    def _post_step_torch(self, active: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def _post_step_torch(
+        self, active: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
         """Claims, step counter, done, collisions and team reward in torch (the reference)."""
         _, dist = self._task_offsets()  # (B, N, M)
         claimed_now = self._claim(dist, active)
@@ -390,41 +412,57 @@ class AGVEnv:
         pairs = (overlap & self._triu).sum(dim=(1, 2)).to(self.dtype)
         nearest = dist.min(dim=1).values.sum(dim=1) if self.num_tasks else pairs * 0
         team = torch.where(active, -nearest - pairs, torch.zeros_like(pairs))
-        return claimed_now, dist, per_agent, pairs, team
+        shape = (-1, self.num_agents)
+        team_terms = ((team + pairs).unsqueeze(1).expand(shape),
+                      (-pairs).unsqueeze(1).expand(shape))
+        return claimed_now, dist, per_agent, pairs, team, team_terms
 
-    def _post_step_native(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def _post_step_native(
+        self,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple[Tensor, Tensor], Tensor]:
         """What :meth:`_post_step_torch` and :meth:`observe` do, in one fused kernel call.
 
-        Every output is a fresh tensor, so tensors handed out earlier never change.
+        Tensors handed out earlier never change: the velocities the kernel stops in place are
+        the physics step's fresh output, and the new ``agent_task``, ``task_claimed`` and
+        ``done`` are written to spare tensors that replace the state only when they differ
+        from it (the spares are then renewed).
         """
         B, N, M = self.num_envs, self.num_agents, self.num_tasks
         f32 = torch.float32
-        vel = torch.empty_like(self.agent_vel)
-        agent_task = torch.empty_like(self.agent_task)
-        claimed = torch.empty_like(self.task_claimed)
-        claimed_now = torch.empty_like(self.task_claimed)
+        if self._spare is None:
+            self._spare = (torch.empty_like(self.agent_task), torch.empty_like(self.task_claimed),
+                           torch.empty_like(self.done))
+        agent_task, claimed, done = self._spare
+        claimed_now = torch.empty(B, M, dtype=torch.bool)
         steps = torch.empty_like(self.steps)
-        done = torch.empty_like(self.done)
         dist = torch.empty(B, N, M, dtype=f32)
         per_agent = torch.empty(B, N, dtype=f32)
         pairs = torch.empty(B, dtype=f32)
         team = torch.empty(B, dtype=f32)
+        team_distance = torch.empty(B, N, dtype=f32)
+        team_collision = torch.empty(B, N, dtype=f32)
         obs = torch.empty(B, N, self.obs_dim, dtype=f32)
         # The state tensors are contiguous (the env creates them); the list keeps any copy
         # alive until the call returns.
+        self.agent_vel = self.agent_vel.contiguous()
         state = [t.contiguous() for t in (self.agent_pos, self.agent_vel, self.task_pos,
                                           self.task_claimed, self.agent_task, self.steps,
                                           self.done)]
-        outputs = (vel, agent_task, claimed, claimed_now, steps, done, dist, per_agent, pairs,
-                   team, obs)
-        self._native.agv_post_step(
-            B, N, M, self.k_tasks, self.k_agents, self.scenario.sensing_range,
-            self.world.capture_radius, 2.0 * self.world.agent_radius, self.max_steps,
-            *[t.data_ptr() for t in state], *[t.data_ptr() for t in outputs],
+        outputs = (agent_task, claimed, claimed_now, steps, done, dist, per_agent, pairs, team,
+                   team_distance, team_collision, obs)
+        changed = self._native.agv_post_step(
+            *self._post_args, *[t.data_ptr() for t in state], *[t.data_ptr() for t in outputs]
         )
-        self.agent_vel, self.agent_task, self.task_claimed = vel, agent_task, claimed
-        self.steps, self.done = steps, done
-        return claimed_now, dist, per_agent, pairs, team, obs
+        if changed < 0:
+            raise MemoryError("the fused step kernel could not allocate its scratch space")
+        if changed & 1:
+            self.agent_task, self.task_claimed = agent_task, claimed
+            self._spare = (torch.empty_like(agent_task), torch.empty_like(claimed), done)
+        if changed & 2:
+            self.done = done
+            self._spare = (*self._spare[:2], torch.empty_like(done))
+        self.steps = steps
+        return claimed_now, dist, per_agent, pairs, team, (team_distance, team_collision), obs
 
     def physics_step(self, actions: Tensor, movable: Tensor) -> None:
         """Move the AGVs by one MPE physics step: action and contact forces, integration,
@@ -497,8 +535,9 @@ class AGVEnv:
             obs = torch.empty(B, N, self.obs_dim, dtype=self.dtype)
             state = [t.contiguous() for t in (self.agent_pos, self.agent_vel, self.task_pos,
                                               self.task_claimed, self.agent_task)]
-            self._native.agv_observe(B, N, self.num_tasks, self.k_tasks, self.k_agents, rng,
-                                     *[t.data_ptr() for t in state], obs.data_ptr())
+            if self._native.agv_observe(B, N, self.num_tasks, self.k_tasks, self.k_agents, rng,
+                                        *[t.data_ptr() for t in state], obs.data_ptr()):
+                raise MemoryError("the observation kernel could not allocate its scratch space")
             return obs
         parts = [self.agent_vel, self.agent_pos]
         if self.k_tasks:

@@ -919,10 +919,12 @@ class IPFReward:
         self.agent_value = agent_value
         self._cache = TaskBlockCache()
 
+    zeroes_inactive = True
+
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
         grid = ipf_grid(env.world, self.resolution)
-        # ctx's collision counts and team reward are already 0 where the env was not running.
-        goal = (ctx.team_reward + ctx.collision_pairs).unsqueeze(1).expand(-1, env.num_agents)
+        # ctx's collision counts and team terms are already 0 where the env was not running.
+        goal = ctx.team_distance
         collision = -ctx.collisions_per_agent.clamp_max(1.0)
         potential = None
         if env.native:

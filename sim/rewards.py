@@ -38,6 +38,10 @@ class RewardFn(Protocol):
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]: ...
 
 
+# A reward whose class sets ``zeroes_inactive = True`` promises that every term is already 0
+# in environments that were not running, and the step skips masking the summed reward.
+
+
 def _active_only(terms: dict[str, Tensor], active: Tensor) -> dict[str, Tensor]:
     """Zero every (B, N) term in environments that were not running during the step."""
     keep = active.unsqueeze(1)
@@ -53,12 +57,11 @@ class MiniDist:
     and ``collision`` = -(number of AGV pairs whose discs overlap).
     """
 
+    zeroes_inactive = True
+
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
-        # Both inputs are 0 in environments that were not running, so the terms are too.
-        shape = (-1, env.num_agents)
-        pairs = ctx.collision_pairs.unsqueeze(1)
-        return {"distance": (ctx.team_reward.unsqueeze(1) + pairs).expand(shape),
-                "collision": (-pairs).expand(shape)}
+        # The environment splits R_t per AGV already (0 where it was not running).
+        return {"distance": ctx.team_distance, "collision": ctx.team_collision}
 
 
 class Greedy:
@@ -69,6 +72,8 @@ class Greedy:
     (so reaching and claiming a task is rewarded, not punished), and 0 for parked AGVs or when
     no task was open; ``collision`` = -(number of other AGVs whose discs overlap its own).
     """
+
+    zeroes_inactive = True
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
         inf = torch.tensor(float("inf"), device=ctx.agent_task_dist.device)

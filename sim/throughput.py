@@ -12,8 +12,7 @@ import torch
 from sim.core import AGVEnv
 from sim.rewards import RewardFn
 
-__all__ = ["Throughput", "best_rate", "measure", "steps_per_second",
-           "physics_only_steps_per_second"]
+__all__ = ["Throughput", "best_rate", "measure", "steps_per_second"]
 
 
 def best_rate(step: Callable[[], object], steps: int, repeats: int, per_call: int) -> float:
@@ -42,22 +41,34 @@ class Throughput:
         reward), resets excluded.
     reset_seconds : float
         Seconds spent in resets of finished environments, per batched step.
+    physics_seconds : float or None
+        Seconds per bare physics step (:meth:`~sim.core.AGVEnv.physics_step`) of the same
+        scene and B, timed in turns with the full steps; None when not measured.
     """
 
     num_envs: int
     step_seconds: float
     reset_seconds: float
+    physics_seconds: float | None = None
 
     @property
     def steps_per_second(self) -> float:
         """Environment steps per second, resets included (``B`` per batched step)."""
         return self.num_envs / (self.step_seconds + self.reset_seconds)
 
+    @property
+    def overhead(self) -> float | None:
+        """What claims, observations and the reward add to the bare physics step:
+        ``step_seconds / physics_seconds - 1`` (None when the physics was not timed)."""
+        if self.physics_seconds is None:
+            return None
+        return self.step_seconds / self.physics_seconds - 1.0
+
 
 @torch.no_grad()
 def measure(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
             steps: int = 100, repeats: int = 3, seed: int = 0,
-            native: bool | None = None) -> Throughput:
+            native: bool | None = None, physics: bool = False) -> Throughput:
     """Time full steps with random actions and resets of finished environments, as in a
     training loop; the best of ``repeats`` runs of ``steps`` batched steps.
 
@@ -65,12 +76,19 @@ def measure(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
     ----------
     native : bool, optional
         Passed to :class:`~sim.core.AGVEnv` (fused kernels or the torch path).
+    physics : bool
+        Also time the bare physics step of a second environment of the same scene, one run
+        of ``steps`` after each run of full steps (best of ``repeats``), so that both see the
+        same machine conditions.
     """
     env = AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=seed, native=native)
     gen = torch.Generator().manual_seed(seed)
     shape = (num_envs, env.num_agents, 2)
     actions = [torch.rand(shape, generator=gen) * 2 - 1 for _ in range(8)]
+    bare = AGVEnv(scenario, num_envs=num_envs, seed=seed, native=native) if physics else None
+    movable = torch.ones(num_envs, env.num_agents, dtype=torch.bool)
     best: tuple[float, float] | None = None
+    best_physics = float("inf")
     for r in range(repeats + 1):  # the first run warms up
         t_step = t_reset = 0.0
         for k in range(steps):
@@ -83,8 +101,15 @@ def measure(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
             t_reset += time.perf_counter() - t1
         if r and (best is None or t_step + t_reset < sum(best)):
             best = (t_step, t_reset)
+        if bare is not None:
+            t0 = time.perf_counter()
+            for k in range(steps):
+                bare.physics_step(actions[k % 8], movable)
+            if r:
+                best_physics = min(best_physics, time.perf_counter() - t0)
     assert best is not None
-    return Throughput(num_envs, best[0] / steps, best[1] / steps)
+    return Throughput(num_envs, best[0] / steps, best[1] / steps,
+                      best_physics / steps if physics else None)
 
 
 def steps_per_second(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
@@ -94,16 +119,3 @@ def steps_per_second(scenario: str, num_envs: int, reward: str | RewardFn = "min
     environments, as in a training loop (see :func:`measure`).
     """
     return measure(scenario, num_envs, reward, steps, repeats, seed).steps_per_second
-
-
-@torch.no_grad()
-def physics_only_steps_per_second(scenario: str, num_envs: int, steps: int = 100,
-                                  repeats: int = 3, seed: int = 0) -> float:
-    """Steps per second of the bare MPE physics of the same environment
-    (:meth:`~sim.core.AGVEnv.physics_step`: forces, integration, shelves, walls), without
-    claiming, observations or rewards: the yardstick for their overhead."""
-    env = AGVEnv(scenario, num_envs=num_envs, seed=seed)
-    gen = torch.Generator().manual_seed(seed)
-    actions = torch.rand((num_envs, env.num_agents, 2), generator=gen) * 2 - 1
-    movable = torch.ones(num_envs, env.num_agents, dtype=torch.bool)
-    return best_rate(lambda: env.physics_step(actions, movable), steps, repeats, num_envs)

@@ -26,92 +26,86 @@ static void *arena_reserve(size_t bytes) {
     }
     return arena_buf;
 }
-#define INF_BITS 0x7f800000u
+/* Small fixed sizes: stack scratch up to this many AGVs or tasks, heap beyond. */
+#define SMALL 8
 
-/* Sort keys: a non-negative float's bit pattern orders like the float (+inf last), so
- * (bits(d) << 32 | j) orders by distance, then by index: a stable sort. */
-static inline uint64_t sort_key(float d, int64_t j) {
-    uint32_t bits;
-    memcpy(&bits, &d, sizeof bits);
-    return ((uint64_t)bits << 32) | (uint64_t)j;
-}
-
-#define CSWAP(a, b) do { const uint64_t x_ = (a), y_ = (b); (a) = x_ < y_ ? x_ : y_; \
-                         (b) = x_ < y_ ? y_ : x_; } while (0)
-
-/* Sort n keys ascending: optimal networks for n <= 4 (5 exchanges) and n <= 8 (19) on keys
- * padded with the largest key, held in registers; insertion for larger n. */
-static inline __attribute__((always_inline)) void sort_keys(uint64_t *key, int64_t n) {
-    if (n <= 4) {
-        uint64_t k0 = key[0], k1 = n > 1 ? key[1] : UINT64_MAX;
-        uint64_t k2 = n > 2 ? key[2] : UINT64_MAX, k3 = n > 3 ? key[3] : UINT64_MAX;
-        CSWAP(k0, k1); CSWAP(k2, k3);
-        CSWAP(k0, k2); CSWAP(k1, k3);
-        CSWAP(k1, k2);
-        key[0] = k0; key[1] = k1; key[2] = k2; key[3] = k3;
-        return;
+/* order[r] = the index of the r-th nearest finite entry of dk[0..n) (ties: lower index first,
+ * as torch's stable sort), for r < min(k, number of finite entries), which is returned.
+ * Up to SMALL entries by counting each one's rank (branch-free, no dependency chains); beyond,
+ * by insertion into the k places kept. */
+static inline __attribute__((always_inline)) int64_t nearest(int64_t n, int64_t k,
+                                                             const float *dk, int64_t *order) {
+    if (n <= SMALL) {
+        int64_t rank[SMALL], found = 0;
+        for (int64_t j = 0; j < n; j++) rank[j] = 0;
+        for (int64_t j = 0; j < n; j++)
+            for (int64_t l = j + 1; l < n; l++) {  /* a tie goes to the lower index, j */
+                const int64_t after = dk[l] < dk[j];
+                rank[j] += after;
+                rank[l] += 1 - after;
+            }
+        for (int64_t j = 0; j < n; j++) {
+            const int finite = dk[j] < INF_F;
+            found += finite;
+            if (finite && rank[j] < k) order[rank[j]] = j;
+        }
+        return found < k ? found : k;
     }
-    if (n <= 8) {
-        uint64_t k[8];
-        for (int64_t j = 0; j < 8; j++) k[j] = j < n ? key[j] : UINT64_MAX;
-        CSWAP(k[0], k[2]); CSWAP(k[1], k[3]); CSWAP(k[4], k[6]); CSWAP(k[5], k[7]);
-        CSWAP(k[0], k[4]); CSWAP(k[1], k[5]); CSWAP(k[2], k[6]); CSWAP(k[3], k[7]);
-        CSWAP(k[0], k[1]); CSWAP(k[2], k[3]); CSWAP(k[4], k[5]); CSWAP(k[6], k[7]);
-        CSWAP(k[2], k[4]); CSWAP(k[3], k[5]);
-        CSWAP(k[1], k[4]); CSWAP(k[3], k[6]);
-        CSWAP(k[1], k[2]); CSWAP(k[3], k[4]); CSWAP(k[5], k[6]);
-        for (int64_t j = 0; j < 8; j++) key[j] = k[j];
-        return;
-    }
-    for (int64_t j = 1; j < n; j++) {
-        const uint64_t kj = key[j];
-        int64_t pos = j;
-        while (pos > 0 && key[pos - 1] > kj) {
-            key[pos] = key[pos - 1];
+    int64_t filled = 0;
+    for (int64_t j = 0; j < n; j++) {
+        const float d = dk[j];
+        if (!(d < INF_F) || (filled == k && d >= dk[order[k - 1]])) continue;
+        int64_t pos = filled < k ? filled++ : k - 1;
+        while (pos > 0 && dk[order[pos - 1]] > d) {
+            order[pos] = order[pos - 1];
             pos--;
         }
-        key[pos] = kj;
+        order[pos] = j;
     }
+    return filled;
 }
 
 /* Observations of one environment, (N, O) with O = 5 + 3 kt + 5 ka; see AGVEnv.observe.
- * dat (N, M) and daa (N, N) are the AGV-task and AGV-AGV distances; key holds max(N, M, 8). */
-static void observe_env(int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
-                        const float *pos, const float *vel, const float *task, const uint8_t *claimed,
-                        const int64_t *agent_task, const float *dat, const float *daa,
-                        float *obs, uint64_t *key) {
+ * dat (N, M) and daa (N, N) are the AGV-task and AGV-AGV distances; dk and order hold
+ * max(N, M) entries. Every entry of obs is written once. */
+static inline __attribute__((always_inline)) void observe_env(
+        int64_t N, int64_t M, int64_t kt, int64_t ka, float range, const float *pos,
+        const float *vel, const float *task, const uint8_t *claimed, const int64_t *agent_task,
+        const float *dat, const float *daa, float *obs, float *dk, int64_t *order) {
     const int64_t O = 5 + 3 * kt + 5 * ka;
     for (int64_t i = 0; i < N; i++) {
         float *o = obs + i * O;
         const float px = pos[2 * i], py = pos[2 * i + 1];
-        memset(o, 0, sizeof(float) * (size_t)O);
         o[0] = vel[2 * i];
         o[1] = vel[2 * i + 1];
         o[2] = px;
         o[3] = py;
         float *ot = o + 4;
+        int64_t r = 0;
         if (kt > 0) {
             for (int64_t j = 0; j < M; j++) {
                 const float d = dat[i * M + j];
-                key[j] = sort_key((claimed[j] || d > range) ? INF_F : d, j);
+                dk[j] = (claimed[j] || d > range) ? INF_F : d;
             }
-            sort_keys(key, M);
-            for (int64_t r = 0; r < kt && r < M && (key[r] >> 32) != INF_BITS; r++) {
-                const int64_t j = (int64_t)(key[r] & 0xffffffffu);
+            const int64_t filled = nearest(M, kt, dk, order);
+            for (; r < filled; r++) {
+                const int64_t j = order[r];
                 ot[3 * r] = task[2 * j] - px;
                 ot[3 * r + 1] = task[2 * j + 1] - py;
                 ot[3 * r + 2] = 1.0f;
             }
         }
+        for (; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
         float *oa = ot + 3 * kt;
+        r = 0;
         if (ka > 0) {
             for (int64_t j = 0; j < N; j++) {
                 const float d = daa[i * N + j];
-                key[j] = sort_key((j == i || d > range) ? INF_F : d, j);
+                dk[j] = (j == i || d > range) ? INF_F : d;
             }
-            sort_keys(key, N);
-            for (int64_t r = 0; r < ka && r < N && (key[r] >> 32) != INF_BITS; r++) {
-                const int64_t j = (int64_t)(key[r] & 0xffffffffu);
+            const int64_t filled = nearest(N, ka, dk, order);
+            for (; r < filled; r++) {
+                const int64_t j = order[r];
                 oa[5 * r] = pos[2 * j] - px;
                 oa[5 * r + 1] = pos[2 * j + 1] - py;
                 oa[5 * r + 2] = vel[2 * j];
@@ -119,13 +113,41 @@ static void observe_env(int64_t N, int64_t M, int64_t kt, int64_t ka, float rang
                 oa[5 * r + 4] = 1.0f;
             }
         }
+        for (; r < ka; r++)
+            oa[5 * r] = oa[5 * r + 1] = oa[5 * r + 2] = oa[5 * r + 3] = oa[5 * r + 4] = 0.0f;
         o[O - 1] = agent_task[i] >= 0 ? 1.0f : 0.0f;
     }
 }
 
+/* Scratch of one kernel call: on the stack for small scenes, else on the heap. */
+typedef struct {
+    float daa_s[SMALL * SMALL], dk_s[SMALL], colmin_s[SMALL];
+    int64_t order_s[SMALL], best_s[SMALL], hits_s[SMALL];
+    float *daa, *dk, *colmin;
+    int64_t *order, *best, *hits;
+    void *heap;
+} scratch_t;
+
+static int scratch_init(scratch_t *s, int64_t N, int64_t M) {
+    const int64_t L = N > M ? N : M;
+    s->heap = NULL;
+    if (L <= SMALL) {
+        s->daa = s->daa_s; s->dk = s->dk_s; s->colmin = s->colmin_s;
+        s->order = s->order_s; s->best = s->best_s; s->hits = s->hits_s;
+        return 0;
+    }
+    float *f = malloc(sizeof(float) * (size_t)(N * N + 2 * L) + sizeof(int64_t) * (size_t)(3 * L));
+    if (!f) return -1;
+    s->heap = f;
+    s->daa = f; s->dk = f + N * N; s->colmin = s->dk + L;
+    int64_t *g = (int64_t *)(void *)(s->colmin + L);
+    s->order = g; s->best = g + L; s->hits = g + 2 * L;
+    return 0;
+}
+
 /* AGV-task distances dat (N, M) and AGV-AGV distances daa (N, N) of one environment. */
-static void distances(int64_t N, int64_t M, const float *pos, const float *task, float *dat,
-                      float *daa) {
+static inline __attribute__((always_inline)) void distances(
+        int64_t N, int64_t M, const float *pos, const float *task, float *dat, float *daa) {
     for (int64_t i = 0; i < N; i++) {
         const float px = pos[2 * i], py = pos[2 * i + 1];
         for (int64_t j = 0; j < M; j++) {
@@ -140,113 +162,201 @@ static void distances(int64_t N, int64_t M, const float *pos, const float *task,
     }
 }
 
-/* Observations of B environments from their state (AGVEnv.observe). */
-void agv_observe(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
-                 const float *pos, const float *vel, const float *task, const uint8_t *claimed,
-                 const int64_t *agent_task, float *obs) {
+/* Calls body(N, M, kt, ka) with compile-time sizes for the paper's scenes (3v3, 6v6), so the
+ * small loops unroll, and with the run-time sizes otherwise. */
+#define SPECIALIZE(body)                                                                     \
+    do {                                                                                     \
+        if (N == 3 && M == 3 && kt == 3 && ka == 2) body(3, 3, 3, 2);                        \
+        else if (N == 6 && M == 6 && kt == 6 && ka == 5) body(6, 6, 6, 5);                   \
+        else body(N, M, kt, ka);                                                             \
+    } while (0)
+
+static inline __attribute__((always_inline)) void observe_envs(
+        int64_t B, const int64_t N, const int64_t M, const int64_t kt, const int64_t ka,
+        float range, const float *pos, const float *vel, const float *task,
+        const uint8_t *claimed, const int64_t *agent_task, float *obs, float *dat,
+        scratch_t *s) {
     const int64_t O = 5 + 3 * kt + 5 * ka;
-    float *dat = malloc(sizeof(float) * (size_t)(N * M + N * N));
-    float *daa = dat + N * M;
-    uint64_t *key = malloc(sizeof(uint64_t) * (size_t)(N + M + 8));
     for (int64_t b = 0; b < B; b++) {
         const float *p = pos + b * N * 2, *t = task + b * M * 2;
-        distances(N, M, p, t, dat, daa);
+        distances(N, M, p, t, dat, s->daa);
         observe_env(N, M, kt, ka, range, p, vel + b * N * 2, t, claimed + b * M,
-                    agent_task + b * N, dat, daa, obs + b * N * O, key);
+                    agent_task + b * N, dat, s->daa, obs + b * N * O, s->dk, s->order);
     }
+}
+
+/* Observations of B environments from their state (AGVEnv.observe). Returns -1 when out of
+ * memory, else 0. */
+int agv_observe(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
+                const float *pos, const float *vel, const float *task, const uint8_t *claimed,
+                const int64_t *agent_task, float *obs) {
+    scratch_t s;
+    float *dat = malloc(sizeof(float) * (size_t)(N * M + 1));
+    if (!dat || scratch_init(&s, N, M)) {
+        free(dat);
+        return -1;
+    }
+#define OBSERVE(n, m, k1, k2) \
+    observe_envs(B, n, m, k1, k2, range, pos, vel, task, claimed, agent_task, obs, dat, &s)
+    SPECIALIZE(OBSERVE);
+#undef OBSERVE
     free(dat);
-    free(key);
+    free(s.heap);
+    return 0;
+}
+
+/* One environment of agv_post_step; returns its change flags (see there). */
+static inline __attribute__((always_inline)) int post_step_env(
+        const int64_t N, const int64_t M, const int64_t kt, const int64_t ka, float range,
+        float capture, float collide, int64_t max_steps, const float *p, float *v,
+        const float *t, const uint8_t *cl, const int64_t *at, int64_t steps, uint8_t done,
+        int64_t *ato, uint8_t *clo, uint8_t *now, int64_t *steps_out, uint8_t *done_out,
+        float *d, float *per_agent, float *pairs, float *team, float *team_distance,
+        float *team_collision, float *obs, scratch_t *s) {
+    float *daa = s->daa, *colmin = s->colmin;
+    int64_t *hits = s->hits;
+    const int active = !done;
+    int flags = 0;
+    /* One pass over the pairs: distances, whether an idle AGV reached an open task, each
+     * task's nearest AGV (for R_t) and the overlapping discs. */
+    int close = 0;
+    for (int64_t j = 0; j < M; j++) colmin[j] = INF_F;
+    for (int64_t i = 0; i < N; i++) hits[i] = 0;
+    int64_t npairs = 0;
+    for (int64_t i = 0; i < N; i++) {
+        const float px = p[2 * i], py = p[2 * i + 1];
+        const int idle = at[i] < 0;
+        for (int64_t j = 0; j < M; j++) {
+            const float dx = t[2 * j] - px, dy = t[2 * j + 1] - py;
+            const float dij = sqrtf(dx * dx + dy * dy);
+            d[i * M + j] = dij;
+            colmin[j] = dij < colmin[j] ? dij : colmin[j];
+            close |= idle & !cl[j] & (dij <= capture);
+        }
+        daa[i * N + i] = 0.0f;
+        for (int64_t j = i + 1; j < N; j++) {
+            const float dx = px - p[2 * j], dy = py - p[2 * j + 1];
+            const float dij = sqrtf(dx * dx + dy * dy);
+            daa[i * N + j] = daa[j * N + i] = dij;
+            const int hit = dij < collide;
+            hits[i] += hit;
+            hits[j] += hit;
+            npairs += hit;
+        }
+    }
+    memcpy(ato, at, sizeof(int64_t) * (size_t)N);
+    memcpy(clo, cl, (size_t)M);
+    memset(now, 0, (size_t)M);
+    /* Claims in one round: each task goes to its nearest eligible AGV, and an AGV that wins
+     * several takes its nearest (first index on ties, as torch's min). */
+    if (active && close) {
+        int64_t *best_agent = s->best;
+        for (int64_t j = 0; j < M; j++) {
+            best_agent[j] = -1;
+            if (cl[j]) continue;
+            float best = INF_F;
+            for (int64_t i = 0; i < N; i++) {
+                const float dij = d[i * M + j];
+                if (at[i] < 0 && dij <= capture && dij < best) {
+                    best = dij;
+                    best_agent[j] = i;
+                }
+            }
+        }
+        for (int64_t i = 0; i < N; i++) {
+            float best = INF_F;
+            int64_t take = -1;
+            for (int64_t j = 0; j < M; j++) {
+                if (best_agent[j] == i && d[i * M + j] < best) {
+                    best = d[i * M + j];
+                    take = j;
+                }
+            }
+            if (take >= 0) {
+                ato[i] = take;
+                v[2 * i] *= 0.0f;
+                v[2 * i + 1] *= 0.0f;
+                now[take] = 1;
+                clo[take] = 1;
+                flags |= 1;
+            }
+        }
+    }
+    *steps_out = steps + (active ? 1 : 0);
+    int all_claimed = 1;
+    for (int64_t j = 0; j < M; j++) all_claimed &= clo[j] != 0;
+    *done_out = done || all_claimed || *steps_out >= max_steps;
+    flags |= (*done_out != done) << 1;
+    /* Collisions (discs overlapping) and the team reward R_t. */
+    for (int64_t i = 0; i < N; i++) per_agent[i] = active ? (float)hits[i] : 0.0f;
+    const float fpairs = active ? (float)npairs : 0.0f;
+    float nearest_sum = 0.0f;
+    for (int64_t j = 0; j < M; j++) nearest_sum += colmin[j];
+    const float r_t = active ? -nearest_sum - (float)npairs : 0.0f;
+    *pairs = fpairs;
+    *team = r_t;
+    /* R_t split per AGV as the MiniDist reward reports it (the same float32 sums as torch). */
+    for (int64_t i = 0; i < N; i++) {
+        team_distance[i] = r_t + fpairs;
+        team_collision[i] = -fpairs;
+    }
+    observe_env(N, M, kt, ka, range, p, v, t, clo, ato, d, daa, obs, s->dk, s->order);
+    return flags;
 }
 
 /* Everything the step does after the physics (AGVEnv.step): claims, step counter and done,
- * collisions, the team reward R_t, the AGV-task distances and the observations. Inputs are the
- * state after the physics and before the claims; every output is a fresh tensor. Collision
- * counts and the team reward are 0 in environments that were already done. */
-void agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
-                   float capture, float collide, int64_t max_steps,
-                   const float *pos, const float *vel, const float *task, const uint8_t *claimed,
-                   const int64_t *agent_task, const int64_t *steps, const uint8_t *done,
-                   float *vel_out, int64_t *agent_task_out, uint8_t *claimed_out,
-                   uint8_t *claimed_now, int64_t *steps_out, uint8_t *done_out, float *dist,
-                   float *per_agent, float *pairs, float *team, float *obs) {
-    const int64_t O = 5 + 3 * kt + 5 * ka;
-    float *daa = malloc(sizeof(float) * (size_t)(N * N));
-    uint64_t *key = malloc(sizeof(uint64_t) * (size_t)(N + M + 8));
-    int64_t *best_agent = malloc(sizeof(int64_t) * (size_t)(M + 1));
-    for (int64_t b = 0; b < B; b++) {
-        const float *p = pos + b * N * 2, *v = vel + b * N * 2, *t = task + b * M * 2;
-        const uint8_t *cl = claimed + b * M;
-        const int64_t *at = agent_task + b * N;
-        float *vo = vel_out + b * N * 2, *d = dist + b * N * M;
-        int64_t *ato = agent_task_out + b * N;
-        uint8_t *clo = claimed_out + b * M, *now = claimed_now + b * M;
-        const int active = !done[b];
-        distances(N, M, p, t, d, daa);
-        memcpy(vo, v, sizeof(float) * (size_t)(N * 2));
-        memcpy(ato, at, sizeof(int64_t) * (size_t)N);
-        memcpy(clo, cl, (size_t)M);
-        memset(now, 0, (size_t)M);
-        /* Claims in one round: each task goes to its nearest eligible AGV, and an AGV that wins
-         * several takes its nearest (first index on ties, as torch's min). */
-        if (active) {
-            for (int64_t j = 0; j < M; j++) {
-                best_agent[j] = -1;
-                if (cl[j]) continue;
-                float best = INF_F;
-                for (int64_t i = 0; i < N; i++) {
-                    const float dij = d[i * M + j];
-                    if (at[i] < 0 && dij <= capture && dij < best) {
-                        best = dij;
-                        best_agent[j] = i;
-                    }
-                }
-            }
-            for (int64_t i = 0; i < N; i++) {
-                float best = INF_F;
-                int64_t take = -1;
-                for (int64_t j = 0; j < M; j++) {
-                    if (best_agent[j] == i && d[i * M + j] < best) {
-                        best = d[i * M + j];
-                        take = j;
-                    }
-                }
-                if (take >= 0) {
-                    ato[i] = take;
-                    vo[2 * i] *= 0.0f;
-                    vo[2 * i + 1] *= 0.0f;
-                    now[take] = 1;
-                    clo[take] = 1;
-                }
-            }
-        }
-        steps_out[b] = steps[b] + (active ? 1 : 0);
-        int all_claimed = 1;
-        for (int64_t j = 0; j < M; j++) all_claimed &= clo[j] != 0;
-        done_out[b] = done[b] || all_claimed || steps_out[b] >= max_steps;
-        /* Collisions (discs overlapping) and the team reward R_t. */
-        int64_t npairs = 0;
-        for (int64_t i = 0; i < N; i++) {
-            int64_t hits = 0;
-            for (int64_t j = 0; j < N; j++) {
-                const int hit = j != i && daa[i * N + j] < collide;
-                hits += hit;
-                npairs += hit && j > i;
-            }
-            per_agent[b * N + i] = active ? (float)hits : 0.0f;
-        }
-        pairs[b] = active ? (float)npairs : 0.0f;
-        float nearest = 0.0f;
-        for (int64_t j = 0; j < M; j++) {
-            float m = INF_F;
-            for (int64_t i = 0; i < N; i++) m = d[i * M + j] < m ? d[i * M + j] : m;
-            nearest += m;
-        }
-        team[b] = active ? -nearest - (float)npairs : 0.0f;
-        observe_env(N, M, kt, ka, range, p, vo, t, clo, ato, d, daa, obs + b * N * O, key);
+ * collisions, the team reward R_t, the AGV-task distances and the observations, from the
+ * state after the physics and before the claims, and R_t split per AGV into the MiniDist
+ * reward's terms (team_distance = R_t + pairs, team_collision = -pairs, both (B, N)).
+ * Collision counts and the team reward are 0 in environments that were already done.
+ *
+ * vel (B, N, 2) is the physics step's fresh output and is updated in place (AGVs that claim
+ * stop). agent_task_out, claimed_out and done_out always receive the new values; the return
+ * value says whether they differ from the inputs: bit 0 when a task was claimed (agent_task,
+ * claimed), bit 1 when an environment finished (done); -1 when out of memory. */
+int agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
+                  float capture, float collide, int64_t max_steps,
+                  const float *pos, float *vel, const float *task, const uint8_t *claimed,
+                  const int64_t *agent_task, const int64_t *steps, const uint8_t *done,
+                  int64_t *agent_task_out, uint8_t *claimed_out, uint8_t *claimed_now,
+                  int64_t *steps_out, uint8_t *done_out, float *dist, float *per_agent,
+                  float *pairs, float *team, float *team_distance, float *team_collision,
+                  float *obs) {
+    scratch_t s;
+    int flags = 0;
+    if (scratch_init(&s, N, M)) return -1;
+#define POST_STEP(n, m, k1, k2)                                                               \
+    for (int64_t b = 0; b < B; b++)                                                           \
+        flags |= post_step_env(n, m, k1, k2, range, capture, collide, max_steps,              \
+                               pos + b * n * 2, vel + b * n * 2, task + b * m * 2,            \
+                               claimed + b * m, agent_task + b * n, steps[b], done[b],        \
+                               agent_task_out + b * n, claimed_out + b * m,                   \
+                               claimed_now + b * m, steps_out + b, done_out + b,              \
+                               dist + b * n * m, per_agent + b * n, pairs + b, team + b,      \
+                               team_distance + b * n, team_collision + b * n,                 \
+                               obs + b * n * (5 + 3 * k1 + 5 * k2), &s)
+    SPECIALIZE(POST_STEP);
+#undef POST_STEP
+    free(s.heap);
+    return flags;
+}
+
+/* Checks the actions a (B, N, 2) and writes the masks the step needs: active (B) = not
+ * done, movable (B, N) = active and idle. Returns the number of NaN or infinite actions, or -1
+ * when all are finite but some lie outside [-1, 1] (the caller clips them), else 0. */
+int64_t agv_prepare(int64_t B, int64_t N, const float *a, const int64_t *agent_task,
+                    const uint8_t *done, uint8_t *movable, uint8_t *active) {
+    int64_t bad = 0, outside = 0;
+    for (int64_t k = 0; k < B * N * 2; k++) {
+        const float x = a[k];
+        bad += !isfinite(x);
+        outside |= (x < -1.0f) | (x > 1.0f);
     }
-    free(daa);
-    free(key);
-    free(best_agent);
+    for (int64_t b = 0; b < B; b++) {
+        active[b] = !done[b];
+        for (int64_t i = 0; i < N; i++) movable[b * N + i] = !done[b] && agent_task[b * N + i] < 0;
+    }
+    return bad ? bad : -outside;
 }
 
 /* r_IPF of every AGV (IPFGrid.agent_potentials): AGV i's own field at its own cell.
@@ -482,18 +592,6 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
         }
     }
     return status;
-}
-
-/* Clip n actions to [-1, 1] into out; returns how many were NaN or infinite (out is then
- * not to be used). */
-int64_t agv_clip_actions(int64_t n, const float *a, float *out) {
-    int64_t bad = 0;
-    for (int64_t k = 0; k < n; k++) {
-        const float x = a[k];
-        bad += !isfinite(x);
-        out[k] = x < -1.0f ? -1.0f : (x > 1.0f ? 1.0f : x);
-    }
-    return bad;
 }
 
 /* One round of spawning for entity k (Scenario.spawn): for each of the b environments still
