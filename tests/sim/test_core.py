@@ -200,3 +200,57 @@ def test_handed_out_tensors_are_never_changed_later() -> None:
     env.reset(env_ids=[0, 2])
     assert torch.equal(info["agent_task"], claims)
     assert torch.equal(pos, before)
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_earlier_outputs_survive_claims_and_finishing(native: bool) -> None:
+    # The fused step stops parked AGVs in the physics output and writes agent_task,
+    # task_claimed and done to spare tensors: nothing handed out before may change.
+    if native and not sim.native.available():
+        pytest.skip("kernels unavailable")
+    env = sim.make_env("3v3", num_envs=2, seed=0, native=native)
+    env.set_state(torch.tensor([[[0.0, 0.03], [0.5, -0.5], [-0.5, -0.5]]]).expand(2, 3, 2),
+                  torch.tensor([[[0.0, 0.0], [0.5, -0.45], [-0.5, -0.45]]]).expand(2, 3, 2),
+                  agent_vel=torch.full((2, 3, 2), 0.3))
+    held = [env.agent_vel, env.agent_task, env.task_claimed, env.done, env.steps]
+    copies = [t.clone() for t in held]
+    obs, reward, done, info = env.step(torch.zeros(2, 3, 2))
+    assert int(info["claimed_now"].sum()) == 6 and done.all()  # every AGV claimed its task
+    assert (env.agent_vel == 0).all()
+    for t, c in zip(held, copies, strict=True):
+        assert torch.equal(t, c)
+    outputs = [obs, reward, done, info["agent_task"], info["claimed_now"],
+               info["collisions_per_agent"], *info["reward_terms"].values()]
+    snapshots = [t.clone() for t in outputs]
+    env.step(torch.ones(2, 3, 2))
+    env.reset()
+    env.step(torch.ones(2, 3, 2))
+    for t, c in zip(outputs, snapshots, strict=True):
+        assert torch.equal(t, c)
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_out_of_range_actions_are_clipped_and_not_modified(native: bool) -> None:
+    if native and not sim.native.available():
+        pytest.skip("kernels unavailable")
+    envs = [sim.make_env("3v3", num_envs=3, seed=1, native=native) for _ in range(2)]
+    actions = torch.tensor([5.0, -7.0, 0.25]).repeat(3, 3, 1)[..., :2].contiguous()
+    given = actions.clone()
+    envs[0].step(actions)
+    envs[1].step(actions.clamp(-1, 1))
+    assert torch.equal(actions, given)
+    assert torch.equal(envs[0].agent_pos, envs[1].agent_pos)
+    assert torch.equal(envs[0].agent_vel, envs[1].agent_vel)
+
+
+def test_rewards_without_the_promise_are_masked_in_finished_environments() -> None:
+    def ones(env, ctx):
+        return {"a": torch.ones(env.num_envs, env.num_agents),
+                "b": torch.ones(env.num_envs, env.num_agents)}
+
+    env = sim.make_env("3v3", num_envs=2, seed=0, reward=ones)
+    env.steps = torch.tensor([env.max_steps - 1, 0])
+    _, reward, done, _ = env.step(torch.zeros(2, 3, 2))
+    assert done.tolist() == [True, False] and (reward == 2).all()
+    _, reward, _, _ = env.step(torch.zeros(2, 3, 2))
+    assert reward[0].tolist() == [0, 0, 0] and reward[1].tolist() == [2, 2, 2]
