@@ -317,7 +317,9 @@ class AGVEnv:
     def _prepare(self, actions: Any) -> tuple[Tensor, Tensor, Tensor]:
         """Checked actions clipped to [-1, 1] (B, N, 2), the AGVs that move (B, N) bool and the
         running environments (B,) bool."""
-        a = torch.as_tensor(actions, device=self.device, dtype=self.dtype)
+        a = actions
+        if not (type(a) is Tensor and a.dtype == self.dtype and a.device == self.device):
+            a = torch.as_tensor(actions, device=self.device, dtype=self.dtype)
         B, N = self.num_envs, self.num_agents
         if tuple(a.shape) != (B, N, 2):
             raise ValueError(

@@ -346,17 +346,23 @@ int agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float
  * when all are finite but some lie outside [-1, 1] (the caller clips them), else 0. */
 int64_t agv_prepare(int64_t B, int64_t N, const float *a, const int64_t *agent_task,
                     const uint8_t *done, uint8_t *movable, uint8_t *active) {
-    int64_t bad = 0, outside = 0;
+    /* On the bit patterns, so that the loop vectorizes: all exponent bits set = NaN or
+     * infinite; |x| > 1 = magnitude bits above those of 1.0f. */
+    int64_t bad = 0;
+    uint32_t outside = 0;
     for (int64_t k = 0; k < B * N * 2; k++) {
-        const float x = a[k];
-        bad += !isfinite(x);
-        outside |= (x < -1.0f) | (x > 1.0f);
+        uint32_t bits;
+        memcpy(&bits, a + k, sizeof bits);
+        const uint32_t mag = bits & 0x7fffffffu;
+        bad += (mag >= 0x7f800000u);
+        outside |= (mag > 0x3f800000u);
     }
+    for (int64_t k = 0; k < B * N; k++) movable[k] = (uint8_t)((uint64_t)agent_task[k] >> 63);
     for (int64_t b = 0; b < B; b++) {
         active[b] = !done[b];
-        for (int64_t i = 0; i < N; i++) movable[b * N + i] = !done[b] && agent_task[b * N + i] < 0;
+        if (done[b]) memset(movable + b * N, 0, (size_t)N);
     }
-    return bad ? bad : -outside;
+    return bad ? bad : -(int64_t)(outside != 0);
 }
 
 /* r_IPF of every AGV (IPFGrid.agent_potentials): AGV i's own field at its own cell.
