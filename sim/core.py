@@ -131,6 +131,9 @@ class AGVEnv:
         self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
         self._native = native_kernels.library_for(self.device, native)
         self._spare: tuple[Tensor, Tensor, Tensor] | None = None
+        # The fused step writes the AGV-AGV distances here for the next physics step; only
+        # the env reads it, so one buffer serves every step.
+        self._pair_buf: Tensor | None = None
         self._post_args = (B, N, M, self.k_tasks, self.k_agents, scenario.sensing_range,
                            self.world.capture_radius, 2.0 * self.world.agent_radius,
                            self.max_steps)
@@ -250,10 +253,23 @@ class AGVEnv:
 
     # ------------------------------------------------------------------ geometry
     def _pairwise(self) -> Tensor:
-        """Pairwise AGV distances (B, N, N), cached until the AGVs move."""
+        """Pairwise AGV distances (B, N, N), cached until the AGVs move: the ones the step
+        computed after the AGVs last moved (see :meth:`_pair_distances`), else ``cdist``."""
         if self._pair is None:
             self._pair = torch.cdist(self.agent_pos, self.agent_pos,
                                      compute_mode="donot_use_mm_for_euclid_dist")
+        return self._pair
+
+    def _pair_distances(self) -> Tensor:
+        """The step's pairwise AGV distances as the fused kernel computes them, cached for the
+        next physics step, so that both paths move the AGVs by the same forces.
+
+        ``sqrt(dx * dx + dy * dy)`` with float32 products and sum and a correctly rounded
+        square root (C's ``sqrtf``; torch's float32 ``sqrt`` and ``cdist`` may differ in the
+        last bit, hence the square root in float64, which rounds to the same float32).
+        """
+        d = self.agent_pos.unsqueeze(2) - self.agent_pos.unsqueeze(1)
+        self._pair = d.mul_(d).sum(dim=-1).double().sqrt_().float()
         return self._pair
 
     def _task_offsets(self) -> tuple[Tensor, Tensor]:
@@ -407,7 +423,7 @@ class AGVEnv:
         claimed_now = self._claim(dist, active)
         self.steps = self.steps + active.long()
         self.done = self.done | self.task_claimed.all(dim=1) | (self.steps >= self.max_steps)
-        pair_dist = self._pairwise()
+        pair_dist = self._pair_distances()
         overlap = (pair_dist < 2.0 * self.world.agent_radius) & ~self._eye
         overlap = overlap & active.view(-1, 1, 1)
         per_agent = overlap.sum(dim=2).to(self.dtype)
@@ -435,6 +451,8 @@ class AGVEnv:
             self._spare = (torch.empty_like(self.agent_task), torch.empty_like(self.task_claimed),
                            torch.empty_like(self.done))
         agent_task, claimed, done = self._spare
+        if self._pair_buf is None:
+            self._pair_buf = torch.empty(B, N, N, dtype=f32)
         claimed_now = torch.empty(B, M, dtype=torch.bool)
         steps = torch.empty_like(self.steps)
         dist = torch.empty(B, N, M, dtype=f32)
@@ -450,8 +468,8 @@ class AGVEnv:
         state = [t.contiguous() for t in (self.agent_pos, self.agent_vel, self.task_pos,
                                           self.task_claimed, self.agent_task, self.steps,
                                           self.done)]
-        outputs = (agent_task, claimed, claimed_now, steps, done, dist, per_agent, pairs, team,
-                   team_distance, team_collision, obs)
+        outputs = (agent_task, claimed, claimed_now, steps, done, dist, self._pair_buf,
+                   per_agent, pairs, team, team_distance, team_collision, obs)
         changed = self._native.agv_post_step(
             *self._post_args, *[t.data_ptr() for t in state], *[t.data_ptr() for t in outputs]
         )
@@ -464,6 +482,7 @@ class AGVEnv:
             self.done = done
             self._spare = (*self._spare[:2], torch.empty_like(done))
         self.steps = steps
+        self._pair = self._pair_buf
         return claimed_now, dist, per_agent, pairs, team, (team_distance, team_collision), obs
 
     def physics_step(self, actions: Tensor, movable: Tensor) -> None:

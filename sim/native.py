@@ -41,7 +41,7 @@ _reason: str | None = None
 _P, _I, _F, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_double
 _SIGNATURES = {
     "agv_observe": (ctypes.c_int, [_I, _I, _I, _I, _I, _F] + [_P] * 6),
-    "agv_post_step": (ctypes.c_int, [_I, _I, _I, _I, _I, _F, _F, _F, _I] + [_P] * 19),
+    "agv_post_step": (ctypes.c_int, [_I, _I, _I, _I, _I, _F, _F, _F, _I] + [_P] * 20),
     "agv_prepare": (ctypes.c_int64, [_I, _I] + [_P] * 5),
     "agv_spawn_pick": (None, [_I, _I, _I, _I] + [_P] * 6),
     "agv_ipf": (ctypes.c_int, [_I, _I, _I, _P, _P, _P, _I, _P, _P, _I, _P, _I, _I]

@@ -211,9 +211,9 @@ static inline __attribute__((always_inline)) int post_step_env(
         float capture, float collide, int64_t max_steps, const float *p, float *v,
         const float *t, const uint8_t *cl, const int64_t *at, int64_t steps, uint8_t done,
         int64_t *ato, uint8_t *clo, uint8_t *now, int64_t *steps_out, uint8_t *done_out,
-        float *d, float *per_agent, float *pairs, float *team, float *team_distance,
-        float *team_collision, float *obs, scratch_t *s) {
-    float *daa = s->daa, *colmin = s->colmin;
+        float *d, float *daa, float *per_agent, float *pairs, float *team,
+        float *team_distance, float *team_collision, float *obs, scratch_t *s) {
+    float *colmin = s->colmin;
     int64_t *hits = s->hits;
     const int active = !done;
     int flags = 0;
@@ -306,7 +306,8 @@ static inline __attribute__((always_inline)) int post_step_env(
 
 /* Everything the step does after the physics (AGVEnv.step): claims, step counter and done,
  * collisions, the team reward R_t, the AGV-task distances and the observations, from the
- * state after the physics and before the claims, and R_t split per AGV into the MiniDist
+ * state after the physics and before the claims, the AGV-AGV distances pair_dist (B, N, N)
+ * (which the next physics step reuses), and R_t split per AGV into the MiniDist
  * reward's terms (team_distance = R_t + pairs, team_collision = -pairs, both (B, N)).
  * Collision counts and the team reward are 0 in environments that were already done.
  *
@@ -319,9 +320,9 @@ int agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float
                   const float *pos, float *vel, const float *task, const uint8_t *claimed,
                   const int64_t *agent_task, const int64_t *steps, const uint8_t *done,
                   int64_t *agent_task_out, uint8_t *claimed_out, uint8_t *claimed_now,
-                  int64_t *steps_out, uint8_t *done_out, float *dist, float *per_agent,
-                  float *pairs, float *team, float *team_distance, float *team_collision,
-                  float *obs) {
+                  int64_t *steps_out, uint8_t *done_out, float *dist, float *pair_dist,
+                  float *per_agent, float *pairs, float *team, float *team_distance,
+                  float *team_collision, float *obs) {
     scratch_t s;
     int flags = 0;
     if (scratch_init(&s, N, M)) return -1;
@@ -332,7 +333,8 @@ int agv_post_step(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float
                                claimed + b * m, agent_task + b * n, steps[b], done[b],        \
                                agent_task_out + b * n, claimed_out + b * m,                   \
                                claimed_now + b * m, steps_out + b, done_out + b,              \
-                               dist + b * n * m, per_agent + b * n, pairs + b, team + b,      \
+                               dist + b * n * m, pair_dist + b * n * n, per_agent + b * n,   \
+                               pairs + b, team + b,                                           \
                                team_distance + b * n, team_collision + b * n,                 \
                                obs + b * n * (5 + 3 * k1 + 5 * k2), &s)
     SPECIALIZE(POST_STEP);
