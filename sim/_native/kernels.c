@@ -29,28 +29,28 @@ static void *arena_reserve(size_t bytes) {
 /* Small fixed sizes: stack scratch up to this many AGVs or tasks, heap beyond. */
 #define SMALL 8
 
-/* order[r] = the index of the r-th nearest finite entry of dk[0..n) (ties: lower index first,
- * as torch's stable sort), for r < min(k, number of finite entries), which is returned.
- * Up to SMALL entries by counting each one's rank (branch-free, no dependency chains); beyond,
- * by insertion into the k places kept. */
-static inline __attribute__((always_inline)) int64_t nearest(int64_t n, int64_t k,
-                                                             const float *dk, int64_t *order) {
-    if (n <= SMALL) {
-        int64_t rank[SMALL], found = 0;
-        for (int64_t j = 0; j < n; j++) rank[j] = 0;
-        for (int64_t j = 0; j < n; j++)
-            for (int64_t l = j + 1; l < n; l++) {  /* a tie goes to the lower index, j */
-                const int64_t after = dk[l] < dk[j];
-                rank[j] += after;
-                rank[l] += 1 - after;
-            }
-        for (int64_t j = 0; j < n; j++) {
-            const int finite = dk[j] < INF_F;
-            found += finite;
-            if (finite && rank[j] < k) order[rank[j]] = j;
+/* rank[j] = the place of entry j among the finite entries of dk[0..n), n <= SMALL, in
+ * increasing order (ties: lower index first, as torch's stable sort); returns how many are
+ * finite. By comparing each pair once: branch-free, no dependency chains. */
+static inline __attribute__((always_inline)) int64_t ranks(int64_t n, const float *dk,
+                                                           int64_t *rank) {
+    int64_t found = 0;
+    for (int64_t j = 0; j < n; j++) rank[j] = 0;
+    for (int64_t j = 0; j < n; j++) {
+        for (int64_t l = j + 1; l < n; l++) {  /* a tie goes to the lower index, j */
+            const int64_t after = dk[l] < dk[j];
+            rank[j] += after;
+            rank[l] += 1 - after;
         }
-        return found < k ? found : k;
+        found += dk[j] < INF_F;
     }
+    return found;
+}
+
+/* order[r] = the index of the r-th nearest finite entry of dk[0..n) (ties: lower index
+ * first), for r < min(k, number of finite entries), which is returned; by insertion into the
+ * k places kept (for lists longer than SMALL). */
+static int64_t nearest(int64_t n, int64_t k, const float *dk, int64_t *order) {
     int64_t filled = 0;
     for (int64_t j = 0; j < n; j++) {
         const float d = dk[j];
@@ -65,9 +65,27 @@ static inline __attribute__((always_inline)) int64_t nearest(int64_t n, int64_t 
     return filled;
 }
 
+/* Task slot r of an observation: the task's offset and the mask bit. */
+#define PUT_TASK(r, j)                                        \
+    do {                                                      \
+        ot[3 * (r)] = task[2 * (j)] - px;                     \
+        ot[3 * (r) + 1] = task[2 * (j) + 1] - py;             \
+        ot[3 * (r) + 2] = 1.0f;                               \
+    } while (0)
+/* AGV slot r: the other AGV's offset, its velocity and the mask bit. */
+#define PUT_AGENT(r, j)                                       \
+    do {                                                      \
+        oa[5 * (r)] = pos[2 * (j)] - px;                      \
+        oa[5 * (r) + 1] = pos[2 * (j) + 1] - py;              \
+        oa[5 * (r) + 2] = vel[2 * (j)];                       \
+        oa[5 * (r) + 3] = vel[2 * (j) + 1];                   \
+        oa[5 * (r) + 4] = 1.0f;                               \
+    } while (0)
+
 /* Observations of one environment, (N, O) with O = 5 + 3 kt + 5 ka; see AGVEnv.observe.
  * dat (N, M) and daa (N, N) are the AGV-task and AGV-AGV distances; dk and order hold
- * max(N, M) entries. Every entry of obs is written once. */
+ * max(N, M) entries. Every entry of obs is written once: short lists scatter each entry
+ * straight to the slot of its rank, long ones go through the k nearest. */
 static inline __attribute__((always_inline)) void observe_env(
         int64_t N, int64_t M, int64_t kt, int64_t ka, float range, const float *pos,
         const float *vel, const float *task, const uint8_t *claimed, const int64_t *agent_task,
@@ -80,44 +98,47 @@ static inline __attribute__((always_inline)) void observe_env(
         o[1] = vel[2 * i + 1];
         o[2] = px;
         o[3] = py;
-        float *ot = o + 4;
-        int64_t r = 0;
+        float *ot = o + 4, *oa = ot + 3 * kt;
+        int64_t filled = 0;
         if (kt > 0) {
             for (int64_t j = 0; j < M; j++) {
                 const float d = dat[i * M + j];
                 dk[j] = (claimed[j] || d > range) ? INF_F : d;
             }
-            const int64_t filled = nearest(M, kt, dk, order);
-            for (; r < filled; r++) {
-                const int64_t j = order[r];
-                ot[3 * r] = task[2 * j] - px;
-                ot[3 * r + 1] = task[2 * j + 1] - py;
-                ot[3 * r + 2] = 1.0f;
+            if (M <= SMALL) {
+                const int64_t found = ranks(M, dk, order);
+                for (int64_t j = 0; j < M; j++)
+                    if (dk[j] < INF_F && order[j] < kt) PUT_TASK(order[j], j);
+                filled = found < kt ? found : kt;
+            } else {
+                filled = nearest(M, kt, dk, order);
+                for (int64_t r = 0; r < filled; r++) PUT_TASK(r, order[r]);
             }
         }
-        for (; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
-        float *oa = ot + 3 * kt;
-        r = 0;
+        for (int64_t r = filled; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
+        filled = 0;
         if (ka > 0) {
             for (int64_t j = 0; j < N; j++) {
                 const float d = daa[i * N + j];
                 dk[j] = (j == i || d > range) ? INF_F : d;
             }
-            const int64_t filled = nearest(N, ka, dk, order);
-            for (; r < filled; r++) {
-                const int64_t j = order[r];
-                oa[5 * r] = pos[2 * j] - px;
-                oa[5 * r + 1] = pos[2 * j + 1] - py;
-                oa[5 * r + 2] = vel[2 * j];
-                oa[5 * r + 3] = vel[2 * j + 1];
-                oa[5 * r + 4] = 1.0f;
+            if (N <= SMALL) {
+                const int64_t found = ranks(N, dk, order);
+                for (int64_t j = 0; j < N; j++)
+                    if (dk[j] < INF_F && order[j] < ka) PUT_AGENT(order[j], j);
+                filled = found < ka ? found : ka;
+            } else {
+                filled = nearest(N, ka, dk, order);
+                for (int64_t r = 0; r < filled; r++) PUT_AGENT(r, order[r]);
             }
         }
-        for (; r < ka; r++)
+        for (int64_t r = filled; r < ka; r++)
             oa[5 * r] = oa[5 * r + 1] = oa[5 * r + 2] = oa[5 * r + 3] = oa[5 * r + 4] = 0.0f;
         o[O - 1] = agent_task[i] >= 0 ? 1.0f : 0.0f;
     }
 }
+#undef PUT_TASK
+#undef PUT_AGENT
 
 /* Scratch of one kernel call: on the stack for small scenes, else on the heap. */
 typedef struct {
