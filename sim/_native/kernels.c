@@ -388,6 +388,132 @@ int64_t agv_prepare(int64_t B, int64_t N, const float *a, const int64_t *agent_t
     return bad ? bad : -(int64_t)(outside != 0);
 }
 
+/* Pass 3 of agv_ipf for environment b (see there): the task factor where stale, then the
+ * Schur complement's factor and the values. Called with compile-time sizes for the common
+ * full scenes, so that the small loops unroll; returns 1 when a block was not positive
+ * definite. */
+static inline __attribute__((always_inline)) int ipf_values(
+        const int64_t N, const int64_t M, const int64_t mt, const int64_t na, int64_t b,
+        int64_t T, const int64_t *cell, const int64_t *src, const int64_t *aslot,
+        const uint8_t *cand, const int64_t *cnt, int64_t *tcache, double *dcache,
+        const double *stage, int64_t GT, int64_t GA, double *l, double *inv, double *x,
+        double *sc, double *r, double *z, double *y, double agent_value, double task_value,
+        const int64_t *agent_task, const uint8_t *active, double *out, float *out32) {
+    int status = 0;
+    const int64_t *ce = cell + b * T, *sr = src + b * T, *as = aslot + b * N;
+    const uint8_t *ca = cand + b * T;
+    int64_t *tc = tcache + b * (M + 1);
+    double *linv = dcache + b * (M * M + M), *u = linv + M * M;
+    if (cnt[4 * b + 2]) {  /* the tasks' factor L (row by row), L^-1, u = L^-1 v_T */
+        const double *st = stage + b * (GT + GA);
+        for (int64_t p = 0; p < mt; p++) {
+            double *lp = l + p * M;
+            for (int64_t q = 0; q <= p; q++) {
+                double sum = *st++;
+                for (int64_t k = 0; k < q; k++) sum -= lp[k] * l[q * M + k];
+                if (q < p) {
+                    lp[q] = sum * inv[q];
+                } else {
+                    if (!(sum > 0.0)) status = 1;
+                    lp[p] = sqrt(sum);
+                    inv[p] = 1.0 / lp[p];
+                }
+            }
+        }
+        for (int64_t q = 0; q < mt; q++) {
+            for (int64_t p = 0; p < mt; p++) {
+                double sum = p == q ? 1.0 : 0.0;
+                if (p > q)
+                    for (int64_t k = q; k < p; k++) sum -= l[p * M + k] * linv[k * M + q];
+                linv[p * M + q] = p < q ? 0.0 : sum * inv[p];
+            }
+        }
+        for (int64_t p = 0; p < mt; p++) {
+            double sum = 0.0;
+            for (int64_t q = 0; q <= p; q++) sum += linv[p * M + q];
+            u[p] = sum * task_value;
+        }
+        tc[0] = mt;
+        for (int64_t p = 0; p < mt; p++) tc[1 + p] = sr[p];
+    }
+    /* X = G[A, T] L^-T, r = v_A - X u, S = G[A, A] - X X^T. */
+    const double *st = stage + b * (GT + GA) + GT;
+    for (int64_t a = 0; a < na; a++) {
+        const double *gt = st, *gaa = st + mt;
+        st += mt + a + 1;
+        double *xa = x + a * M;
+        double ra = agent_value;
+        for (int64_t p = 0; p < mt; p++) {
+            const double *lp = linv + p * M;
+            double sum = 0.0;
+            for (int64_t q = 0; q <= p; q++) sum += lp[q] * gt[q];
+            xa[p] = sum;
+            ra -= sum * u[p];
+        }
+        r[a] = ra;
+        for (int64_t c = 0; c <= a; c++) {
+            const double *xc = x + c * M;
+            double sum = gaa[c];
+            for (int64_t p = 0; p < mt; p++) sum -= xa[p] * xc[p];
+            sc[a * N + c] = sum;
+        }
+    }
+    /* S = C C^T in place (lower), z = C^-1 r. */
+    for (int64_t a = 0; a < na; a++) {
+        double *cr = sc + a * N;
+        for (int64_t c = 0; c < a; c++) {
+            double sum = cr[c];
+            for (int64_t k = 0; k < c; k++) sum -= cr[k] * sc[c * N + k];
+            cr[c] = sum * inv[c];
+        }
+        double sum = cr[a];
+        for (int64_t k = 0; k < a; k++) sum -= cr[k] * cr[k];
+        if (!(sum > 0.0)) status = 1;
+        cr[a] = sqrt(sum);
+        inv[a] = 1.0 / cr[a];
+        double zs = r[a];
+        for (int64_t k = 0; k < a; k++) zs -= cr[k] * z[k];
+        z[a] = zs * inv[a];
+    }
+    for (int64_t i = 0; i < N; i++) {
+        if (agent_task != NULL && agent_task[b * N + i] >= 0) {  /* parked: its task's */
+            const double held = active == NULL || active[b] ? task_value : 0.0;
+            if (out != NULL) out[b * N + i] = held;
+            if (out32 != NULL) out32[b * N + i] = (float)held;
+            continue;
+        }
+        double phi = 0.0;
+        int on_agent = 0, on_task = 0;
+        if (ca[i] && cnt[4 * b + 3]) {
+            for (int64_t s = 0; s < T; s++) {
+                if (s == i || !ca[s] || ce[s] != ce[i]) continue;
+                if (s < N) on_agent = 1; else on_task = 1;
+            }
+        }
+        if (on_agent) {
+            phi = agent_value;
+        } else if (on_task) {
+            phi = task_value;
+        } else if (as[i] >= 0) {
+            /* y = C^-1 e_k is zero above row k: P_kk = |y|^2, (S^-1 r)_k = y . z. */
+            const int64_t k = as[i];
+            double pii = 0.0, pv = 0.0;
+            for (int64_t a = k; a < na; a++) {
+                double sum = a == k ? 1.0 : 0.0;
+                for (int64_t c = k; c < a; c++) sum -= sc[a * N + c] * y[c];
+                y[a] = sum * inv[a];
+                pii += y[a] * y[a];
+                pv += y[a] * z[a];
+            }
+            phi = agent_value - pv / pii;
+        }
+        if (active != NULL && !active[b]) phi = 0.0;
+        if (out != NULL) out[b * N + i] = phi;
+        if (out32 != NULL) out32[b * N + i] = (float)phi;
+    }
+    return status;
+}
+
 /* r_IPF of every AGV (IPFGrid.agent_potentials): AGV i's own field at its own cell.
  *
  * Per environment: the sources (AGVs first, then open tasks) on free cells, deduplicated (a
@@ -429,7 +555,8 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
     int64_t *src = cell + B * T;  /* kept tasks, then AGVs */
     int64_t *aslot = src + B * T;
     int64_t *cnt = aslot + B * N;  /* mt, na, stale, shared */
-    uint8_t *cand = (uint8_t *)(cnt + 4 * B);  /* B T bytes in the last B T + 1 slots */
+    /* candidate flags, then shadowed flags: 2 B T bytes in the last B T + 1 slots */
+    uint8_t *cand = (uint8_t *)(cnt + 4 * B);
     double *stage = (double *)(cell + n64);
     double *x = stage + nd, *sc = x + N * M, *r = sc + N * N, *z = r + N + 1, *y = z + N + 1;
     double *inv = y + N + 1, *l = inv + T + 1;
@@ -449,16 +576,22 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
                     && (s < N || task_mask == NULL
                         || (task_mask[b * M + s - N] != 0) != (mask_is_claimed != 0));
         }
-        int64_t mt = 0, na = 0, shared = 0;
+        /* A candidate is shadowed by an earlier one (lower index) in its cell: branch-free
+         * over the pairs. */
+        uint8_t *shadow = ca + B * T;
+        int64_t shared = 0;
+        for (int64_t s = 0; s < T; s++) {
+            int hit = 0;
+            for (int64_t e = 0; e < s; e++) hit |= ca[e] & (ce[e] == ce[s]);
+            shadow[s] = (uint8_t)(hit & ca[s]);
+            shared |= shadow[s];
+        }
+        int64_t mt = 0, na = 0;
         for (int pass = 0; pass < 2; pass++) {  /* tasks first in src, AGVs after */
             const int64_t lo = pass == 0 ? N : 0, hi = pass == 0 ? T : N;
             for (int64_t s = lo; s < hi; s++) {
                 if (s < N) as[s] = -1;
-                if (!ca[s]) continue;
-                int shadowed = 0;
-                for (int64_t e = 0; e < s && !shadowed; e++) shadowed = ca[e] && ce[e] == ce[s];
-                shared |= shadowed;
-                if (shadowed) continue;
+                if (!ca[s] || shadow[s]) continue;
                 if (s < N) {
                     as[s] = na;
                     sr[mt + na++] = free_index[ce[s]];
@@ -507,118 +640,15 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
     }
     /* Pass 3: factorizations and values. */
     for (int64_t b = 0; b < B; b++) {
-        const int64_t *ce = cell + b * T, *sr = src + b * T, *as = aslot + b * N;
-        const uint8_t *ca = cand + b * T;
         const int64_t mt = cnt[4 * b], na = cnt[4 * b + 1];
-        int64_t *tc = tcache + b * (M + 1);
-        double *linv = dcache + b * (M * M + M), *u = linv + M * M;
-        if (cnt[4 * b + 2]) {  /* the tasks' factor L (row by row), L^-1, u = L^-1 v_T */
-            const double *st = stage + b * (GT + GA);
-            for (int64_t p = 0; p < mt; p++) {
-                double *lp = l + p * M;
-                for (int64_t q = 0; q <= p; q++) {
-                    double sum = *st++;
-                    for (int64_t k = 0; k < q; k++) sum -= lp[k] * l[q * M + k];
-                    if (q < p) {
-                        lp[q] = sum * inv[q];
-                    } else {
-                        if (!(sum > 0.0)) status = 1;
-                        lp[p] = sqrt(sum);
-                        inv[p] = 1.0 / lp[p];
-                    }
-                }
-            }
-            for (int64_t q = 0; q < mt; q++) {
-                for (int64_t p = 0; p < mt; p++) {
-                    double sum = p == q ? 1.0 : 0.0;
-                    if (p > q)
-                        for (int64_t k = q; k < p; k++) sum -= l[p * M + k] * linv[k * M + q];
-                    linv[p * M + q] = p < q ? 0.0 : sum * inv[p];
-                }
-            }
-            for (int64_t p = 0; p < mt; p++) {
-                double sum = 0.0;
-                for (int64_t q = 0; q <= p; q++) sum += linv[p * M + q];
-                u[p] = sum * task_value;
-            }
-            tc[0] = mt;
-            for (int64_t p = 0; p < mt; p++) tc[1 + p] = sr[p];
-        }
-        /* X = G[A, T] L^-T, r = v_A - X u, S = G[A, A] - X X^T. */
-        const double *st = stage + b * (GT + GA) + GT;
-        for (int64_t a = 0; a < na; a++) {
-            const double *gt = st, *gaa = st + mt;
-            st += mt + a + 1;
-            double *xa = x + a * M;
-            double ra = agent_value;
-            for (int64_t p = 0; p < mt; p++) {
-                const double *lp = linv + p * M;
-                double sum = 0.0;
-                for (int64_t q = 0; q <= p; q++) sum += lp[q] * gt[q];
-                xa[p] = sum;
-                ra -= sum * u[p];
-            }
-            r[a] = ra;
-            for (int64_t c = 0; c <= a; c++) {
-                const double *xc = x + c * M;
-                double sum = gaa[c];
-                for (int64_t p = 0; p < mt; p++) sum -= xa[p] * xc[p];
-                sc[a * N + c] = sum;
-            }
-        }
-        /* S = C C^T in place (lower), z = C^-1 r. */
-        for (int64_t a = 0; a < na; a++) {
-            double *cr = sc + a * N;
-            for (int64_t c = 0; c < a; c++) {
-                double sum = cr[c];
-                for (int64_t k = 0; k < c; k++) sum -= cr[k] * sc[c * N + k];
-                cr[c] = sum * inv[c];
-            }
-            double sum = cr[a];
-            for (int64_t k = 0; k < a; k++) sum -= cr[k] * cr[k];
-            if (!(sum > 0.0)) status = 1;
-            cr[a] = sqrt(sum);
-            inv[a] = 1.0 / cr[a];
-            double zs = r[a];
-            for (int64_t k = 0; k < a; k++) zs -= cr[k] * z[k];
-            z[a] = zs * inv[a];
-        }
-        for (int64_t i = 0; i < N; i++) {
-            if (agent_task != NULL && agent_task[b * N + i] >= 0) {  /* parked: its task's */
-                const double held = active == NULL || active[b] ? task_value : 0.0;
-                if (out != NULL) out[b * N + i] = held;
-                if (out32 != NULL) out32[b * N + i] = (float)held;
-                continue;
-            }
-            double phi = 0.0;
-            int on_agent = 0, on_task = 0;
-            if (ca[i] && cnt[4 * b + 3]) {
-                for (int64_t s = 0; s < T; s++) {
-                    if (s == i || !ca[s] || ce[s] != ce[i]) continue;
-                    if (s < N) on_agent = 1; else on_task = 1;
-                }
-            }
-            if (on_agent) {
-                phi = agent_value;
-            } else if (on_task) {
-                phi = task_value;
-            } else if (as[i] >= 0) {
-                /* y = C^-1 e_k is zero above row k: P_kk = |y|^2, (S^-1 r)_k = y . z. */
-                const int64_t k = as[i];
-                double pii = 0.0, pv = 0.0;
-                for (int64_t a = k; a < na; a++) {
-                    double sum = a == k ? 1.0 : 0.0;
-                    for (int64_t c = k; c < a; c++) sum -= sc[a * N + c] * y[c];
-                    y[a] = sum * inv[a];
-                    pii += y[a] * y[a];
-                    pv += y[a] * z[a];
-                }
-                phi = agent_value - pv / pii;
-            }
-            if (active != NULL && !active[b]) phi = 0.0;
-            if (out != NULL) out[b * N + i] = phi;
-            if (out32 != NULL) out32[b * N + i] = (float)phi;
-        }
+#define IPF_VALUES(n, m, nt, nagents)                                                         \
+    ipf_values(n, m, nt, nagents, b, T, cell, src, aslot, cand, cnt, tcache, dcache, stage,   \
+               GT, GA, l, inv, x, sc, r, z, y, agent_value, task_value, agent_task, active,    \
+               out, out32)
+        if (N == 6 && M == 6 && mt == 6 && na == 6) status |= IPF_VALUES(6, 6, 6, 6);
+        else if (N == 3 && M == 3 && mt == 3 && na == 3) status |= IPF_VALUES(3, 3, 3, 3);
+        else status |= IPF_VALUES(N, M, mt, na);
+#undef IPF_VALUES
     }
     return status;
 }
