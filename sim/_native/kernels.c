@@ -81,11 +81,25 @@ static int64_t nearest(int64_t n, int64_t k, const float *dk, int64_t *order) {
         oa[5 * (r) + 3] = vel[2 * (j) + 1];                   \
         oa[5 * (r) + 4] = 1.0f;                               \
     } while (0)
+/* The k nearest finite entries of dk[0..n), each written to its slot by put(slot, index);
+ * filled = how many. Short lists scatter each entry straight to the slot of its rank, long
+ * ones go through the k nearest. */
+#define PUT_NEAREST(n, k, put)                                                \
+    do {                                                                      \
+        if ((n) <= SMALL) {                                                   \
+            const int64_t found = ranks(n, dk, order);                        \
+            for (int64_t j = 0; j < (n); j++)                                 \
+                if (dk[j] < INF_F && order[j] < (k)) put(order[j], j);        \
+            filled = found < (k) ? found : (k);                               \
+        } else {                                                              \
+            filled = nearest(n, k, dk, order);                                \
+            for (int64_t r = 0; r < filled; r++) put(r, order[r]);            \
+        }                                                                     \
+    } while (0)
 
 /* Observations of one environment, (N, O) with O = 5 + 3 kt + 5 ka; see AGVEnv.observe.
  * dat (N, M) and daa (N, N) are the AGV-task and AGV-AGV distances; dk and order hold
- * max(N, M) entries. Every entry of obs is written once: short lists scatter each entry
- * straight to the slot of its rank, long ones go through the k nearest. */
+ * max(N, M) entries. Every entry of obs is written once (see PUT_NEAREST). */
 static inline __attribute__((always_inline)) void observe_env(
         int64_t N, int64_t M, int64_t kt, int64_t ka, float range, const float *pos,
         const float *vel, const float *task, const uint8_t *claimed, const int64_t *agent_task,
@@ -105,15 +119,7 @@ static inline __attribute__((always_inline)) void observe_env(
                 const float d = dat[i * M + j];
                 dk[j] = (claimed[j] || d > range) ? INF_F : d;
             }
-            if (M <= SMALL) {
-                const int64_t found = ranks(M, dk, order);
-                for (int64_t j = 0; j < M; j++)
-                    if (dk[j] < INF_F && order[j] < kt) PUT_TASK(order[j], j);
-                filled = found < kt ? found : kt;
-            } else {
-                filled = nearest(M, kt, dk, order);
-                for (int64_t r = 0; r < filled; r++) PUT_TASK(r, order[r]);
-            }
+            PUT_NEAREST(M, kt, PUT_TASK);
         }
         for (int64_t r = filled; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
         filled = 0;
@@ -122,15 +128,7 @@ static inline __attribute__((always_inline)) void observe_env(
                 const float d = daa[i * N + j];
                 dk[j] = (j == i || d > range) ? INF_F : d;
             }
-            if (N <= SMALL) {
-                const int64_t found = ranks(N, dk, order);
-                for (int64_t j = 0; j < N; j++)
-                    if (dk[j] < INF_F && order[j] < ka) PUT_AGENT(order[j], j);
-                filled = found < ka ? found : ka;
-            } else {
-                filled = nearest(N, ka, dk, order);
-                for (int64_t r = 0; r < filled; r++) PUT_AGENT(r, order[r]);
-            }
+            PUT_NEAREST(N, ka, PUT_AGENT);
         }
         for (int64_t r = filled; r < ka; r++)
             oa[5 * r] = oa[5 * r + 1] = oa[5 * r + 2] = oa[5 * r + 3] = oa[5 * r + 4] = 0.0f;
@@ -139,6 +137,7 @@ static inline __attribute__((always_inline)) void observe_env(
 }
 #undef PUT_TASK
 #undef PUT_AGENT
+#undef PUT_NEAREST
 
 /* Scratch of one kernel call: on the stack for small scenes, else on the heap. */
 typedef struct {
