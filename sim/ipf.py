@@ -908,6 +908,8 @@ class IPFReward:
         The fixed potentials (+5, -3 in the paper).
     """
 
+    zeroes_inactive = True
+
     def __init__(
         self,
         resolution: float = DEFAULT_RESOLUTION,
@@ -918,8 +920,6 @@ class IPFReward:
         self.task_value = task_value
         self.agent_value = agent_value
         self._cache = TaskBlockCache()
-
-    zeroes_inactive = True
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
         grid = ipf_grid(env.world, self.resolution)

@@ -33,13 +33,13 @@ __all__ = ["RewardFn", "MiniDist", "Greedy", "REWARDS", "make_reward"]
 
 
 class RewardFn(Protocol):
-    """``reward(env, ctx) -> {term: (B, N)}``; terms are summed into the agent's reward."""
+    """``reward(env, ctx) -> {term: (B, N)}``; terms are summed into the agent's reward.
+
+    A reward whose class sets ``zeroes_inactive = True`` promises that every term is already
+    0 in environments that were not running; the step then skips masking the summed reward.
+    """
 
     def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]: ...
-
-
-# A reward whose class sets ``zeroes_inactive = True`` promises that every term is already 0
-# in environments that were not running, and the step skips masking the summed reward.
 
 
 def _active_only(terms: dict[str, Tensor], active: Tensor) -> dict[str, Tensor]:

@@ -86,7 +86,7 @@ def measure(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
     shape = (num_envs, env.num_agents, 2)
     actions = [torch.rand(shape, generator=gen) * 2 - 1 for _ in range(8)]
     bare = AGVEnv(scenario, num_envs=num_envs, seed=seed, native=native) if physics else None
-    movable = torch.ones(num_envs, env.num_agents, dtype=torch.bool)
+    movable = torch.ones(num_envs, env.num_agents, dtype=torch.bool) if physics else None
     best: tuple[float, float] | None = None
     best_physics = float("inf")
     for r in range(repeats + 1):  # the first run warms up
