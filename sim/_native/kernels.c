@@ -29,12 +29,11 @@ static void *arena_reserve(size_t bytes) {
 /* Small fixed sizes: stack scratch up to this many AGVs or tasks, heap beyond. */
 #define SMALL 8
 
-/* rank[j] = the place of entry j among the finite entries of dk[0..n), n <= SMALL, in
- * increasing order (ties: lower index first, as torch's stable sort); returns how many are
- * finite. By comparing each pair once: branch-free, no dependency chains. */
-static inline __attribute__((always_inline)) int64_t ranks(int64_t n, const float *dk,
-                                                           int64_t *rank) {
-    int64_t found = 0;
+/* rank[j] = the place of entry j of dk[0..n), n <= SMALL, in increasing order (ties: lower
+ * index first, as torch's stable sort; infinite entries last). By comparing each pair once:
+ * branch-free, no dependency chains. */
+static inline __attribute__((always_inline)) void ranks(int64_t n, const float *dk,
+                                                        int64_t *rank) {
     for (int64_t j = 0; j < n; j++) rank[j] = 0;
     for (int64_t j = 0; j < n; j++) {
         for (int64_t l = j + 1; l < n; l++) {  /* a tie goes to the lower index, j */
@@ -42,9 +41,7 @@ static inline __attribute__((always_inline)) int64_t ranks(int64_t n, const floa
             rank[j] += after;
             rank[l] += 1 - after;
         }
-        found += dk[j] < INF_F;
     }
-    return found;
 }
 
 /* order[r] = the index of the r-th nearest finite entry of dk[0..n) (ties: lower index
@@ -65,46 +62,171 @@ static int64_t nearest(int64_t n, int64_t k, const float *dk, int64_t *order) {
     return filled;
 }
 
-/* Task slot r of an observation: the task's offset and the mask bit. */
-#define PUT_TASK(r, j)                                        \
+/* A task's entry at dst: its offset and the mask bit, or zeros when hidden (fin = 0). */
+#define PUT_TASK(dst, j, fin)                                 \
     do {                                                      \
-        ot[3 * (r)] = task[2 * (j)] - px;                     \
-        ot[3 * (r) + 1] = task[2 * (j) + 1] - py;             \
-        ot[3 * (r) + 2] = 1.0f;                               \
+        (dst)[0] = (fin) ? task[2 * (j)] - px : 0.0f;         \
+        (dst)[1] = (fin) ? task[2 * (j) + 1] - py : 0.0f;     \
+        (dst)[2] = (fin) ? 1.0f : 0.0f;                       \
     } while (0)
-/* AGV slot r: the other AGV's offset, its velocity and the mask bit. */
-#define PUT_AGENT(r, j)                                       \
+/* An AGV's entry: the other AGV's offset, its velocity and the mask bit, or zeros. */
+#define PUT_AGENT(dst, j, fin)                                \
     do {                                                      \
-        oa[5 * (r)] = pos[2 * (j)] - px;                      \
-        oa[5 * (r) + 1] = pos[2 * (j) + 1] - py;              \
-        oa[5 * (r) + 2] = vel[2 * (j)];                       \
-        oa[5 * (r) + 3] = vel[2 * (j) + 1];                   \
-        oa[5 * (r) + 4] = 1.0f;                               \
+        (dst)[0] = (fin) ? pos[2 * (j)] - px : 0.0f;          \
+        (dst)[1] = (fin) ? pos[2 * (j) + 1] - py : 0.0f;      \
+        (dst)[2] = (fin) ? vel[2 * (j)] : 0.0f;               \
+        (dst)[3] = (fin) ? vel[2 * (j) + 1] : 0.0f;           \
+        (dst)[4] = (fin) ? 1.0f : 0.0f;                       \
     } while (0)
-/* The k nearest finite entries of dk[0..n), each written to its slot by put(slot, index);
- * filled = how many. Short lists scatter each entry straight to the slot of its rank, long
- * ones go through the k nearest. */
-#define PUT_NEAREST(n, k, put)                                                \
+/* Fills the k slots of width w at out with the k nearest finite entries of dk[0..n), in
+ * increasing order, then zeros. Short lists write every entry to the slot of its rank, hidden
+ * ones as zeros (their ranks follow the finite ones, so they are the padding) and ranks past
+ * k to a junk slot: no branches. Long ones go through the k nearest. */
+#define PUT_NEAREST(n, k, w, out, put)                                        \
     do {                                                                      \
+        int64_t filled;                                                       \
         if ((n) <= SMALL) {                                                   \
-            const int64_t found = ranks(n, dk, order);                        \
-            for (int64_t j = 0; j < (n); j++)                                 \
-                if (dk[j] < INF_F && order[j] < (k)) put(order[j], j);        \
-            filled = found < (k) ? found : (k);                               \
+            int64_t rk[SMALL];                                                \
+            float junk[8];                                                    \
+            ranks(n, dk, rk);                                                 \
+            for (int64_t j = 0; j < (n); j++) {                               \
+                float *dst = rk[j] < (k) ? (out) + (w) * rk[j] : junk;       \
+                put(dst, j, dk[j] < INF_F);                                   \
+            }                                                                 \
+            filled = (n) < (k) ? (n) : (k);                                   \
         } else {                                                              \
             filled = nearest(n, k, dk, order);                                \
-            for (int64_t r = 0; r < filled; r++) put(r, order[r]);            \
+            for (int64_t r = 0; r < filled; r++) put((out) + (w) * r, order[r], 1); \
         }                                                                     \
+        for (int64_t r = filled; r < (k); r++)                                \
+            for (int64_t c = 0; c < (w); c++) (out)[(w) * r + c] = 0.0f;      \
     } while (0)
+
+/* Small scenes (at most SMALL AGVs and tasks) are done with all AGVs at once: AGV i sits in
+ * lane i % VL of vector i / VL (GCC and Clang vector extensions; plain SSE2 on x86-64). */
+#define VL 4
+#define CH (SMALL / VL)
+typedef float vf __attribute__((vector_size(4 * VL)));
+typedef int32_t vi __attribute__((vector_size(4 * VL)));
+
+static inline __attribute__((always_inline)) vf vf_sqrt(vf x) {
+    vf r;
+    for (int l = 0; l < VL; l++) r[l] = sqrtf(x[l]);  /* one instruction where there is one */
+    return r;
+}
+
+/* mask ? y : x, lane by lane (mask lanes are 0 or -1). */
+static inline __attribute__((always_inline)) vf vf_pick(vi mask, vf y, vf x) {
+    return (vf)((mask & (vi)y) | (~mask & (vi)x));
+}
+
+static inline __attribute__((always_inline)) vf vf_fill(float x) {
+    vf r;
+    for (int l = 0; l < VL; l++) r[l] = x;
+    return r;
+}
+
+/* The distances of a small scene in lanes: dt[j] from the AGVs to task j, da[j] to AGV j
+ * (0 to itself). Each is sqrt(dx * dx + dy * dy), correctly rounded, as everywhere else. */
+typedef struct {
+    vf px[CH], py[CH], dt[SMALL][CH], da[SMALL][CH];
+} lanes_t;
+
+static inline __attribute__((always_inline)) void lanes_init(
+        int64_t N, int64_t M, const float *pos, const float *task, lanes_t *g) {
+    const int64_t nc = (N + VL - 1) / VL;
+    for (int64_t c = 0; c < nc; c++)
+        for (int l = 0; l < VL; l++) {
+            const int64_t i = VL * c + l;
+            g->px[c][l] = i < N ? pos[2 * i] : 0.0f;
+            g->py[c][l] = i < N ? pos[2 * i + 1] : 0.0f;
+        }
+    for (int64_t j = 0; j < M; j++)
+        for (int64_t c = 0; c < nc; c++) {
+            const vf dx = task[2 * j] - g->px[c], dy = task[2 * j + 1] - g->py[c];
+            g->dt[j][c] = vf_sqrt(dx * dx + dy * dy);
+        }
+    for (int64_t j = 0; j < N; j++)
+        for (int64_t c = 0; c < nc; c++) {
+            const vf dx = g->px[c] - pos[2 * j], dy = g->py[c] - pos[2 * j + 1];
+            g->da[j][c] = vf_sqrt(dx * dx + dy * dy);
+        }
+}
+
+/* observe_env for a small scene from its distances in lanes: the hidden entries and the
+ * ranks of all AGVs at once (as ranks() does), then each AGV's entries written to the slots
+ * of their ranks, hidden ones as zeros and ranks past k to a junk slot (see PUT_NEAREST). */
+static inline __attribute__((always_inline)) void observe_lanes(
+        int64_t N, int64_t M, int64_t kt, int64_t ka, float range, const lanes_t *g,
+        const float *pos, const float *vel, const float *task, const uint8_t *claimed,
+        const int64_t *agent_task, float *obs) {
+    const int64_t O = 5 + 3 * kt + 5 * ka, nc = (N + VL - 1) / VL;
+    const vf inf = vf_fill(INF_F);
+    vf dt[SMALL][CH], da[SMALL][CH];
+    vi rt[SMALL][CH], ra[SMALL][CH], lane;
+    const vi zero = lane - lane;
+    for (int l = 0; l < VL; l++) lane[l] = l;
+    for (int64_t j = 0; j < M; j++) {
+        const vi hidden = claimed[j] ? zero - 1 : zero;
+        for (int64_t c = 0; c < nc; c++) {
+            dt[j][c] = vf_pick(hidden | (g->dt[j][c] > range), inf, g->dt[j][c]);
+            rt[j][c] = zero;
+        }
+    }
+    for (int64_t j = 0; j < N; j++)
+        for (int64_t c = 0; c < nc; c++) {
+            const vi self = lane + (int32_t)(VL * c) == (int32_t)j;
+            da[j][c] = vf_pick(self | (g->da[j][c] > range), inf, g->da[j][c]);
+            ra[j][c] = zero;
+        }
+    /* after = -1 in the lanes where entry m comes before entry j. */
+    for (int64_t j = 0; j < M; j++)
+        for (int64_t m = j + 1; m < M; m++)
+            for (int64_t c = 0; c < nc; c++) {
+                const vi after = dt[m][c] < dt[j][c];
+                rt[j][c] -= after;
+                rt[m][c] += 1 + after;
+            }
+    for (int64_t j = 0; j < N; j++)
+        for (int64_t m = j + 1; m < N; m++)
+            for (int64_t c = 0; c < nc; c++) {
+                const vi after = da[m][c] < da[j][c];
+                ra[j][c] -= after;
+                ra[m][c] += 1 + after;
+            }
+    float junk[8];
+    for (int64_t i = 0; i < N; i++) {
+        const int64_t c = i / VL, l = i % VL;
+        const float px = pos[2 * i], py = pos[2 * i + 1];
+        float *o = obs + i * O, *ot = o + 4, *oa = ot + 3 * kt;
+        o[0] = vel[2 * i];
+        o[1] = vel[2 * i + 1];
+        o[2] = px;
+        o[3] = py;
+        for (int64_t j = 0; j < M; j++) {
+            const int32_t r = rt[j][c][l];
+            PUT_TASK(r < kt ? ot + 3 * r : junk, j, dt[j][c][l] < INF_F);
+        }
+        for (int64_t r = M; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
+        for (int64_t j = 0; j < N; j++) {
+            const int32_t r = ra[j][c][l];
+            PUT_AGENT(r < ka ? oa + 5 * r : junk, j, da[j][c][l] < INF_F);
+        }
+        for (int64_t r = N; r < ka; r++)
+            oa[5 * r] = oa[5 * r + 1] = oa[5 * r + 2] = oa[5 * r + 3] = oa[5 * r + 4] = 0.0f;
+        o[O - 1] = agent_task[i] >= 0 ? 1.0f : 0.0f;
+    }
+}
 
 /* Observations of one environment, (N, O) with O = 5 + 3 kt + 5 ka; see AGVEnv.observe.
  * dat (N, M) and daa (N, N) are the AGV-task and AGV-AGV distances; dk and order hold
- * max(N, M) entries. Every entry of obs is written once (see PUT_NEAREST). */
+ * max(N, M) entries (used for lists longer than SMALL). Every entry of obs is written once. */
 static inline __attribute__((always_inline)) void observe_env(
         int64_t N, int64_t M, int64_t kt, int64_t ka, float range, const float *pos,
         const float *vel, const float *task, const uint8_t *claimed, const int64_t *agent_task,
-        const float *dat, const float *daa, float *obs, float *dk, int64_t *order) {
+        const float *dat, const float *daa, float *obs, float *dk_long, int64_t *order) {
     const int64_t O = 5 + 3 * kt + 5 * ka;
+    float dk_short[SMALL];
     for (int64_t i = 0; i < N; i++) {
         float *o = obs + i * O;
         const float px = pos[2 * i], py = pos[2 * i + 1];
@@ -112,26 +234,22 @@ static inline __attribute__((always_inline)) void observe_env(
         o[1] = vel[2 * i + 1];
         o[2] = px;
         o[3] = py;
-        float *ot = o + 4, *oa = ot + 3 * kt;
-        int64_t filled = 0;
         if (kt > 0) {
+            float *dk = M <= SMALL ? dk_short : dk_long;
             for (int64_t j = 0; j < M; j++) {
                 const float d = dat[i * M + j];
                 dk[j] = (claimed[j] || d > range) ? INF_F : d;
             }
-            PUT_NEAREST(M, kt, PUT_TASK);
+            PUT_NEAREST(M, kt, 3, o + 4, PUT_TASK);
         }
-        for (int64_t r = filled; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
-        filled = 0;
         if (ka > 0) {
+            float *dk = N <= SMALL ? dk_short : dk_long;
             for (int64_t j = 0; j < N; j++) {
                 const float d = daa[i * N + j];
                 dk[j] = (j == i || d > range) ? INF_F : d;
             }
-            PUT_NEAREST(N, ka, PUT_AGENT);
+            PUT_NEAREST(N, ka, 5, o + 4 + 3 * kt, PUT_AGENT);
         }
-        for (int64_t r = filled; r < ka; r++)
-            oa[5 * r] = oa[5 * r + 1] = oa[5 * r + 2] = oa[5 * r + 3] = oa[5 * r + 4] = 0.0f;
         o[O - 1] = agent_task[i] >= 0 ? 1.0f : 0.0f;
     }
 }
@@ -199,9 +317,16 @@ static inline __attribute__((always_inline)) void observe_envs(
     const int64_t O = 5 + 3 * kt + 5 * ka;
     for (int64_t b = 0; b < B; b++) {
         const float *p = pos + b * N * 2, *t = task + b * M * 2;
-        distances(N, M, p, t, dat, s->daa);
-        observe_env(N, M, kt, ka, range, p, vel + b * N * 2, t, claimed + b * M,
-                    agent_task + b * N, dat, s->daa, obs + b * N * O, s->dk, s->order);
+        if (N <= SMALL && M <= SMALL) {
+            lanes_t g;
+            lanes_init(N, M, p, t, &g);
+            observe_lanes(N, M, kt, ka, range, &g, p, vel + b * N * 2, t, claimed + b * M,
+                          agent_task + b * N, obs + b * N * O);
+        } else {
+            distances(N, M, p, t, dat, s->daa);
+            observe_env(N, M, kt, ka, range, p, vel + b * N * 2, t, claimed + b * M,
+                        agent_task + b * N, dat, s->daa, obs + b * N * O, s->dk, s->order);
+        }
     }
 }
 
@@ -225,24 +350,18 @@ int agv_observe(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float r
     return 0;
 }
 
-/* One environment of agv_post_step; returns its change flags (see there). */
-static inline __attribute__((always_inline)) int post_step_env(
-        const int64_t N, const int64_t M, const int64_t kt, const int64_t ka, float range,
-        float capture, float collide, int64_t max_steps, const float *p, float *v,
-        const float *t, const uint8_t *cl, const int64_t *at, int64_t steps, uint8_t done,
-        int64_t *ato, uint8_t *clo, uint8_t *now, int64_t *steps_out, uint8_t *done_out,
-        float *d, float *daa, float *per_agent, float *pairs, float *team,
-        float *team_distance, float *team_collision, float *obs, scratch_t *s) {
-    float *colmin = s->colmin;
-    int64_t *hits = s->hits;
-    const int active = !done;
-    int flags = 0;
-    /* One pass over the pairs: distances, whether an idle AGV reached an open task, each
-     * task's nearest AGV (for R_t) and the overlapping discs. */
-    int close = 0;
+/* The first pass of a step over the pairs of a scene: the AGV-task distances d (N, M) and
+ * the AGV-AGV distances daa (N, N), each task's nearest AGV colmin (M) (for R_t), the
+ * overlapping discs of each AGV hits (N), and whether an idle AGV reached an open task
+ * (close). Returns the number of overlapping pairs. */
+static inline __attribute__((always_inline)) int64_t pairs_scalar(
+        int64_t N, int64_t M, float capture, float collide, const float *p, const float *t,
+        const uint8_t *cl, const int64_t *at, float *d, float *daa, float *colmin,
+        int64_t *hits, int *close) {
+    int64_t npairs = 0;
+    int near = 0;
     for (int64_t j = 0; j < M; j++) colmin[j] = INF_F;
     for (int64_t i = 0; i < N; i++) hits[i] = 0;
-    int64_t npairs = 0;
     for (int64_t i = 0; i < N; i++) {
         const float px = p[2 * i], py = p[2 * i + 1];
         const int idle = at[i] < 0;
@@ -251,7 +370,7 @@ static inline __attribute__((always_inline)) int post_step_env(
             const float dij = sqrtf(dx * dx + dy * dy);
             d[i * M + j] = dij;
             colmin[j] = dij < colmin[j] ? dij : colmin[j];
-            close |= idle & !cl[j] & (dij <= capture);
+            near |= idle & !cl[j] & (dij <= capture);
         }
         daa[i * N + i] = 0.0f;
         for (int64_t j = i + 1; j < N; j++) {
@@ -264,13 +383,80 @@ static inline __attribute__((always_inline)) int post_step_env(
             npairs += hit;
         }
     }
+    *close = near;
+    return npairs;
+}
+
+/* pairs_scalar for a small scene whose AGV-AGV distances g holds: the same values, with the
+ * tasks in lanes for d, colmin and close. */
+static inline __attribute__((always_inline)) int64_t pairs_lanes(
+        int64_t N, int64_t M, float capture, float collide, const lanes_t *g, const float *p,
+        const float *t, const uint8_t *cl, const int64_t *at, float *d, float *daa,
+        float *colmin, int64_t *hits, int *close) {
+    const int64_t nc = (N + VL - 1) / VL, mc = (M + VL - 1) / VL;
+    vi lane, hit[CH], open[CH];
+    const vi zero = lane - lane;
+    for (int l = 0; l < VL; l++) lane[l] = l;
+    /* Row j of daa is da[j] (the distances are symmetric); hits counted in the AGVs' lanes. */
+    for (int64_t c = 0; c < nc; c++) hit[c] = zero;
+    for (int64_t j = 0; j < N; j++) {
+        memcpy(daa + j * N, g->da[j], sizeof(float) * (size_t)N);
+        for (int64_t c = 0; c < nc; c++)
+            hit[c] -= (g->da[j][c] < collide) & (lane + (int32_t)(VL * c) != (int32_t)j);
+    }
+    int64_t twice = 0;
+    for (int64_t i = 0; i < N; i++) {
+        hits[i] = hit[i / VL][i % VL];
+        twice += hits[i];
+    }
+    /* The tasks in lanes: row i of d, and the running minimum over the AGVs. */
+    vf tx[CH], ty[CH], cm[CH];
+    vi near = zero;
+    for (int64_t c = 0; c < mc; c++) {
+        for (int l = 0; l < VL; l++) {
+            const int64_t j = VL * c + l;
+            tx[c][l] = j < M ? t[2 * j] : 0.0f;
+            ty[c][l] = j < M ? t[2 * j + 1] : 0.0f;
+            open[c][l] = j < M && !cl[j] ? -1 : 0;
+        }
+        cm[c] = vf_fill(INF_F);
+    }
+    for (int64_t i = 0; i < N; i++) {
+        const float px = p[2 * i], py = p[2 * i + 1];
+        const vi idle = at[i] < 0 ? zero - 1 : zero;
+        for (int64_t c = 0; c < mc; c++) {
+            const vf dx = tx[c] - px, dy = ty[c] - py;
+            const vf dij = vf_sqrt(dx * dx + dy * dy);
+            const int64_t width = M - VL * c < VL ? M - VL * c : VL;
+            memcpy(d + i * M + VL * c, &dij, sizeof(float) * (size_t)width);
+            cm[c] = vf_pick(dij < cm[c], dij, cm[c]);
+            near |= (dij <= capture) & idle & open[c];
+        }
+    }
+    memcpy(colmin, cm, sizeof(float) * (size_t)M);
+    int any = 0;
+    for (int l = 0; l < VL; l++) any |= near[l] != 0;
+    *close = any;
+    return twice / 2;
+}
+
+/* The rest of one environment's step after the first pass (see agv_post_step): claims, step
+ * counter and done, collisions and R_t; returns the change flags. */
+static inline __attribute__((always_inline)) int finish_env(
+        const int64_t N, const int64_t M, float capture, int64_t max_steps, float *v,
+        const uint8_t *cl, const int64_t *at, int64_t steps, uint8_t done, int64_t *ato,
+        uint8_t *clo, uint8_t *now, int64_t *steps_out, uint8_t *done_out, const float *d,
+        float *per_agent, float *pairs, float *team, float *team_distance,
+        float *team_collision, const float *colmin, const int64_t *hits, int64_t npairs,
+        int close, int64_t *best_agent) {
+    const int active = !done;
+    int flags = 0;
     memcpy(ato, at, sizeof(int64_t) * (size_t)N);
     memcpy(clo, cl, (size_t)M);
     memset(now, 0, (size_t)M);
     /* Claims in one round: each task goes to its nearest eligible AGV, and an AGV that wins
      * several takes its nearest (first index on ties, as torch's min). */
     if (active && close) {
-        int64_t *best_agent = s->best;
         for (int64_t j = 0; j < M; j++) {
             best_agent[j] = -1;
             if (cl[j]) continue;
@@ -320,7 +506,37 @@ static inline __attribute__((always_inline)) int post_step_env(
         team_distance[i] = r_t + fpairs;
         team_collision[i] = -fpairs;
     }
-    observe_env(N, M, kt, ka, range, p, v, t, clo, ato, d, daa, obs, s->dk, s->order);
+    return flags;
+}
+
+/* One environment of agv_post_step; returns its change flags (see there). */
+static inline __attribute__((always_inline)) int post_step_env(
+        const int64_t N, const int64_t M, const int64_t kt, const int64_t ka, float range,
+        float capture, float collide, int64_t max_steps, const float *p, float *v,
+        const float *t, const uint8_t *cl, const int64_t *at, int64_t steps, uint8_t done,
+        int64_t *ato, uint8_t *clo, uint8_t *now, int64_t *steps_out, uint8_t *done_out,
+        float *d, float *daa, float *per_agent, float *pairs, float *team,
+        float *team_distance, float *team_collision, float *obs, scratch_t *s) {
+    int close, flags;
+    int64_t npairs;
+#define FINISH()                                                                             \
+    finish_env(N, M, capture, max_steps, v, cl, at, steps, done, ato, clo, now, steps_out,   \
+               done_out, d, per_agent, pairs, team, team_distance, team_collision, s->colmin, \
+               s->hits, npairs, close, s->best)
+    if (N <= SMALL && M <= SMALL) {
+        lanes_t g;
+        lanes_init(N, M, p, t, &g);
+        npairs = pairs_lanes(N, M, capture, collide, &g, p, t, cl, at, d, daa, s->colmin,
+                             s->hits, &close);
+        flags = FINISH();
+        observe_lanes(N, M, kt, ka, range, &g, p, v, t, clo, ato, obs);
+    } else {
+        npairs = pairs_scalar(N, M, capture, collide, p, t, cl, at, d, daa, s->colmin, s->hits,
+                              &close);
+        flags = FINISH();
+        observe_env(N, M, kt, ka, range, p, v, t, clo, ato, d, daa, obs, s->dk, s->order);
+    }
+#undef FINISH
     return flags;
 }
 
