@@ -30,10 +30,11 @@ static void *arena_reserve(size_t bytes) {
 #define SMALL 8
 
 /* rank[j] = the place of entry j of dk[0..n), n <= SMALL, in increasing order (ties: lower
- * index first, as torch's stable sort; infinite entries last). By comparing each pair once:
- * branch-free, no dependency chains. */
-static inline __attribute__((always_inline)) void ranks(int64_t n, const float *dk,
-                                                        int64_t *rank) {
+ * index first, as torch's stable sort; infinite entries last); returns how many are finite.
+ * By comparing each pair once: branch-free, no dependency chains. */
+static inline __attribute__((always_inline)) int64_t ranks(int64_t n, const float *dk,
+                                                           int64_t *rank) {
+    int64_t found = 0;
     for (int64_t j = 0; j < n; j++) rank[j] = 0;
     for (int64_t j = 0; j < n; j++) {
         for (int64_t l = j + 1; l < n; l++) {  /* a tie goes to the lower index, j */
@@ -41,7 +42,9 @@ static inline __attribute__((always_inline)) void ranks(int64_t n, const float *
             rank[j] += after;
             rank[l] += 1 - after;
         }
+        found += dk[j] < INF_F;
     }
+    return found;
 }
 
 /* order[r] = the index of the r-th nearest finite entry of dk[0..n) (ties: lower index
@@ -62,41 +65,51 @@ static int64_t nearest(int64_t n, int64_t k, const float *dk, int64_t *order) {
     return filled;
 }
 
-/* A task's entry at dst: its offset and the mask bit, or zeros when hidden (fin = 0). */
-#define PUT_TASK(dst, j, fin)                                 \
+/* x where mask is all ones, +0 where it is 0: a select without a branch. */
+static inline __attribute__((always_inline)) float keep(float x, uint32_t mask) {
+    uint32_t u;
+    memcpy(&u, &x, sizeof u);
+    u &= mask;
+    memcpy(&x, &u, sizeof u);
+    return x;
+}
+
+/* A task's entry at dst: its offset and the mask bit, or zeros where mask is 0 (mask: all
+ * ones or 0). */
+#define PUT_TASK(dst, j, mask)                                \
     do {                                                      \
-        (dst)[0] = (fin) ? task[2 * (j)] - px : 0.0f;         \
-        (dst)[1] = (fin) ? task[2 * (j) + 1] - py : 0.0f;     \
-        (dst)[2] = (fin) ? 1.0f : 0.0f;                       \
+        const uint32_t keep_ = (mask);                        \
+        float *dst_ = (dst);                                  \
+        dst_[0] = keep(task[2 * (j)] - px, keep_);            \
+        dst_[1] = keep(task[2 * (j) + 1] - py, keep_);        \
+        dst_[2] = keep(1.0f, keep_);                          \
     } while (0)
 /* An AGV's entry: the other AGV's offset, its velocity and the mask bit, or zeros. */
-#define PUT_AGENT(dst, j, fin)                                \
+#define PUT_AGENT(dst, j, mask)                               \
     do {                                                      \
-        (dst)[0] = (fin) ? pos[2 * (j)] - px : 0.0f;          \
-        (dst)[1] = (fin) ? pos[2 * (j) + 1] - py : 0.0f;      \
-        (dst)[2] = (fin) ? vel[2 * (j)] : 0.0f;               \
-        (dst)[3] = (fin) ? vel[2 * (j) + 1] : 0.0f;           \
-        (dst)[4] = (fin) ? 1.0f : 0.0f;                       \
+        const uint32_t keep_ = (mask);                        \
+        float *dst_ = (dst);                                  \
+        dst_[0] = keep(pos[2 * (j)] - px, keep_);             \
+        dst_[1] = keep(pos[2 * (j) + 1] - py, keep_);         \
+        dst_[2] = keep(vel[2 * (j)], keep_);                  \
+        dst_[3] = keep(vel[2 * (j) + 1], keep_);              \
+        dst_[4] = keep(1.0f, keep_);                          \
     } while (0)
 /* Fills the k slots of width w at out with the k nearest finite entries of dk[0..n), in
- * increasing order, then zeros. Short lists write every entry to the slot of its rank, hidden
- * ones as zeros (their ranks follow the finite ones, so they are the padding) and ranks past
- * k to a junk slot: no branches. Long ones go through the k nearest. */
+ * increasing order, then zeros. Short lists write each entry straight to the slot of its rank,
+ * long ones go through the k nearest. */
 #define PUT_NEAREST(n, k, w, out, put)                                        \
     do {                                                                      \
         int64_t filled;                                                       \
         if ((n) <= SMALL) {                                                   \
             int64_t rk[SMALL];                                                \
-            float junk[8];                                                    \
-            ranks(n, dk, rk);                                                 \
-            for (int64_t j = 0; j < (n); j++) {                               \
-                float *dst = rk[j] < (k) ? (out) + (w) * rk[j] : junk;       \
-                put(dst, j, dk[j] < INF_F);                                   \
-            }                                                                 \
-            filled = (n) < (k) ? (n) : (k);                                   \
+            const int64_t found = ranks(n, dk, rk);                           \
+            for (int64_t j = 0; j < (n); j++)                                 \
+                if (dk[j] < INF_F && rk[j] < (k)) put((out) + (w) * rk[j], j, ~0u); \
+            filled = found < (k) ? found : (k);                               \
         } else {                                                              \
             filled = nearest(n, k, dk, order);                                \
-            for (int64_t r = 0; r < filled; r++) put((out) + (w) * r, order[r], 1); \
+            for (int64_t r = 0; r < filled; r++) put((out) + (w) * r, order[r], ~0u); \
         }                                                                     \
         for (int64_t r = filled; r < (k); r++)                                \
             for (int64_t c = 0; c < (w); c++) (out)[(w) * r + c] = 0.0f;      \
@@ -205,12 +218,12 @@ static inline __attribute__((always_inline)) void observe_lanes(
         o[3] = py;
         for (int64_t j = 0; j < M; j++) {
             const int32_t r = rt[j][c][l];
-            PUT_TASK(r < kt ? ot + 3 * r : junk, j, dt[j][c][l] < INF_F);
+            PUT_TASK(r < kt ? ot + 3 * r : junk, j, -(uint32_t)(dt[j][c][l] < INF_F));
         }
         for (int64_t r = M; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
         for (int64_t j = 0; j < N; j++) {
             const int32_t r = ra[j][c][l];
-            PUT_AGENT(r < ka ? oa + 5 * r : junk, j, da[j][c][l] < INF_F);
+            PUT_AGENT(r < ka ? oa + 5 * r : junk, j, -(uint32_t)(da[j][c][l] < INF_F));
         }
         for (int64_t r = N; r < ka; r++)
             oa[5 * r] = oa[5 * r + 1] = oa[5 * r + 2] = oa[5 * r + 3] = oa[5 * r + 4] = 0.0f;
@@ -317,7 +330,7 @@ static inline __attribute__((always_inline)) void observe_envs(
     const int64_t O = 5 + 3 * kt + 5 * ka;
     for (int64_t b = 0; b < B; b++) {
         const float *p = pos + b * N * 2, *t = task + b * M * 2;
-        if (N <= SMALL && M <= SMALL) {
+        if (VL < N && N <= SMALL && M <= SMALL) {
             lanes_t g;
             lanes_init(N, M, p, t, &g);
             observe_lanes(N, M, kt, ka, range, &g, p, vel + b * N * 2, t, claimed + b * M,
@@ -523,7 +536,7 @@ static inline __attribute__((always_inline)) int post_step_env(
     finish_env(N, M, capture, max_steps, v, cl, at, steps, done, ato, clo, now, steps_out,   \
                done_out, d, per_agent, pairs, team, team_distance, team_collision, s->colmin, \
                s->hits, npairs, close, s->best)
-    if (N <= SMALL && M <= SMALL) {
+    if (VL < N && N <= SMALL && M <= SMALL) {
         lanes_t g;
         lanes_init(N, M, p, t, &g);
         npairs = pairs_lanes(N, M, capture, collide, &g, p, t, cl, at, d, daa, s->colmin,
