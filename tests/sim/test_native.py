@@ -15,7 +15,7 @@ import sim
 from sim import native
 from sim.core import AGVEnv
 from sim.ipf import AGENT_VALUE, TASK_VALUE, TaskBlockCache, ipf_grid, jacobi_field
-from sim.scenarios import get_scenario
+from sim.scenarios import Scenario, get_scenario, paper_scenario
 
 pytestmark = pytest.mark.skipif(not native.available(),
                                 reason=f"kernels unavailable: {native.disabled_reason()}")
@@ -23,7 +23,8 @@ pytestmark = pytest.mark.skipif(not native.available(),
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _pair(scenario: str, reward: str = "minidist", num_envs: int = 32) -> tuple[AGVEnv, AGVEnv]:
+def _pair(scenario: str | Scenario, reward: str = "minidist",
+          num_envs: int = 32) -> tuple[AGVEnv, AGVEnv]:
     fast = AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=3, native=True)
     ref = AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=3, native=False)
     assert fast.native and not ref.native
@@ -45,8 +46,8 @@ def _assert_same_step(out_fast, out_ref) -> None:
                                    atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("scenario", ["3v3", "6v6", "warehouse", "10v4", "2v7", "1v1"])
-def test_step_matches_torch_path(scenario: str) -> None:
+def _run_both_paths(scenario: str | Scenario) -> int:
+    """50 steps with resets on both paths, checked equal at every step; returns the claims."""
     fast, ref = _pair(scenario)
     assert torch.equal(fast.reset(), ref.reset())
     gen = torch.Generator().manual_seed(1)
@@ -61,7 +62,24 @@ def test_step_matches_torch_path(scenario: str) -> None:
         if t % 20 == 19:
             for env in (fast, ref):
                 env.reset(out_fast[2])
-    assert claimed > 0 or scenario == "1v1"
+    return claimed
+
+
+@pytest.mark.parametrize("scenario", ["3v3", "6v6", "warehouse", "10v4", "2v7", "1v1"])
+def test_step_matches_torch_path(scenario: str) -> None:
+    assert _run_both_paths(scenario) > 0 or scenario == "1v1"
+
+
+@pytest.mark.parametrize("n, m, options", [
+    (6, 6, dict(sensing_range=0.7)),  # entries hidden by the range (lanes)
+    (8, 5, dict(k_tasks=3, k_agents=3, sensing_range=1.2)),  # ranks past k (lanes)
+    (5, 3, dict(k_tasks=4, k_agents=6)),  # more slots than entries (lanes)
+    (7, 8, dict(k_tasks=8, k_agents=2, sensing_range=1.0)),
+    (3, 3, dict(k_tasks=2, k_agents=1, sensing_range=0.7)),  # short lists, scalar ranks
+    (9, 4, dict(k_tasks=2, k_agents=3, sensing_range=1.0)),  # general path
+])
+def test_step_matches_torch_path_with_short_lists_and_range(n: int, m: int, options) -> None:
+    _run_both_paths(paper_scenario(n, m, **options))
 
 
 @pytest.mark.parametrize("scenario", ["3v3", "warehouse"])
@@ -91,6 +109,24 @@ def test_observation_ties_go_to_the_lower_index() -> None:
     assert first_task.tolist() == pytest.approx([0.0, 0.6])  # task 0 before task 2
     first_agent = obs_fast[0, 0, 4 + 3 * fast.k_tasks: 6 + 3 * fast.k_tasks]
     assert first_agent.tolist() == pytest.approx([0.5, 0.0])  # AGV 1 before AGV 2
+
+
+def test_observation_ties_in_lanes_go_to_the_lower_index() -> None:
+    """The vector-lane path (5 to 8 AGVs): symmetric scenes full of equal distances."""
+    fast, ref = _pair("6v6", num_envs=2)
+    ring = torch.tensor([[0.0, 0.5], [0.5, 0.0], [0.0, -0.5], [-0.5, 0.0], [0.5, 0.5]])
+    agents = torch.cat([torch.zeros(1, 2), ring]).expand(2, 6, 2).clone()
+    agents[1] = agents[1].flip(0)
+    tasks = (ring.flip(0) * 1.4).repeat(2, 1)[:6].expand(2, 6, 2).clone()
+    for env in (fast, ref):
+        env.set_state(agents, tasks)
+    obs_fast, obs_ref = fast.observe(), ref.observe()
+    assert torch.equal(obs_fast, obs_ref)
+    # AGV 0 sees task 1 at (-0.7, 0) first of the four tasks 0.7 away ...
+    assert obs_fast[0, 0, 4:7].tolist() == pytest.approx([-0.7, 0.0, 1.0])
+    # ... and AGV 1 at (0, 0.5) before AGVs 2, 3, 4 at the same distance.
+    k = 4 + 3 * fast.k_tasks
+    assert obs_fast[0, 0, k:k + 2].tolist() == pytest.approx([0.0, 0.5])
 
 
 @pytest.mark.parametrize("scenario", ["3v3", "6v6", "warehouse", "20v20"])
