@@ -131,9 +131,17 @@ class AGVEnv:
         self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
         self._native = native_kernels.library_for(self.device, native)
         self._spare: tuple[Tensor, Tensor, Tensor] | None = None
-        # The fused step writes the AGV-AGV distances here for the next physics step; only
-        # the env reads it, so one buffer serves every step.
-        self._pair_buf: Tensor | None = None
+        if self._native is not None:
+            # The fused step writes the AGV-AGV distances here for the next physics step, and
+            # _prepare the physics step's movable mask; only the env reads them, so one
+            # buffer each serves every step. Templates of the fresh float32 outputs of every
+            # step: torch.empty_like (contiguous for an expanded template) costs a third less
+            # than torch.empty with a dtype, which counts at small B.
+            self._pair_buf = torch.empty(B, N, N, dtype=torch.float32)
+            self._movable = torch.empty(B, N, dtype=torch.bool)
+            one = torch.empty((), dtype=torch.float32)  # expanded: the templates hold no memory
+            self._like = (one.expand(B, N, M), one.expand(B, N), one.expand(B),
+                          one.expand(B, N, self.obs_dim))
         self._post_args = (B, N, M, self.k_tasks, self.k_agents, scenario.sensing_range,
                            self.world.capture_radius, 2.0 * self.world.agent_radius,
                            self.max_steps)
@@ -343,8 +351,7 @@ class AGVEnv:
             )
         if self._native is not None:
             a = a.contiguous()
-            movable = torch.empty(B, N, dtype=torch.bool)
-            active = torch.empty(B, dtype=torch.bool)
+            movable, active = self._movable, torch.empty_like(self.done)
             code = self._native.agv_prepare(B, N, a.data_ptr(), self.agent_task.data_ptr(),
                                             self.done.data_ptr(), movable.data_ptr(),
                                             active.data_ptr())
@@ -445,23 +452,20 @@ class AGVEnv:
         ``done`` are written to spare tensors that replace the state only when they differ
         from it (the spares are then renewed).
         """
-        B, N, M = self.num_envs, self.num_agents, self.num_tasks
-        f32 = torch.float32
         if self._spare is None:
             self._spare = (torch.empty_like(self.agent_task), torch.empty_like(self.task_claimed),
                            torch.empty_like(self.done))
         agent_task, claimed, done = self._spare
-        if self._pair_buf is None:
-            self._pair_buf = torch.empty(B, N, N, dtype=f32)
-        claimed_now = torch.empty(B, M, dtype=torch.bool)
+        like_dist, like_agents, like_envs, like_obs = self._like
+        claimed_now = torch.empty_like(self.task_claimed)
         steps = torch.empty_like(self.steps)
-        dist = torch.empty(B, N, M, dtype=f32)
-        per_agent = torch.empty(B, N, dtype=f32)
-        pairs = torch.empty(B, dtype=f32)
-        team = torch.empty(B, dtype=f32)
-        team_distance = torch.empty(B, N, dtype=f32)
-        team_collision = torch.empty(B, N, dtype=f32)
-        obs = torch.empty(B, N, self.obs_dim, dtype=f32)
+        dist = torch.empty_like(like_dist)
+        per_agent = torch.empty_like(like_agents)
+        pairs = torch.empty_like(like_envs)
+        team = torch.empty_like(like_envs)
+        team_distance = torch.empty_like(like_agents)
+        team_collision = torch.empty_like(like_agents)
+        obs = torch.empty_like(like_obs)
         # The state tensors are contiguous (the env creates them); the list keeps any copy
         # alive until the call returns.
         self.agent_vel = self.agent_vel.contiguous()
