@@ -115,8 +115,9 @@ static inline __attribute__((always_inline)) float keep(float x, uint32_t mask) 
             for (int64_t c = 0; c < (w); c++) (out)[(w) * r + c] = 0.0f;      \
     } while (0)
 
-/* Small scenes (at most SMALL AGVs and tasks) are done with all AGVs at once: AGV i sits in
- * lane i % VL of vector i / VL (GCC and Clang vector extensions; plain SSE2 on x86-64). */
+/* Scenes of VL + 1 to SMALL AGVs and at most SMALL tasks are done with all AGVs at once: AGV i
+ * sits in lane i % VL of vector i / VL (GCC and Clang vector extensions; plain SSE2 on
+ * x86-64). Up to VL AGVs the scalar code is faster: one vector would be mostly empty. */
 #define VL 4
 #define CH (SMALL / VL)
 typedef float vf __attribute__((vector_size(4 * VL)));
