@@ -167,6 +167,19 @@ static inline __attribute__((always_inline)) void lanes_init(
         }
 }
 
+/* ranks() in every lane: adds to rank[j] (zeroed by the caller) how many entries of d[0..n)
+ * come before entry j. after = -1 in the lanes where entry m comes before entry j. */
+static inline __attribute__((always_inline)) void lane_ranks(int64_t n, int64_t nc,
+                                                             vf (*d)[CH], vi (*rank)[CH]) {
+    for (int64_t j = 0; j < n; j++)
+        for (int64_t m = j + 1; m < n; m++)
+            for (int64_t c = 0; c < nc; c++) {
+                const vi after = d[m][c] < d[j][c];
+                rank[j][c] -= after;
+                rank[m][c] += 1 + after;
+            }
+}
+
 /* observe_env for a small scene from its distances in lanes: the hidden entries and the
  * ranks of all AGVs at once (as ranks() does), then each AGV's entries written to the slots
  * of their ranks, hidden ones as zeros and ranks past k to a junk slot (see PUT_NEAREST). */
@@ -193,21 +206,8 @@ static inline __attribute__((always_inline)) void observe_lanes(
             da[j][c] = vf_pick(self | (g->da[j][c] > range), inf, g->da[j][c]);
             ra[j][c] = zero;
         }
-    /* after = -1 in the lanes where entry m comes before entry j. */
-    for (int64_t j = 0; j < M; j++)
-        for (int64_t m = j + 1; m < M; m++)
-            for (int64_t c = 0; c < nc; c++) {
-                const vi after = dt[m][c] < dt[j][c];
-                rt[j][c] -= after;
-                rt[m][c] += 1 + after;
-            }
-    for (int64_t j = 0; j < N; j++)
-        for (int64_t m = j + 1; m < N; m++)
-            for (int64_t c = 0; c < nc; c++) {
-                const vi after = da[m][c] < da[j][c];
-                ra[j][c] -= after;
-                ra[m][c] += 1 + after;
-            }
+    lane_ranks(M, nc, dt, rt);
+    lane_ranks(N, nc, da, ra);
     float junk[8];
     for (int64_t i = 0; i < N; i++) {
         const int64_t c = i / VL, l = i % VL;
