@@ -82,6 +82,23 @@ def test_step_matches_torch_path_with_short_lists_and_range(n: int, m: int, opti
     _run_both_paths(paper_scenario(n, m, **options))
 
 
+def test_step_outputs_are_fresh_contiguous_float32() -> None:
+    """The step allocates its outputs from expanded templates (torch.empty_like)."""
+    env = AGVEnv("6v6", num_envs=4, seed=0, native=True)
+    env.reset()
+    first = env.step(torch.zeros(4, 6, 2))
+    second = env.step(torch.zeros(4, 6, 2))
+    for out in (first, second):
+        obs, reward, _, info = out
+        tensors = [obs, reward, info["team_reward"], info["collision_pairs"],
+                   info["collisions_per_agent"], *info["reward_terms"].values()]
+        assert all(t.is_contiguous() and t.dtype == torch.float32 for t in tensors)
+        assert obs.shape == (4, 6, env.obs_dim)
+        assert info["collision_pairs"].shape == (4,)
+    assert first[0].data_ptr() != second[0].data_ptr()
+    assert first[3]["collision_pairs"].data_ptr() != second[3]["collision_pairs"].data_ptr()
+
+
 @pytest.mark.parametrize("scenario", ["3v3", "warehouse"])
 def test_ipf_step_matches_torch_path(scenario: str) -> None:
     fast, ref = _pair(scenario, reward="ipf")
