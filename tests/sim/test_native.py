@@ -75,6 +75,8 @@ def test_step_matches_torch_path(scenario: str) -> None:
     (8, 5, dict(k_tasks=3, k_agents=3, sensing_range=1.2)),  # ranks past k (lanes)
     (5, 3, dict(k_tasks=4, k_agents=6)),  # more slots than entries (lanes)
     (7, 8, dict(k_tasks=8, k_agents=2, sensing_range=1.0)),
+    (8, 8, dict(k_tasks=3, k_agents=0)),  # no AGV slots (lanes)
+    (5, 1, dict(k_tasks=0, k_agents=4, sensing_range=0.5)),  # no task slots (lanes)
     (3, 3, dict(k_tasks=2, k_agents=1, sensing_range=0.7)),  # short lists, scalar ranks
     (9, 4, dict(k_tasks=2, k_agents=3, sensing_range=1.0)),  # general path
 ])
