@@ -95,6 +95,13 @@ static inline __attribute__((always_inline)) float keep(float x, uint32_t mask) 
         dst_[3] = keep(vel[2 * (j) + 1], keep_);              \
         dst_[4] = keep(1.0f, keep_);                          \
     } while (0)
+/* Zeros slots from..k-1 of width w at out (the padding of a K-nearest list). */
+static inline __attribute__((always_inline)) void zero_slots(float *out, int64_t from, int64_t k,
+                                                             int64_t w) {
+    for (int64_t r = from; r < k; r++)
+        for (int64_t c = 0; c < w; c++) out[w * r + c] = 0.0f;
+}
+
 /* Fills the k slots of width w at out with the k nearest finite entries of dk[0..n), in
  * increasing order, then zeros. Short lists write each entry straight to the slot of its rank,
  * long ones go through the k nearest. */
@@ -111,8 +118,7 @@ static inline __attribute__((always_inline)) float keep(float x, uint32_t mask) 
             filled = nearest(n, k, dk, order);                                \
             for (int64_t r = 0; r < filled; r++) put((out) + (w) * r, order[r], ~0u); \
         }                                                                     \
-        for (int64_t r = filled; r < (k); r++)                                \
-            for (int64_t c = 0; c < (w); c++) (out)[(w) * r + c] = 0.0f;      \
+        zero_slots(out, filled, k, w);                                        \
     } while (0)
 
 /* Scenes of VL + 1 to SMALL AGVs and at most SMALL tasks are done with all AGVs at once: AGV i
@@ -132,6 +138,16 @@ static inline __attribute__((always_inline)) vf vf_sqrt(vf x) {
 /* mask ? y : x, lane by lane (mask lanes are 0 or -1). */
 static inline __attribute__((always_inline)) vf vf_pick(vi mask, vf y, vf x) {
     return (vf)((mask & (vi)y) | (~mask & (vi)x));
+}
+
+/* Whether a scene of N AGVs and M tasks is done in lanes. */
+#define USES_LANES(N, M) (VL < (N) && (N) <= SMALL && (M) <= SMALL)
+
+/* {0, 1, ..., VL - 1}: each lane's index. */
+static inline __attribute__((always_inline)) vi vi_lanes(void) {
+    vi r;
+    for (int l = 0; l < VL; l++) r[l] = l;
+    return r;
 }
 
 static inline __attribute__((always_inline)) vf vf_fill(float x) {
@@ -190,9 +206,8 @@ static inline __attribute__((always_inline)) void observe_lanes(
     const int64_t O = 5 + 3 * kt + 5 * ka, nc = (N + VL - 1) / VL;
     const vf inf = vf_fill(INF_F);
     vf dt[SMALL][CH], da[SMALL][CH];
-    vi rt[SMALL][CH], ra[SMALL][CH], lane;
-    const vi zero = lane - lane;
-    for (int l = 0; l < VL; l++) lane[l] = l;
+    vi rt[SMALL][CH], ra[SMALL][CH];
+    const vi lane = vi_lanes(), zero = {0};
     for (int64_t j = 0; j < M; j++) {
         const vi hidden = claimed[j] ? zero - 1 : zero;
         for (int64_t c = 0; c < nc; c++) {
@@ -221,13 +236,12 @@ static inline __attribute__((always_inline)) void observe_lanes(
             const int32_t r = rt[j][c][l];
             PUT_TASK(r < kt ? ot + 3 * r : junk, j, -(uint32_t)(dt[j][c][l] < INF_F));
         }
-        for (int64_t r = M; r < kt; r++) ot[3 * r] = ot[3 * r + 1] = ot[3 * r + 2] = 0.0f;
+        zero_slots(ot, M, kt, 3);
         for (int64_t j = 0; j < N; j++) {
             const int32_t r = ra[j][c][l];
             PUT_AGENT(r < ka ? oa + 5 * r : junk, j, -(uint32_t)(da[j][c][l] < INF_F));
         }
-        for (int64_t r = N; r < ka; r++)
-            oa[5 * r] = oa[5 * r + 1] = oa[5 * r + 2] = oa[5 * r + 3] = oa[5 * r + 4] = 0.0f;
+        zero_slots(oa, N, ka, 5);
         o[O - 1] = agent_task[i] >= 0 ? 1.0f : 0.0f;
     }
 }
@@ -297,73 +311,6 @@ static int scratch_init(scratch_t *s, int64_t N, int64_t M) {
     return 0;
 }
 
-/* AGV-task distances dat (N, M) and AGV-AGV distances daa (N, N) of one environment. */
-static inline __attribute__((always_inline)) void distances(
-        int64_t N, int64_t M, const float *pos, const float *task, float *dat, float *daa) {
-    for (int64_t i = 0; i < N; i++) {
-        const float px = pos[2 * i], py = pos[2 * i + 1];
-        for (int64_t j = 0; j < M; j++) {
-            const float dx = task[2 * j] - px, dy = task[2 * j + 1] - py;
-            dat[i * M + j] = sqrtf(dx * dx + dy * dy);
-        }
-        daa[i * N + i] = 0.0f;
-        for (int64_t j = i + 1; j < N; j++) {
-            const float dx = px - pos[2 * j], dy = py - pos[2 * j + 1];
-            daa[i * N + j] = daa[j * N + i] = sqrtf(dx * dx + dy * dy);
-        }
-    }
-}
-
-/* Calls body(N, M, kt, ka) with compile-time sizes for the paper's scenes (3v3, 6v6), so the
- * small loops unroll, and with the run-time sizes otherwise. */
-#define SPECIALIZE(body)                                                                     \
-    do {                                                                                     \
-        if (N == 3 && M == 3 && kt == 3 && ka == 2) body(3, 3, 3, 2);                        \
-        else if (N == 6 && M == 6 && kt == 6 && ka == 5) body(6, 6, 6, 5);                   \
-        else body(N, M, kt, ka);                                                             \
-    } while (0)
-
-static inline __attribute__((always_inline)) void observe_envs(
-        int64_t B, const int64_t N, const int64_t M, const int64_t kt, const int64_t ka,
-        float range, const float *pos, const float *vel, const float *task,
-        const uint8_t *claimed, const int64_t *agent_task, float *obs, float *dat,
-        scratch_t *s) {
-    const int64_t O = 5 + 3 * kt + 5 * ka;
-    for (int64_t b = 0; b < B; b++) {
-        const float *p = pos + b * N * 2, *t = task + b * M * 2;
-        if (VL < N && N <= SMALL && M <= SMALL) {
-            lanes_t g;
-            lanes_init(N, M, p, t, &g);
-            observe_lanes(N, M, kt, ka, range, &g, p, vel + b * N * 2, t, claimed + b * M,
-                          agent_task + b * N, obs + b * N * O);
-        } else {
-            distances(N, M, p, t, dat, s->daa);
-            observe_env(N, M, kt, ka, range, p, vel + b * N * 2, t, claimed + b * M,
-                        agent_task + b * N, dat, s->daa, obs + b * N * O, s->dk, s->order);
-        }
-    }
-}
-
-/* Observations of B environments from their state (AGVEnv.observe). Returns -1 when out of
- * memory, else 0. */
-int agv_observe(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
-                const float *pos, const float *vel, const float *task, const uint8_t *claimed,
-                const int64_t *agent_task, float *obs) {
-    scratch_t s;
-    float *dat = malloc(sizeof(float) * (size_t)(N * M + 1));
-    if (!dat || scratch_init(&s, N, M)) {
-        free(dat);
-        return -1;
-    }
-#define OBSERVE(n, m, k1, k2) \
-    observe_envs(B, n, m, k1, k2, range, pos, vel, task, claimed, agent_task, obs, dat, &s)
-    SPECIALIZE(OBSERVE);
-#undef OBSERVE
-    free(dat);
-    free(s.heap);
-    return 0;
-}
-
 /* The first pass of a step over the pairs of a scene: the AGV-task distances d (N, M) and
  * the AGV-AGV distances daa (N, N), each task's nearest AGV colmin (M) (for R_t), the
  * overlapping discs of each AGV hits (N), and whether an idle AGV reached an open task
@@ -401,6 +348,58 @@ static inline __attribute__((always_inline)) int64_t pairs_scalar(
     return npairs;
 }
 
+/* Calls body(N, M, kt, ka) with compile-time sizes for the paper's scenes (3v3, 6v6), so the
+ * small loops unroll, and with the run-time sizes otherwise. */
+#define SPECIALIZE(body)                                                                     \
+    do {                                                                                     \
+        if (N == 3 && M == 3 && kt == 3 && ka == 2) body(3, 3, 3, 2);                        \
+        else if (N == 6 && M == 6 && kt == 6 && ka == 5) body(6, 6, 6, 5);                   \
+        else body(N, M, kt, ka);                                                             \
+    } while (0)
+
+static inline __attribute__((always_inline)) void observe_envs(
+        int64_t B, const int64_t N, const int64_t M, const int64_t kt, const int64_t ka,
+        float range, const float *pos, const float *vel, const float *task,
+        const uint8_t *claimed, const int64_t *agent_task, float *obs, float *dat,
+        scratch_t *s) {
+    const int64_t O = 5 + 3 * kt + 5 * ka;
+    for (int64_t b = 0; b < B; b++) {
+        const float *p = pos + b * N * 2, *t = task + b * M * 2;
+        if (USES_LANES(N, M)) {
+            lanes_t g;
+            lanes_init(N, M, p, t, &g);
+            observe_lanes(N, M, kt, ka, range, &g, p, vel + b * N * 2, t, claimed + b * M,
+                          agent_task + b * N, obs + b * N * O);
+        } else {
+            int close;  /* the step's first pass; only the distances are used here */
+            pairs_scalar(N, M, 0.0f, 0.0f, p, t, claimed + b * M, agent_task + b * N, dat,
+                         s->daa, s->colmin, s->hits, &close);
+            observe_env(N, M, kt, ka, range, p, vel + b * N * 2, t, claimed + b * M,
+                        agent_task + b * N, dat, s->daa, obs + b * N * O, s->dk, s->order);
+        }
+    }
+}
+
+/* Observations of B environments from their state (AGVEnv.observe). Returns -1 when out of
+ * memory, else 0. */
+int agv_observe(int64_t B, int64_t N, int64_t M, int64_t kt, int64_t ka, float range,
+                const float *pos, const float *vel, const float *task, const uint8_t *claimed,
+                const int64_t *agent_task, float *obs) {
+    scratch_t s;
+    float *dat = malloc(sizeof(float) * (size_t)(N * M + 1));
+    if (!dat || scratch_init(&s, N, M)) {
+        free(dat);
+        return -1;
+    }
+#define OBSERVE(n, m, k1, k2) \
+    observe_envs(B, n, m, k1, k2, range, pos, vel, task, claimed, agent_task, obs, dat, &s)
+    SPECIALIZE(OBSERVE);
+#undef OBSERVE
+    free(dat);
+    free(s.heap);
+    return 0;
+}
+
 /* pairs_scalar for a small scene whose AGV-AGV distances g holds: the same values, with the
  * tasks in lanes for d, colmin and close. */
 static inline __attribute__((always_inline)) int64_t pairs_lanes(
@@ -408,9 +407,8 @@ static inline __attribute__((always_inline)) int64_t pairs_lanes(
         const float *t, const uint8_t *cl, const int64_t *at, float *d, float *daa,
         float *colmin, int64_t *hits, int *close) {
     const int64_t nc = (N + VL - 1) / VL, mc = (M + VL - 1) / VL;
-    vi lane, hit[CH], open[CH];
-    const vi zero = lane - lane;
-    for (int l = 0; l < VL; l++) lane[l] = l;
+    vi hit[CH], open[CH];
+    const vi lane = vi_lanes(), zero = {0};
     /* Row j of daa is da[j] (the distances are symmetric); hits counted in the AGVs' lanes. */
     for (int64_t c = 0; c < nc; c++) hit[c] = zero;
     for (int64_t j = 0; j < N; j++) {
@@ -537,7 +535,7 @@ static inline __attribute__((always_inline)) int post_step_env(
     finish_env(N, M, capture, max_steps, v, cl, at, steps, done, ato, clo, now, steps_out,   \
                done_out, d, per_agent, pairs, team, team_distance, team_collision, s->colmin, \
                s->hits, npairs, close, s->best)
-    if (VL < N && N <= SMALL && M <= SMALL) {
+    if (USES_LANES(N, M)) {
         lanes_t g;
         lanes_init(N, M, p, t, &g);
         npairs = pairs_lanes(N, M, capture, collide, &g, p, t, cl, at, d, daa, s->colmin,
