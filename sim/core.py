@@ -130,16 +130,19 @@ class AGVEnv:
         self._triu = torch.triu(torch.ones(N, N, dtype=torch.bool, device=self.device), 1)
         self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
         self._native = native_kernels.library_for(self.device, native)
-        self._spare: tuple[Tensor, Tensor, Tensor] | None = None
         if self._native is not None:
             # The fused step writes the AGV-AGV distances here for the next physics step, and
             # _prepare the physics step's movable mask; only the env reads them, so one
-            # buffer each serves every step. Templates of the fresh float32 outputs of every
-            # step: torch.empty_like (contiguous for an expanded template) costs a third less
-            # than torch.empty with a dtype, which counts at small B.
+            # buffer each serves every step.
             self._pair_buf = torch.empty(B, N, N, dtype=torch.float32)
             self._movable = torch.empty(B, N, dtype=torch.bool)
-            one = torch.empty((), dtype=torch.float32)  # expanded: the templates hold no memory
+            # Spares for agent_task, task_claimed and done (see _post_step_native).
+            self._spare = (torch.empty_like(self.agent_task), torch.empty_like(self.task_claimed),
+                           torch.empty_like(self.done))
+            # Templates of the fresh float32 outputs of every step: torch.empty_like (contiguous
+            # for an expanded template, which holds no memory) costs a third less than
+            # torch.empty with a dtype, which counts at small B.
+            one = torch.empty((), dtype=torch.float32)
             self._like = (one.expand(B, N, M), one.expand(B, N), one.expand(B),
                           one.expand(B, N, self.obs_dim))
         self._post_args = (B, N, M, self.k_tasks, self.k_agents, scenario.sensing_range,
@@ -401,16 +404,13 @@ class AGVEnv:
                           *team_terms)
         terms = self.reward_fn(self, ctx)
         values = list(terms.values())
-        if not values:
-            reward = torch.zeros_like(per_agent)
-        elif len(values) == 1:
-            reward = values[0] * active.unsqueeze(1)
-        else:
-            reward = values[0] + values[1]
-            for value in values[2:]:
-                reward = reward + value
-            if not self._reward_zeroes_inactive:
+        if values:
+            reward = sum(values[1:], values[0])
+            # The mask also gives a single term a tensor of its own.
+            if len(values) == 1 or not self._reward_zeroes_inactive:
                 reward = reward * active.unsqueeze(1)
+        else:
+            reward = torch.zeros_like(per_agent)
         info = {
             "reward_terms": terms,
             "team_reward": team,
@@ -452,9 +452,6 @@ class AGVEnv:
         ``done`` are written to spare tensors that replace the state only when they differ
         from it (the spares are then renewed).
         """
-        if self._spare is None:
-            self._spare = (torch.empty_like(self.agent_task), torch.empty_like(self.task_claimed),
-                           torch.empty_like(self.done))
         agent_task, claimed, done = self._spare
         like_dist, like_agents, like_envs, like_obs = self._like
         claimed_now = torch.empty_like(self.task_claimed)
@@ -467,11 +464,11 @@ class AGVEnv:
         team_collision = torch.empty_like(like_agents)
         obs = torch.empty_like(like_obs)
         # The state tensors are contiguous (the env creates them); the list keeps any copy
-        # alive until the call returns.
+        # alive until the call returns. The kernel stops claiming AGVs in agent_vel itself.
         self.agent_vel = self.agent_vel.contiguous()
-        state = [t.contiguous() for t in (self.agent_pos, self.agent_vel, self.task_pos,
-                                          self.task_claimed, self.agent_task, self.steps,
-                                          self.done)]
+        state = [self.agent_pos.contiguous(), self.agent_vel,
+                 *[t.contiguous() for t in (self.task_pos, self.task_claimed, self.agent_task,
+                                            self.steps, self.done)]]
         outputs = (agent_task, claimed, claimed_now, steps, done, dist, self._pair_buf,
                    per_agent, pairs, team, team_distance, team_collision, obs)
         changed = self._native.agv_post_step(
