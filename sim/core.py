@@ -8,13 +8,13 @@ dimension and no Python loop runs over agents or environments on the step.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from sim.state import SimState, StepContext
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -22,38 +22,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from sim.scenarios import Scenario
 
 __all__ = ["AGVEnv", "SimState", "StepContext", "make_env"]
-
-
-@dataclass
-class SimState:
-    """The changing state of B environments (views of the env's tensors, not copies)."""
-
-    agent_pos: Tensor  # (B, N, 2) world units
-    agent_vel: Tensor  # (B, N, 2) world units per second
-    task_pos: Tensor  # (B, M, 2)
-    task_claimed: Tensor  # (B, M) bool
-    agent_task: Tensor  # (B, N) int64, task held by the AGV or -1
-    steps: Tensor  # (B,) int64, steps taken in the current episode
-    done: Tensor  # (B,) bool
-
-
-@dataclass
-class StepContext:
-    """What a reward function may read about the step just taken.
-
-    Distances are computed once by the environment and shared by every reward term.
-    """
-
-    prev_agent_pos: Tensor  # (B, N, 2) positions before the step
-    prev_task_claimed: Tensor  # (B, M) bool, claims before the step
-    prev_agent_task: Tensor  # (B, N) int64, tasks held before the step
-    active: Tensor  # (B,) bool, environments that were running during the step
-    agent_task_dist: Tensor  # (B, N, M) distances after the step
-    collisions_per_agent: Tensor  # (B, N) float, overlapping discs per AGV (0 where inactive)
-    collision_pairs: Tensor  # (B,) float, overlapping pairs after the step (0 where inactive)
-    team_reward: Tensor  # (B,) float, the paper's R_t (0 where inactive)
-    team_distance: Tensor  # (B, N) float, R_t + collision_pairs for every AGV (0 where inactive)
-    team_collision: Tensor  # (B, N) float, -collision_pairs for every AGV
 
 
 class AGVEnv:
@@ -66,7 +34,7 @@ class AGVEnv:
     num_envs : int
         Number B of parallel environments.
     reward : str or RewardFn
-        ``"minidist"``, ``"greedy"``, ``"ipf"`` or a callable ``(env, ctx) -> {term: (B, N)}``.
+        ``"minidist"``, ``"greedy"``, ``"ipf"`` or a callable ``(state, ctx) -> {term: (B, N)}``.
     seed : int, optional
         Seed of the environment's ``torch.Generator``; every random draw comes from it.
     device : str or torch.device
@@ -152,6 +120,9 @@ class AGVEnv:
             reason = ("the kernels run on CPU tensors only" if self.device.type != "cpu"
                       else native_kernels.disabled_reason())
             raise ValueError(f"native=True but the fused kernels are unavailable: {reason}")
+        setup = getattr(self.reward_fn, "setup", None)
+        if setup is not None:  # static facts a reward needs: the floor and the kernels' use
+            setup(self.world, self._native)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -402,7 +373,7 @@ class AGVEnv:
             obs = None
         ctx = StepContext(prev_pos, prev_claimed, prev_task, active, dist, per_agent, pairs, team,
                           *team_terms)
-        terms = self.reward_fn(self, ctx)
+        terms = self.reward_fn(self.state, ctx)
         values = list(terms.values())
         if values:
             reward = sum(values[1:], values[0])

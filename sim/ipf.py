@@ -73,13 +73,12 @@ import torch
 from torch import Tensor
 
 from sim.io import atomic_save
+from sim.state import SimState, StepContext
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
     import networkx as nx
     from matplotlib.figure import Figure
-
-    from sim.core import AGVEnv, StepContext
 
 __all__ = [
     "TASK_VALUE",
@@ -921,24 +920,33 @@ class IPFReward:
         self.agent_value = agent_value
         self._cache = TaskBlockCache()
 
-    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
-        grid = ipf_grid(env.world, self.resolution)
+    def setup(self, world: World, kernels: Any = None) -> None:
+        """Bind the reward to the floor of the environment and to the kernels it uses."""
+        self._world = world
+        self._kernels = kernels
+
+    def __call__(self, state: SimState, ctx: StepContext) -> dict[str, Tensor]:
+        world = getattr(self, "_world", None)
+        if world is None:
+            raise ValueError("IPFReward.setup(world, kernels) must be called before the reward "
+                             "(sim.make_env does it)")
+        grid = ipf_grid(world, self.resolution)
         # ctx's collision counts and team terms are already 0 where the env was not running.
         goal = ctx.team_distance
         collision = -ctx.collisions_per_agent.clamp_max(1.0)
         potential = None
-        if env.native:
+        if self._kernels is not None:
             potential = grid._potentials_native(
-                env.agent_pos, env.task_pos, None, self.task_value, self.agent_value,
-                self._cache, agent_task=env.agent_task, active=ctx.active,
-                task_claimed=env.task_claimed, dtype=goal.dtype,
+                state.agent_pos, state.task_pos, None, self.task_value, self.agent_value,
+                self._cache, agent_task=state.agent_task, active=ctx.active,
+                task_claimed=state.task_claimed, dtype=goal.dtype,
             )
         if potential is None:
             potential = grid.agent_potentials(
-                env.agent_pos, env.task_pos, ~env.task_claimed, self.task_value,
+                state.agent_pos, state.task_pos, ~state.task_claimed, self.task_value,
                 self.agent_value, cache=self._cache, native=False,
             ).double()
-            potential = torch.where(env.agent_task >= 0, self.task_value, potential)
+            potential = torch.where(state.agent_task >= 0, self.task_value, potential)
             potential = potential * ctx.active.unsqueeze(1)
             potential = potential.to(goal.dtype)
         return {"ipf": potential, "goal": goal, "collision": collision}

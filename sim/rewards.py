@@ -1,9 +1,10 @@
 """Reward functions, chosen by name in :func:`sim.make_env`.
 
-A reward is a small callable ``reward(env, ctx) -> {term_name: (B, N) tensor}``; the
+A reward is a small callable ``reward(state, ctx) -> {term_name: (B, N) tensor}`` of the
+state after the step (:class:`sim.state.SimState`) and the step's context; the
 environment sums the terms into the per-agent reward and reports each term in
 ``info["reward_terms"]`` so that shaping can be audited. ``ctx`` is a
-:class:`sim.core.StepContext` holding the distances and collisions the environment already
+`sim.state.StepContext` holding the distances and collisions the environment already
 computed for the step.
 
 - ``minidist`` (global): every AGV gets the paper's R_t = -(sum over tasks of the distance to
@@ -21,25 +22,26 @@ step (the environment zeroes their summed reward too, so the reported terms add 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
-if TYPE_CHECKING:  # pragma: no cover
-    from sim.core import AGVEnv, StepContext
+from sim.state import SimState, StepContext
 
 __all__ = ["RewardFn", "MiniDist", "Greedy", "REWARDS", "make_reward"]
 
 
 class RewardFn(Protocol):
-    """``reward(env, ctx) -> {term: (B, N)}``; terms are summed into the agent's reward.
+    """``reward(state, ctx) -> {term: (B, N)}``; terms are summed into the agent's reward.
 
     A reward whose class sets ``zeroes_inactive = True`` promises that every term is already
     0 in environments that were not running; the step then skips masking the summed reward.
+    A reward that needs static facts (the floor, whether the fused kernels run) defines
+    ``setup(world, kernels)``, which the environment calls once when it is made.
     """
 
-    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]: ...
+    def __call__(self, state: SimState, ctx: StepContext) -> dict[str, Tensor]: ...
 
 
 def _active_only(terms: dict[str, Tensor], active: Tensor) -> dict[str, Tensor]:
@@ -59,7 +61,7 @@ class MiniDist:
 
     zeroes_inactive = True
 
-    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
+    def __call__(self, state: SimState, ctx: StepContext) -> dict[str, Tensor]:
         # The environment splits R_t per AGV already (0 where it was not running).
         return {"distance": ctx.team_distance, "collision": ctx.team_collision}
 
@@ -75,10 +77,10 @@ class Greedy:
 
     zeroes_inactive = True
 
-    def __call__(self, env: AGVEnv, ctx: StepContext) -> dict[str, Tensor]:
+    def __call__(self, state: SimState, ctx: StepContext) -> dict[str, Tensor]:
         inf = torch.tensor(float("inf"), device=ctx.agent_task_dist.device)
         open_tasks = ~ctx.prev_task_claimed.unsqueeze(1)  # (B, 1, M)
-        d_before = torch.cdist(ctx.prev_agent_pos, env.task_pos)
+        d_before = torch.cdist(ctx.prev_agent_pos, state.task_pos)
         d_before = torch.where(open_tasks, d_before, inf)
         nearest_before, target = d_before.min(dim=2)  # (B, N)
         d_after = ctx.agent_task_dist.gather(2, target.unsqueeze(-1)).squeeze(-1)

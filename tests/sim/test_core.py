@@ -244,7 +244,7 @@ def test_out_of_range_actions_are_clipped_and_not_modified(native: bool) -> None
 
 
 def test_rewards_without_the_promise_are_masked_in_finished_environments() -> None:
-    def ones(env, ctx):
+    def ones(state, ctx):
         return {"a": torch.ones(env.num_envs, env.num_agents),
                 "b": torch.ones(env.num_envs, env.num_agents)}
 
