@@ -24,12 +24,10 @@ import subprocess
 import tempfile
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # pragma: no cover
-    import torch
+import torch
 
-__all__ = ["available", "library", "library_for", "disabled_reason"]
+__all__ = ["available", "library", "library_for", "disabled_reason", "pointer"]
 
 SOURCE = Path(__file__).parent / "_native" / "kernels.c"
 FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
@@ -47,6 +45,53 @@ _SIGNATURES = {
     "agv_ipf": (ctypes.c_int, [_I, _I, _I, _P, _P, _P, _I, _P, _P, _I, _P, _I, _I]
                 + [_D] * 6 + [_P] * 6),
 }
+
+
+def pointer(tensor: torch.Tensor, dtype: torch.dtype, shape: tuple[int, ...], name: str) -> int:
+    """The address of ``tensor``'s data for a C kernel, after checking that it fits.
+
+    Parameters
+    ----------
+    tensor : Tensor
+        The tensor the kernel reads or writes.
+    dtype : torch.dtype
+        The element type the C code expects (``torch.float32`` for ``float``, ``torch.int64``
+        for ``int64_t``, ``torch.bool`` for ``uint8_t`` flags).
+    shape : tuple of int
+        The exact shape the C code indexes; ``-1`` matches any size in that place.
+    name : str
+        The argument's name, for the error message.
+
+    Returns
+    -------
+    int
+        ``tensor.data_ptr()``.
+
+    Raises
+    ------
+    ValueError
+        Naming ``name``, unless ``tensor`` is a C-contiguous CPU tensor of exactly ``dtype``
+        and ``shape``.
+    """
+    if (type(tensor) is torch.Tensor and tensor.dtype is dtype and tensor.is_cpu
+            and tensor.shape == shape and tensor.is_contiguous()):
+        return tensor.data_ptr()
+    _check(tensor, dtype, shape, name)
+    return tensor.data_ptr()
+
+
+def _check(tensor: object, dtype: torch.dtype, shape: tuple[int, ...], name: str) -> None:
+    """The slow path of :func:`pointer`: wildcards, subclasses, and the error messages."""
+    want = f"a C-contiguous CPU tensor of dtype {dtype} and shape {tuple(shape)}"
+    if not isinstance(tensor, torch.Tensor):
+        raise ValueError(f"{name} must be {want}, got {type(tensor).__name__}")
+    got = f"dtype {tensor.dtype}, shape {tuple(tensor.shape)} on {tensor.device}"
+    fits = (len(tensor.shape) == len(shape)
+            and all(w == -1 or w == g for w, g in zip(shape, tensor.shape, strict=False)))
+    if tensor.dtype != dtype or not fits or not tensor.is_cpu:
+        raise ValueError(f"{name} must be {want}, got {got}")
+    if not tensor.is_contiguous():
+        raise ValueError(f"{name} must be {want}, got a non-contiguous tensor")
 
 
 def _cache_dir() -> Path:
