@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from learners.buffer import Batch
-from learners.common import ActorCritic, OffPolicyConfig, movable_mask
+from learners.common import ActorCritic, OffPolicyConfig, check_int, movable_mask
 from learners.networks import BiRNNNet
 
 __all__ = ["BiCNetConfig", "BiCNet"]
@@ -38,6 +38,12 @@ class BiCNetConfig(OffPolicyConfig):
     """Shared fully connected layers after the GRU, the last one linear (the paper: four)."""
     batch_size: int = 512
     """Transitions per gradient update."""
+
+    def validate(self) -> None:
+        """Check every field (see :meth:`OffPolicyConfig.validate`), the layer counts too."""
+        super().validate()
+        self.input_layers = check_int("input_layers", self.input_layers, 1)
+        self.output_layers = check_int("output_layers", self.output_layers, 1)
 
 
 class BiCNet(ActorCritic):

@@ -4,15 +4,96 @@ parked-AGV masks and the flat tensor form of their state for checkpoints."""
 from __future__ import annotations
 
 import copy
+import math
+import numbers
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from learners.buffer import Batch
+from learners.networks import torch_ops
 
-__all__ = ["ActorCritic", "OffPolicyConfig", "movable_mask", "soft_update_"]
+__all__ = [
+    "ActorCritic", "OffPolicyConfig", "movable_mask", "soft_update_", "check_bool",
+    "check_choice", "check_int", "check_real",
+]
+
+
+def check_int(name: str, value: Any, minimum: int | None = None,
+              maximum: int | None = None) -> int:
+    """``value`` as an int, or a ValueError naming ``name`` and the valid range.
+
+    Parameters
+    ----------
+    name : str
+        The field, for the message.
+    value : object
+        An integer (Python or NumPy; not a bool, not a float such as 2.0).
+    minimum, maximum : int, optional
+        Inclusive bounds.
+
+    Returns
+    -------
+    int
+    """
+    lo = "-inf" if minimum is None else minimum
+    hi = "inf" if maximum is None else maximum
+    where = f"an integer in [{lo}, {hi}]" if maximum is not None else f"an integer >= {lo}"
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be {where}, got {value!r} ({type(value).__name__})")
+    value = int(value)
+    if (minimum is not None and value < minimum) or (maximum is not None and value > maximum):
+        raise ValueError(f"{name} must be {where}, got {value!r}")
+    return value
+
+
+def check_real(name: str, value: Any, low: float = -math.inf, high: float = math.inf,
+               low_open: bool = False, high_open: bool = False) -> float:
+    """``value`` as a finite float in the given interval, or a ValueError naming ``name``.
+
+    Parameters
+    ----------
+    name : str
+    value : object
+        A real number (not a bool, not NaN or infinite).
+    low, high : float
+        The bounds of the interval.
+    low_open, high_open : bool
+        Whether the bound is excluded.
+
+    Returns
+    -------
+    float
+    """
+    left = "(" if low_open or low == -math.inf else "["
+    right = ")" if high_open or high == math.inf else "]"
+    where = f"a finite number in {left}{low:g}, {high:g}{right}"
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be {where}, got {value!r} ({type(value).__name__})")
+    value = float(value)
+    if (not math.isfinite(value) or value < low or value > high
+            or (low_open and value == low) or (high_open and value == high)):
+        raise ValueError(f"{name} must be {where}, got {value!r}")
+    return value
+
+
+def check_choice(name: str, value: Any, choices: Iterable[str]) -> str:
+    """``value`` if it is one of ``choices``, else a ValueError naming ``name`` and them."""
+    choices = list(choices)
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+    return value
+
+
+def check_bool(name: str, value: Any) -> bool:
+    """``value`` if it is a bool (Python or NumPy), else a ValueError naming ``name``."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
 
 
 @dataclass
@@ -60,6 +141,41 @@ class OffPolicyConfig:
     mask_parked: bool = True
     """Zero the actions of parked AGVs (their actions are ignored) in acting and in the losses."""
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Check every field (type and range); normalise NumPy numbers to Python ones.
+
+        Raises
+        ------
+        ValueError
+            Naming the first bad field and its valid range.
+        """
+        for name, low in (("hidden", 1), ("batch_size", 1), ("buffer_size", 1),
+                          ("num_envs", 1), ("updates_per_step", 1), ("learning_starts", 0),
+                          ("noise_decay_episodes", 0)):
+            setattr(self, name, check_int(name, getattr(self, name), low))
+        for name, low, high, low_open, high_open in (
+            ("actor_lr", 0.0, math.inf, True, False), ("critic_lr", 0.0, math.inf, True, False),
+            ("gamma", 0.0, 1.0, False, True), ("tau", 0.0, 1.0, True, False),
+            ("noise_start", 0.0, math.inf, False, False),
+            ("noise_end", 0.0, math.inf, False, False),
+            ("grad_clip", 0.0, math.inf, True, False),
+            ("action_l2", 0.0, math.inf, False, False),
+            ("reward_scale", 0.0, math.inf, True, False),
+        ):
+            setattr(self, name, check_real(name, getattr(self, name), low, high, low_open,
+                                           high_open))
+        check_choice("terminal_value", self.terminal_value, ("absorbing", "zero"))
+        self.mask_parked = check_bool("mask_parked", self.mask_parked)
+        if self.buffer_size < self.num_envs:
+            raise ValueError(f"buffer_size ({self.buffer_size}) must be at least num_envs "
+                             f"({self.num_envs}): every step stores num_envs transitions")
+        if self.learning_starts > self.buffer_size:
+            raise ValueError(f"learning_starts ({self.learning_starts}) must be at most "
+                             f"buffer_size ({self.buffer_size}), or no update would ever run")
+
 
 def movable_mask(obs: Tensor) -> Tensor:
     """1.0 for AGVs that still move, 0.0 for parked ones, shape (B, N, 1).
@@ -73,8 +189,8 @@ def movable_mask(obs: Tensor) -> Tensor:
 @torch.no_grad()
 def soft_update_(target: nn.Module, source: nn.Module, tau: float) -> None:
     """Polyak averaging ``target <- (1 - tau) target + tau source``, in place (one fused
-    multi-tensor call)."""
-    torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+    multi-tensor call where available, see :func:`learners.networks.select_torch_ops`)."""
+    torch_ops().lerp_(list(target.parameters()), list(source.parameters()), tau)
 
 
 class ActorCritic(nn.Module):
@@ -90,7 +206,10 @@ class ActorCritic(nn.Module):
 
     def __init__(self, obs_dim: int, state_dim: int, num_agents: int, config: Any) -> None:
         super().__init__()
-        self.obs_dim, self.state_dim, self.num_agents = obs_dim, state_dim, num_agents
+        config.validate()
+        self.obs_dim = check_int("obs_dim", obs_dim, 1)
+        self.state_dim = check_int("state_dim", state_dim, 1)
+        self.num_agents = check_int("num_agents", num_agents, 1)
         self.config = config
         self.updates = 0
 
@@ -99,11 +218,13 @@ class ActorCritic(nn.Module):
         cfg = self.config
         self.target_actor = copy.deepcopy(self.actor).requires_grad_(False)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
-        # fused: one kernel for all parameters (the stacked layout has few, large tensors)
+        # fused: one kernel for all parameters (the stacked layout has few, large tensors),
+        # where this torch has a fused CPU Adam (>= 2.4); multi-tensor foreach otherwise
+        kernel = {"fused": True} if torch_ops().adam_fused else {"foreach": True}
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr,
-                                                fused=True)
+                                                **kernel)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr,
-                                                 fused=True)
+                                                 **kernel)
 
     # ------------------------------------------------------------------ acting
     def policy(self, obs: Tensor, target: bool = False) -> Tensor:
@@ -146,7 +267,7 @@ class ActorCritic(nn.Module):
             after = torch.where(terminal, batch.reward / (1.0 - cfg.gamma), q_next)
         elif cfg.terminal_value == "zero":
             after = torch.where(terminal, torch.zeros_like(q_next), q_next)
-        else:
+        else:  # the config was changed after it was checked
             raise ValueError(f"terminal_value must be 'absorbing' or 'zero', got "
                              f"{cfg.terminal_value!r}")
         return batch.reward + cfg.gamma * after

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from learners.buffer import Batch
-from learners.common import ActorCritic, OffPolicyConfig, movable_mask
+from learners.common import ActorCritic, OffPolicyConfig, check_choice, check_int, movable_mask
 from learners.networks import (
     StackedMLP,
     Workspace,
@@ -32,7 +32,10 @@ from learners.networks import (
     stacked_forward_,
 )
 
-__all__ = ["MADDPGConfig", "MADDPG"]
+__all__ = ["MADDPGConfig", "MADDPG", "CRITIC_INPUTS"]
+
+CRITIC_INPUTS = ("obs", "state", "state+obs")
+"""What the centralized critics may see besides the actions (``MADDPGConfig.critic_input``)."""
 
 
 @dataclass
@@ -49,6 +52,13 @@ class MADDPGConfig(OffPolicyConfig):
     """What the centralized critics see besides all actions: ``"obs"`` (every agent's local
     observation, the paper's x = [o_1, ..., o_N]), ``"state"`` (the simulator's global state)
     or ``"state+obs"`` (both)."""
+
+    def validate(self) -> None:
+        """Check every field (see :meth:`OffPolicyConfig.validate`), ``layers`` and
+        ``critic_input`` too."""
+        super().validate()
+        self.layers = check_int("layers", self.layers, 1)
+        check_choice("critic_input", self.critic_input, CRITIC_INPUTS)
 
 
 class MADDPG(ActorCritic):
@@ -74,9 +84,6 @@ class MADDPG(ActorCritic):
         super().__init__(obs_dim, state_dim, num_agents, config)
         n, h = num_agents, config.hidden
         sizes = {"obs": n * obs_dim, "state": state_dim, "state+obs": state_dim + n * obs_dim}
-        if config.critic_input not in sizes:
-            raise ValueError(f"critic_input must be one of {sorted(sizes)}, got "
-                             f"{config.critic_input!r}")
         self.actor = StackedMLP(n, obs_dim, 2, h, config.layers)
         self.critic = StackedMLP(n, sizes[config.critic_input] + 2 * n, 1, h, config.layers)
         self._finish_init()

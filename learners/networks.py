@@ -11,21 +11,172 @@
 * :class:`Workspace`, :func:`stacked_forward_` and :func:`stacked_backward_`: a stack of
   layers run forward into reused scratch tensors and differentiated by hand (MADDPG's update;
   see :meth:`learners.maddpg.MADDPG.update` for why).
+* :class:`TorchOps` and :func:`select_torch_ops`: the few kernels for which a private torch op
+  is faster than the public API (fused add + ReLU, in-place ReLU backward, multi-tensor lerp)
+  and whether Adam can be fused on the CPU, chosen once at import. Every private op has a
+  public fallback that computes the same numbers; it is used when the op is missing, raises or
+  disagrees with the fallback on a probe, or when ``AGV_PRIVATE_TORCH_OPS=0`` is set.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 __all__ = [
-    "StackedLinear", "StackedMLP", "LoopedMLP", "BiRNNNet", "Workspace",
-    "add_relu_", "clip_grad_norm_per_agent_", "grad_buffer", "linear_out_", "stacked_backward_",
-    "stacked_forward_",
+    "StackedLinear", "StackedMLP", "LoopedMLP", "BiRNNNet", "Workspace", "TorchOps",
+    "add_relu_", "clip_grad_norm_per_agent_", "grad_buffer", "linear_out_", "relu_backward_",
+    "select_torch_ops", "stacked_backward_", "stacked_forward_", "torch_ops",
 ]
+
+
+@dataclass(frozen=True)
+class TorchOps:
+    """The kernels the learners use, chosen once for this torch build by
+    :func:`select_torch_ops`.
+
+    Attributes
+    ----------
+    add_relu_ : callable
+        ``(z, bias) -> z``, ``z <- relu(z + bias)`` in place (CPU tensors).
+    relu_backward_ : callable
+        ``(grad, act) -> grad``, ``grad <- 0`` where ``act <= 0``, in place.
+    lerp_ : callable
+        ``(targets, sources, weight) -> None``, ``t <- t + weight (s - t)`` for every pair.
+    adam_fused : bool
+        Whether ``torch.optim.Adam(fused=True)`` works on the CPU (torch >= 2.4); otherwise the
+        optimizers use ``foreach=True``.
+    private : tuple of str
+        Names of the private torch ops in use (empty when every fallback is used).
+    """
+
+    add_relu_: Callable[[Tensor, Tensor], Tensor]
+    relu_backward_: Callable[[Tensor, Tensor], Tensor]
+    lerp_: Callable[[list[Tensor], list[Tensor], float], None]
+    adam_fused: bool
+    private: tuple[str, ...]
+
+
+def _add_relu_public(z: Tensor, bias: Tensor) -> Tensor:
+    return z.add_(bias).relu_()
+
+
+def _add_relu_private(z: Tensor, bias: Tensor) -> Tensor:
+    return torch.ops.aten._add_relu_(z, bias)
+
+
+def _relu_backward_public(grad: Tensor, act: Tensor) -> Tensor:
+    return grad.masked_fill_(act <= 0, 0.0)
+
+
+def _relu_backward_private(grad: Tensor, act: Tensor) -> Tensor:
+    return torch.ops.aten.threshold_backward.grad_input(grad, act, 0.0, grad_input=grad)
+
+
+def _lerp_public(targets: list[Tensor], sources: list[Tensor], weight: float) -> None:
+    for t, s in zip(targets, sources, strict=True):
+        t.lerp_(s, weight)
+
+
+def _lerp_private(targets: list[Tensor], sources: list[Tensor], weight: float) -> None:
+    torch._foreach_lerp_(targets, sources, weight)
+
+
+def _agrees(private: Callable[..., object], public: Callable[..., object],
+            make_args: Callable[[], tuple]) -> bool:
+    """Whether ``private`` runs and writes what ``public`` writes on a small probe."""
+    want, got = make_args(), make_args()
+    public(*want)
+    try:
+        private(*got)
+    except (AttributeError, RuntimeError, TypeError, NotImplementedError):
+        return False
+    return all(torch.equal(a, b) for a, b in zip(_flat(want), _flat(got), strict=True))
+
+
+def _flat(args: tuple) -> list[Tensor]:
+    out: list[Tensor] = []
+    for a in args:
+        if isinstance(a, Tensor):
+            out.append(a)
+        elif isinstance(a, list):
+            out.extend(a)
+    return out
+
+
+def _probe_args() -> dict[str, Callable[[], tuple]]:
+    gen = torch.Generator().manual_seed(0)
+    z = torch.randn(2, 5, 7, generator=gen)
+    bias = torch.randn(2, 1, 7, generator=gen)
+    a, b = [torch.randn(3, 4, generator=gen) for _ in range(2)], [torch.randn(6, generator=gen)]
+    return {
+        "add_relu_": lambda: (z.clone(), bias),
+        "relu_backward_": lambda: (z.clone(), bias.expand_as(z).contiguous()),
+        "lerp_": lambda: ([t.clone() for t in a] + [b[0].clone()], [t + 1 for t in a] + b, 0.25),
+    }
+
+
+def _fused_adam_works() -> bool:
+    """Whether Adam(fused=True) runs on CPU tensors (torch >= 2.4)."""
+    p = torch.zeros(3, requires_grad=True)
+    p.grad = torch.ones(3)
+    try:
+        torch.optim.Adam([p], lr=0.1, fused=True).step()
+    except (RuntimeError, ValueError, TypeError):
+        return False
+    return True
+
+
+def select_torch_ops(private_ops: bool = True, fused_adam: bool = True) -> TorchOps:
+    """Choose the learners' kernels (once; called at import) and make them current.
+
+    Parameters
+    ----------
+    private_ops : bool
+        Allow the private torch ops ``aten._add_relu_``, ``aten.threshold_backward.grad_input``
+        and ``torch._foreach_lerp_``; each is used only if it exists and matches its public
+        fallback on a probe. With False every public fallback is used.
+    fused_adam : bool
+        Allow ``Adam(fused=True)`` where this torch supports it on the CPU (``foreach=True``
+        otherwise). Affects optimizers created afterwards.
+
+    Returns
+    -------
+    TorchOps
+        The selection now used by :func:`add_relu_`, :func:`relu_backward_`,
+        :func:`learners.common.soft_update_` and the learners' optimizers.
+    """
+    global _OPS
+    candidates = {
+        "add_relu_": (_add_relu_private, _add_relu_public, "aten._add_relu_"),
+        "relu_backward_": (_relu_backward_private, _relu_backward_public,
+                           "aten.threshold_backward.grad_input"),
+        "lerp_": (_lerp_private, _lerp_public, "torch._foreach_lerp_"),
+    }
+    probes = _probe_args()
+    chosen: dict[str, Callable] = {}
+    used: list[str] = []
+    for key, (private, public, name) in candidates.items():
+        use_private = private_ops and _agrees(private, public, probes[key])
+        chosen[key] = private if use_private else public
+        if use_private:
+            used.append(name)
+    _OPS = TorchOps(adam_fused=fused_adam and _fused_adam_works(), private=tuple(used),
+                    **chosen)
+    return _OPS
+
+
+def torch_ops() -> TorchOps:
+    """The current :class:`TorchOps` selection."""
+    return _OPS
+
+
+_OPS = select_torch_ops(private_ops=os.environ.get("AGV_PRIVATE_TORCH_OPS", "1") != "0")
 
 
 class StackedLinear(nn.Module):
@@ -314,10 +465,41 @@ def stacked_forward_(
 
 
 def add_relu_(z: Tensor, bias: Tensor) -> Tensor:
-    """``z <- relu(z + bias)`` in place (bias broadcast); one pass over ``z`` on CPU."""
+    """``z <- relu(z + bias)`` in place (bias broadcast); one pass over ``z`` on CPU where the
+    private fused op is available (see :func:`select_torch_ops`).
+
+    Parameters
+    ----------
+    z : Tensor, shape (N, B, H)
+    bias : Tensor, broadcastable to ``z``, e.g. (N, 1, H)
+
+    Returns
+    -------
+    Tensor
+        ``z``.
+    """
     if z.device.type == "cpu":
-        return torch.ops.aten._add_relu_(z, bias)
-    return z.add_(bias).relu_()
+        return _OPS.add_relu_(z, bias)
+    return _add_relu_public(z, bias)
+
+
+def relu_backward_(grad: Tensor, act: Tensor) -> Tensor:
+    """ReLU backward in place: ``grad <- 0`` where the activation ``act`` is not positive.
+
+    Parameters
+    ----------
+    grad : Tensor
+        Gradient with respect to the ReLU's output, overwritten with the gradient with respect
+        to its input.
+    act : Tensor, the shape of ``grad``
+        The ReLU's output (or input: the sign is the same).
+
+    Returns
+    -------
+    Tensor
+        ``grad``.
+    """
+    return _OPS.relu_backward_(grad, act)
 
 
 def linear_out_(x: Tensor, layer: StackedLinear, out: Tensor) -> Tensor:
@@ -386,7 +568,6 @@ def stacked_backward_(
             torch.mul(dz, layer.weight.transpose(1, 2), out=out)
         else:
             torch.bmm(dz, layer.weight.transpose(1, 2), out=out)
-        # ReLU backward in place: keep the gradient where the activation is positive.
-        torch.ops.aten.threshold_backward.grad_input(out, acts[k], 0.0, grad_input=out)
+        relu_backward_(out, acts[k])
         dz = out
     return dz

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 
 import sim
-from learners.algorithms import REWARD_NAMES, check_algo, make_config, make_learner
+from learners.algorithms import ALGORITHMS, REWARD_NAMES, check_algo, make_config, make_learner
 from learners.buffer import Batch, ReplayBuffer
 from learners.checkpoint import (
     code_version,
@@ -54,7 +54,7 @@ from learners.checkpoint import (
     resolve_checkpoint_path,
     save_checkpoint,
 )
-from learners.common import ActorCritic
+from learners.common import ActorCritic, check_bool, check_int, check_real
 from sim.io import atomic_write_bytes, atomic_write_text
 
 __all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS"]
@@ -113,18 +113,41 @@ class TrainConfig:
         return Path(self.run_dir or default_run_dir(self.algo, self.reward, self.scenario,
                                                     self.seed))
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def validate(self) -> None:
-        """Raise a ValueError naming the first bad field."""
+        """Check every field (type and range); normalise NumPy numbers and paths.
+
+        Raises
+        ------
+        ValueError
+            Naming the first bad field and what is valid.
+        """
+        if not isinstance(self.algo, str):
+            raise ValueError(f"algo must be a string, got {self.algo!r}")
         check_algo(self.algo)
-        if self.reward not in REWARD_NAMES:
+        if not isinstance(self.reward, str) or self.reward not in REWARD_NAMES:
             raise ValueError(f"unknown reward {self.reward!r}; expected one of "
                              f"{list(REWARD_NAMES)}")
+        if not isinstance(self.scenario, str):
+            raise ValueError(f"scenario must be a scenario name (a string), got "
+                             f"{self.scenario!r}")
         sim.get_scenario(self.scenario)
         for name in ("episodes", "eval_episodes", "log_every", "checkpoint_every", "threads"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
-        if self.eval_every < 0:
-            raise ValueError(f"eval_every must be >= 0, got {self.eval_every!r}")
+            setattr(self, name, check_int(name, getattr(self, name), 1))
+        self.eval_every = check_int("eval_every", self.eval_every, 0)
+        # the noise and sampling generators are seeded with seed + 1 and seed + 2
+        self.seed = check_int("seed", self.seed, 0, 2**63 - 3)
+        self.eval_seed = check_int("eval_seed", self.eval_seed, 0, 2**63 - 1)
+        if self.stop_response is not None:
+            self.stop_response = check_real("stop_response", self.stop_response, 0.0, 1.0)
+        if self.run_dir is not None:
+            if not isinstance(self.run_dir, (str, os.PathLike)) or not os.fspath(self.run_dir):
+                raise ValueError(f"run_dir must be a folder path or None, got {self.run_dir!r}")
+            self.run_dir = os.fspath(self.run_dir)
+        self.progress = check_bool("progress", self.progress)
+        self.tensorboard = check_bool("tensorboard", self.tensorboard)
 
 
 @dataclass
@@ -327,6 +350,11 @@ def train(
                        not isinstance(learner_config, dict)
                        else make_config(config.algo, learner_config))
     cfg = learner_cfg
+    config_class = ALGORITHMS[config.algo][1]
+    if not isinstance(cfg, config_class):
+        raise ValueError(f"learner_config for {config.algo} must be a {config_class.__name__} "
+                         f"or a dict of its fields, got {type(cfg).__name__}")
+    cfg.validate()
 
     # ---------------------------------------------------------------- setup
     torch.set_num_threads(config.threads)
