@@ -25,7 +25,10 @@ class AGVParallelEnv(ParallelEnv):
     """PettingZoo parallel API over :class:`sim.core.AGVEnv` with B = 1.
 
     Agents are named ``"agv_0" ... "agv_{N-1}"``; observations are float32 vectors of length
-    O; actions are accelerations in ``[-1, 1]^2``.
+    O; actions are accelerations in ``[-1, 1]^2``. Every agent's info holds ``"task"`` (int,
+    the task it holds or -1) and ``"terms"`` ({term name: float}, its reward terms), at
+    :meth:`reset` (terms 0.0) as at :meth:`step`, so that wrappers that build their info
+    layout from the reset (TorchRL's ``PettingZooWrapper``) keep them.
     """
 
     metadata = {"name": "agv_task_allocation_v0", "render_modes": ["rgb_array"],
@@ -42,6 +45,14 @@ class AGVParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
         self._obs_dim = self._env.obs_dim
+        self._term_names = self._reward_term_names(reward)
+
+    def _reward_term_names(self, reward: Any) -> list[str]:
+        """The names of the reward's terms, read from one step of a separate environment, so
+        that :meth:`reset` can report the same info keys as :meth:`step`."""
+        probe = AGVEnv(self.scenario, num_envs=1, reward=reward, seed=0)
+        _, _, _, info = probe.step(torch.zeros(1, self.scenario.num_agents, 2))
+        return list(info["reward_terms"])
 
     @functools.cache  # noqa: B019 - spaces must be the same object each call
     def observation_space(self, agent: str) -> spaces.Box:
@@ -58,7 +69,10 @@ class AGVParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         obs = self._env.reset(seed=seed)
         self.agents = list(self.possible_agents)
-        return self._obs_dict(obs), {a: {} for a in self.agents}
+        agent_task = self._env.agent_task[0].cpu().numpy()
+        infos = {a: {"task": int(agent_task[i]), "terms": dict.fromkeys(self._term_names, 0.0)}
+                 for i, a in enumerate(self.possible_agents)}
+        return self._obs_dict(obs), infos
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:

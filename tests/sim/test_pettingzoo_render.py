@@ -23,6 +23,28 @@ def test_parallel_seed() -> None:
         pz_test.parallel_seed_test(lambda: sim.pettingzoo_env("3v3"), num_cycles=100)
 
 
+def _layout(info: object) -> object:
+    """The key-and-type layout of an info, as a wrapper building its spec from it sees it."""
+    if isinstance(info, dict):
+        return {k: _layout(v) for k, v in info.items()}
+    return type(info).__name__
+
+
+@pytest.mark.parametrize("reward", sorted(sim.REWARDS))
+def test_reset_infos_have_the_step_infos_keys(reward: str) -> None:
+    # TorchRL's PettingZooWrapper builds its info layout from the reset's infos: empty infos
+    # at reset dropped the step's task and reward terms without a word.
+    env = sim.pettingzoo_env("3v3", reward=reward, seed=0)
+    _, reset_infos = env.reset(seed=0)
+    _, _, _, _, step_infos = env.step({a: env.action_space(a).sample() for a in env.agents})
+    assert sorted(reset_infos) == sorted(step_infos) == env.possible_agents
+    for agent in env.possible_agents:
+        assert _layout(reset_infos[agent]) == _layout(step_infos[agent])
+        assert reset_infos[agent]["task"] == -1
+        assert reset_infos[agent]["terms"]
+        assert set(reset_infos[agent]["terms"].values()) == {0.0}
+
+
 def test_bad_actions_named() -> None:
     env = sim.pettingzoo_env("3v3", seed=0)
     env.reset(seed=0)
