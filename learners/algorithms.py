@@ -23,7 +23,7 @@ REWARD_NAMES = ("minidist", "greedy", "ipf")
 
 def check_algo(algo: str) -> None:
     """Raise a ValueError naming the known algorithms if ``algo`` is not one of them."""
-    if algo not in ALGORITHMS:
+    if not isinstance(algo, str) or algo not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHMS)}")
 
 

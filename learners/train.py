@@ -124,8 +124,6 @@ class TrainConfig:
         ValueError
             Naming the first bad field and what is valid.
         """
-        if not isinstance(self.algo, str):
-            raise ValueError(f"algo must be a string, got {self.algo!r}")
         check_algo(self.algo)
         if not isinstance(self.reward, str) or self.reward not in REWARD_NAMES:
             raise ValueError(f"unknown reward {self.reward!r}; expected one of "
