@@ -7,10 +7,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from sim.core import AGVEnv, SimState, StepContext, make_env
+from sim.env import AGVEnv, make_env
 from sim.evaluate import Metrics, evaluate
 from sim.rewards import REWARDS, make_reward
 from sim.scenarios import SCENARIOS, Scenario, get_scenario, scenario_names
+from sim.state import SimState, StepContext
 from sim.world import Physics, World
 
 __all__ = [

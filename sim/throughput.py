@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
-from sim.core import AGVEnv
+from sim.env import AGVEnv
 from sim.rewards import RewardFn
 
 __all__ = ["Throughput", "best_rate", "measure", "steps_per_second"]
@@ -37,12 +37,12 @@ class Throughput:
     num_envs : int
         B, the number of parallel environments.
     step_seconds : float
-        Seconds per batched :meth:`~sim.core.AGVEnv.step` (physics, claims, observations,
+        Seconds per batched :meth:`~sim.env.AGVEnv.step` (physics, claims, observations,
         reward), resets excluded.
     reset_seconds : float
         Seconds spent in resets of finished environments, per batched step.
     physics_seconds : float or None
-        Seconds per bare physics step (:meth:`~sim.core.AGVEnv.physics_step`) of the same
+        Seconds per bare physics step (:meth:`~sim.env.AGVEnv.physics_step`) of the same
         scene and B, timed in turns with the full steps; None when not measured.
     """
 
@@ -75,7 +75,7 @@ def measure(scenario: str, num_envs: int, reward: str | RewardFn = "minidist",
     Parameters
     ----------
     native : bool, optional
-        Passed to :class:`~sim.core.AGVEnv` (fused kernels or the torch path).
+        Passed to :class:`~sim.env.AGVEnv` (fused kernels or the torch path).
     physics : bool
         Also time the bare physics step of a second environment of the same scene, one run
         of ``steps`` after each run of full steps (best of ``repeats``), so that both see the

@@ -13,7 +13,7 @@ import torch
 
 import sim
 from sim import native
-from sim.core import AGVEnv
+from sim.env import AGVEnv
 from sim.ipf import AGENT_VALUE, TASK_VALUE, TaskBlockCache, ipf_grid, jacobi_field
 from sim.scenarios import Scenario, get_scenario, paper_scenario
 

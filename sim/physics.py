@@ -1,0 +1,192 @@
+"""The MPE physics of the AGV discs: contact forces, integration, shelves and walls, overlaps.
+
+Pure functions of tensors and a :class:`~sim.world.World`; the environment (:mod:`sim.env`)
+calls them on its state. They follow ``mpe2`` (dt, damping, sensitivity, soft contacts, its
+integration order); walls at the world bounds and rectangular shelves come on top (see
+``docs/simulator.md``). The fused C step (``sim/_native/physics.h``) computes the pairwise
+distances and the overlaps exactly as :func:`pair_distances` and :func:`collisions` do.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from sim.world import World
+
+__all__ = ["collide_obstacles", "collide_walls", "collisions", "contact_forces", "mpe_step",
+           "pair_distances"]
+
+
+def pair_distances(agent_pos: Tensor) -> Tensor:
+    """Pairwise AGV distances as the fused kernel computes them, (B, N, N).
+
+    ``sqrt(dx * dx + dy * dy)`` with float32 products and sum and a correctly rounded square
+    root (C's ``sqrtf``; torch's float32 ``sqrt`` and ``cdist`` may differ in the last bit,
+    hence the square root in float64, which rounds to the same float32).
+
+    Parameters
+    ----------
+    agent_pos : Tensor, shape (B, N, 2)
+    """
+    d = agent_pos.unsqueeze(2) - agent_pos.unsqueeze(1)
+    return d.mul_(d).sum(dim=-1).double().sqrt_().float()
+
+
+def contact_forces(agent_pos: Tensor, dist: Tensor, world: World, eye: Tensor) -> Tensor:
+    """MPE's soft contact force on every AGV, (B, N, 2).
+
+    ``f_i = sum_j c * k * softplus((2r - d_ij) / k) * (p_i - p_j) / d_ij``, computed as
+    ``p_i * sum_j s_ij - sum_j s_ij p_j`` with one batched matmul.
+
+    Parameters
+    ----------
+    agent_pos : Tensor, shape (B, N, 2)
+    dist : Tensor, shape (B, N, N)
+        Pairwise distances.
+    world : World
+    eye : Tensor of bool, shape (N, N)
+        The identity (no force of an AGV on itself).
+    """
+    ph = world.physics
+    dist_min = 2.0 * world.agent_radius
+    penetration = torch.nn.functional.softplus(dist_min - dist, beta=1.0 / ph.contact_margin)
+    scale = (ph.contact_force * penetration / dist.clamp_min(1e-12)).masked_fill(eye, 0.0)
+    return agent_pos * scale.sum(dim=2, keepdim=True) - torch.bmm(scale, agent_pos)
+
+
+def collide_obstacles(pos: Tensor, vel: Tensor, obstacles: Tensor,
+                      radius: float) -> tuple[Tensor, Tensor]:
+    """Push discs out of shelves and cancel the velocity into them.
+
+    Parameters
+    ----------
+    pos, vel : Tensor, shape (B, N, 2)
+    obstacles : Tensor, shape (K, 4)
+        Shelves as ``(xmin, ymin, xmax, ymax)`` rows.
+    radius : float
+        AGV radius.
+
+    Returns
+    -------
+    pos, vel : Tensor, shape (B, N, 2)
+    """
+    lo = obstacles[:, :2]  # (K, 2)
+    hi = obstacles[:, 2:]
+    p = pos.unsqueeze(2)  # (B, N, 1, 2)
+    closest = torch.minimum(torch.maximum(p, lo), hi)  # (B, N, K, 2)
+    d = p - closest
+    dist = torch.linalg.vector_norm(d, dim=-1)  # (B, N, K)
+    # Centre inside a shelf: leave through the nearest face.
+    to_face = torch.cat([p - lo, hi - p], dim=-1)  # (B, N, K, 4): left, bottom, right, top
+    face = to_face.argmin(dim=-1)
+    normals = torch.tensor(
+        [[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]], device=pos.device, dtype=pos.dtype
+    )
+    inside = dist <= 1e-9
+    normal = torch.where(
+        inside.unsqueeze(-1), normals[face], d / dist.clamp_min(1e-9).unsqueeze(-1)
+    )
+    face_depth = to_face.gather(-1, face.unsqueeze(-1)).squeeze(-1)
+    depth = torch.where(inside, face_depth + radius, radius - dist)
+    hit = depth > 0
+    push = (normal * (depth * hit).unsqueeze(-1)).sum(dim=2)
+    inward = (vel.unsqueeze(2) * normal).sum(-1).clamp_max(0.0) * hit  # (B, N, K)
+    vel = vel - (normal * inward.unsqueeze(-1)).sum(dim=2)
+    return pos + push, vel
+
+
+def collide_walls(pos: Tensor, vel: Tensor, world: World) -> tuple[Tensor, Tensor]:
+    """Clamp discs into the world bounds and stop the velocity into a wall they touch.
+
+    Parameters
+    ----------
+    pos, vel : Tensor, shape (B, N, 2)
+    world : World
+
+    Returns
+    -------
+    pos, vel : Tensor, shape (B, N, 2)
+    """
+    r = world.agent_radius
+    xmin, ymin, xmax, ymax = world.bounds
+    lo = torch.tensor([xmin + r, ymin + r], device=pos.device, dtype=pos.dtype)
+    hi = torch.tensor([xmax - r, ymax - r], device=pos.device, dtype=pos.dtype)
+    clamped = torch.minimum(torch.maximum(pos, lo), hi)
+    hit_lo = pos < lo
+    hit_hi = pos > hi
+    vel = torch.where((hit_lo & (vel < 0)) | (hit_hi & (vel > 0)), torch.zeros_like(vel), vel)
+    return clamped, vel
+
+
+def mpe_step(agent_pos: Tensor, agent_vel: Tensor, actions: Tensor, movable: Tensor,
+             world: World, obstacles: Tensor, pair: Tensor | None, eye: Tensor
+             ) -> tuple[Tensor, Tensor]:
+    """One MPE physics step: action and contact forces, integration, shelves, walls.
+
+    Parameters
+    ----------
+    agent_pos, agent_vel : Tensor, shape (B, N, 2)
+    actions : Tensor, shape (B, N, 2)
+        Checked, clipped accelerations.
+    movable : Tensor of bool, shape (B, N)
+        AGVs that move; the others keep their position and velocity.
+    world : World
+    obstacles : Tensor, shape (K, 4)
+        ``world.obstacles`` as a tensor of ``agent_pos``'s dtype and device.
+    pair : Tensor, shape (B, N, N), optional
+        Pairwise distances of ``agent_pos`` (computed when needed and not given).
+    eye : Tensor of bool, shape (N, N)
+
+    Returns
+    -------
+    pos, vel : Tensor, shape (B, N, 2)
+        New tensors; the inputs are not changed.
+    """
+    ph = world.physics
+    # MPE physics: force from the action and soft contacts, then integrate.
+    force = actions * ph.sensitivity
+    if ph.contact_force > 0 and agent_pos.shape[1] > 1:
+        if pair is None:
+            pair = torch.cdist(agent_pos, agent_pos, compute_mode="donot_use_mm_for_euclid_dist")
+        force = force + contact_forces(agent_pos, pair, world, eye)
+    m = movable.unsqueeze(-1)
+    pos = agent_pos + agent_vel * (ph.dt * m)
+    vel = agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
+    if ph.max_speed is not None:
+        speed = torch.linalg.vector_norm(vel, dim=-1, keepdim=True)
+        vel = vel * (ph.max_speed / speed.clamp_min(ph.max_speed))
+    vel = torch.where(m, vel, agent_vel)
+    if world.has_obstacles:
+        pos, vel = collide_obstacles(pos, vel, obstacles, world.agent_radius)
+    if world.walls:
+        pos, vel = collide_walls(pos, vel, world)
+    return torch.where(m, pos, agent_pos), vel
+
+
+def collisions(pair: Tensor, active: Tensor, radius: float, eye: Tensor,
+               triu: Tensor) -> tuple[Tensor, Tensor]:
+    """Overlapping AGV discs: per AGV and per environment (0 where inactive).
+
+    Parameters
+    ----------
+    pair : Tensor, shape (B, N, N)
+        Pairwise distances (:func:`pair_distances`).
+    active : Tensor of bool, shape (B,)
+    radius : float
+        AGV radius; two discs overlap below ``2 radius``.
+    eye, triu : Tensor of bool, shape (N, N)
+        The identity and the strict upper triangle.
+
+    Returns
+    -------
+    per_agent : Tensor, shape (B, N)
+        Number of other discs each AGV overlaps (float32).
+    pairs : Tensor, shape (B,)
+        Number of overlapping pairs (float32).
+    """
+    overlap = (pair < 2.0 * radius) & ~eye
+    overlap = overlap & active.view(-1, 1, 1)
+    per_agent = overlap.sum(dim=2).to(pair.dtype)
+    pairs = (overlap & triu).sum(dim=(1, 2)).to(pair.dtype)
+    return per_agent, pairs
