@@ -10,8 +10,8 @@ import torch
 
 import allocator
 import sim
-from allocator.conformance import check_allocator
 from allocator.learned import LEARNED, MissingWeightsError, weights_path
+from allocator.testing import check_allocator
 from learners.algorithms import make_learner
 from learners.checkpoint import save_checkpoint
 
