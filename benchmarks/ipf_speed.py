@@ -91,9 +91,9 @@ def accuracy(quick: bool) -> list[dict]:
                 )[0].numpy()
                 pot_kernel = None
                 if native.available():
-                    pot_kernel = grid._potentials_native(
+                    pot_kernel = grid.reward_potentials(
                         torch.from_numpy(agents).float()[None],
-                        torch.from_numpy(tasks).float()[None], None, TASK_VALUE, AGENT_VALUE,
+                        torch.from_numpy(tasks).float()[None], kernels=native.library(),
                     )[0].numpy()
                 check = range(n) if n <= 3 else rng.choice(n, size=2 if "warehouse" in name
                                                            else 3, replace=False)

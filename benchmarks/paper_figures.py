@@ -161,7 +161,8 @@ def preference_figure(scenario: str, episodes: int, seed: int, out: Path) -> Non
 
 def field_figure(out: Path, seed: int) -> None:
     """Figs. 3-4: an AGV's information potential field in an open and a shelved scene."""
-    from sim.ipf import ipf_field, plot_field
+    from sim.ipf import ipf_field
+    from sim.render import plot_field
 
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), gridspec_kw={"width_ratios": [1, 1.4]})

@@ -40,25 +40,26 @@ Two solvers
   (:class:`TaskBlockCache`), so a step costs one gather from ``G``, two small batched matrix
   products and one ``N x N`` inverse per environment.
 
-The reward
-----------
-:class:`IPFReward` is the ``"ipf"`` reward, ``r_IPF + r_g + r_c``. ``r_IPF`` is the value above,
-with one rule on top: a parked AGV (one that holds a task) receives that task's value, ``+5``,
-since it stands on it (otherwise claiming, which removes the task's ``+5`` from the field, would
-pay less than hovering just outside the capture radius).
+The reward's rules
+------------------
+The ``"ipf"`` reward (:class:`sim.rewards.ipf.IPFReward`) pays ``r_IPF`` through
+:meth:`IPFGrid.reward_potentials`, which adds one rule to the value above: a parked AGV (one
+that holds a task) receives that task's value, ``+5``, since it stands on it (otherwise
+claiming, which removes the task's ``+5`` from the field, would pay less than hovering just
+outside the capture radius). Plots of a field are in :mod:`sim.render`.
 
 Colliding sources
 -----------------
 Sources that share a cell with the same value merge exactly (a Dirichlet value is a value, not a
 charge). Sources that share a cell with different values mean the grid is too coarse:
-:func:`ipf_field` raises :class:`ValueError`; the batched reward applies a deterministic rule
+:func:`ipf_field` raises :class:`ValueError`; the batched potentials apply a deterministic rule
 instead: *the AGV wins*, the cell is fixed at ``-3`` (an AGV standing on a task is serving it).
 A source whose cell is fixed at 0 (a boundary ring or shelf cell): :func:`ipf_field` raises; the
-reward ignores it (0 wins), and an AGV on such a cell reads 0. Sources on fixed cells do not
-happen in the shipped scenarios at the default resolution (AGVs and tasks stay at least one AGV
-radius from walls and shelves); two AGVs on one cell do, rarely (a deep overlap, about one
-environment in a thousand per step), and the reward handles those environments on its general
-path.
+batched potentials ignore it (0 wins), and an AGV on such a cell reads 0. Sources on fixed cells
+do not happen in the shipped scenarios at the default resolution (AGVs and tasks stay at least
+one AGV radius from walls and shelves); two AGVs on one cell do, rarely (a deep overlap, about
+one environment in a thousand per step), and the batched potentials handle those environments
+on their general path.
 """
 
 from __future__ import annotations
@@ -72,13 +73,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sim.io import atomic_save
-from sim.state import SimState, StepContext
+from sim import native as sim_native
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
     import networkx as nx
-    from matplotlib.figure import Figure
 
 __all__ = [
     "TASK_VALUE",
@@ -88,11 +87,10 @@ __all__ = [
     "IPFGrid",
     "IPFField",
     "TaskBlockCache",
-    "IPFReward",
+    "check_resolution",
     "ipf_grid",
     "ipf_field",
     "jacobi_field",
-    "plot_field",
 ]
 
 TASK_VALUE = 5.0
@@ -143,11 +141,12 @@ class IPFGrid:
     def __init__(
         self, world: World, resolution: float = DEFAULT_RESOLUTION, max_bytes: int = MAX_GREEN_BYTES
     ) -> None:
-        if not (isinstance(resolution, (int, float)) and math.isfinite(resolution)
-                and resolution > 0):
-            raise ValueError(f"resolution must be a positive cell size, got {resolution!r}")
+        resolution = check_resolution(resolution)
+        max_bytes = _check_max_bytes(max_bytes)
+        if not isinstance(world, World):
+            raise ValueError(f"world must be a sim.World, got {type(world).__name__}")
         self.world = world
-        self.resolution = float(resolution)
+        self.resolution = resolution
         width, height = world.size
         W, H = int(round(width / resolution)), int(round(height / resolution))
         if W < 3 or H < 3:
@@ -155,6 +154,16 @@ class IPFGrid:
                 f"resolution {resolution} gives a {H} x {W} grid on a {width:g} x {height:g} "
                 "world; at least 3 x 3 cells are needed (one free cell inside the boundary "
                 f"ring); use resolution <= {min(width, height) / 3:.4g}"
+            )
+        # Refuse absurd grids before any (H, W) array is made; the exact test on the free
+        # cells' Green's function follows once the shelves are known.
+        max_cells = 64 * math.isqrt(max_bytes // 8)
+        if H * W > max_cells:
+            raise ValueError(
+                f"resolution {resolution} gives a {H} x {W} grid on a {width:g} x {height:g} "
+                f"world, more than {max_cells} cells; its Green's function would not fit in "
+                f"max_bytes={max_bytes}; use resolution >= "
+                f"{1.05 * math.sqrt(width * height / max_cells):.3g}"
             )
         self.shape = (H, W)
         xmin, ymin, _, _ = world.bounds
@@ -363,15 +372,25 @@ class IPFGrid:
         Tensor, shape (B, N), dtype of ``agent_pos``
             ``Phi_i(cell of AGV i)``. Where AGV i's cell holds one of its sources the value is
             that source's (AGV wins over task); on a fixed cell it is 0.
+
+        Raises
+        ------
+        ValueError
+            For positions that are not (B, N, 2) and (B, M, 2), a mask that is not (B, M), or
+            ``native=True`` where the kernel cannot run.
         """
-        if native or native is None:  # checks the shapes itself before it runs
-            phi = self._potentials_native(agent_pos, task_pos, task_open, task_value,
-                                          agent_value, cache)
-            if phi is not None:
-                return phi.to(agent_pos.dtype)
-            if native:
-                raise ValueError("native=True needs float32 CPU tensors and the fused kernels "
-                                 "(see sim.native.disabled_reason())")
+        kernels = None
+        if native is not False and agent_pos.dtype == torch.float32 \
+                and task_pos.dtype == torch.float32 and task_pos.device.type == "cpu":
+            kernels = sim_native.library_for(agent_pos.device)
+        if kernels is not None:
+            _check_batch_shapes(agent_pos, task_pos, task_open)
+            phi = self._potentials_native(kernels, agent_pos, task_pos, task_open, False,
+                                          task_value, agent_value, cache)
+            return phi.to(agent_pos.dtype)
+        if native:
+            raise ValueError("native=True needs float32 CPU tensors and the fused kernels "
+                             "(see sim.native.disabled_reason())")
         _check_batch_shapes(agent_pos, task_pos, task_open)
         N = agent_pos.shape[1]
         T = N + task_pos.shape[1]
@@ -393,59 +412,125 @@ class IPFGrid:
             )
         return phi.to(agent_pos.dtype)
 
-    def _potentials_native(self, agent_pos: Tensor, task_pos: Tensor, task_open: Tensor | None,
-                           task_value: float, agent_value: float,
-                           cache: TaskBlockCache | None = None, agent_task: Tensor | None = None,
-                           active: Tensor | None = None, task_claimed: Tensor | None = None,
-                           dtype: torch.dtype = torch.float64) -> Tensor | None:
-        """:meth:`agent_potentials` through the fused kernel, (B, N) of ``dtype`` (float64 or
-        float32); None where the kernel cannot run (it needs float32 CPU positions).
+    def reward_potentials(
+        self,
+        agent_pos: Tensor,
+        task_pos: Tensor,
+        task_claimed: Tensor | None = None,
+        agent_task: Tensor | None = None,
+        active: Tensor | None = None,
+        *,
+        kernels: Any = None,
+        task_value: float = TASK_VALUE,
+        agent_value: float = AGENT_VALUE,
+        cache: TaskBlockCache | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> Tensor:
+        """``r_IPF`` as the ``"ipf"`` reward pays it, through the kernels the caller chose.
 
-        For the reward: ``task_claimed`` (B, M) may stand in for ``task_open``; where
-        ``agent_task`` (B, N) is >= 0 the value is ``task_value`` (a parked AGV); environments
-        where ``active`` (B,) is False are skipped and read 0.
+        :meth:`agent_potentials` with the reward's two rules on top: an AGV that holds a task
+        (``agent_task >= 0``, parked on it) reads ``task_value``, and environments that were not
+        running (``active`` False) read 0.
+
+        Parameters
+        ----------
+        agent_pos : Tensor, shape (B, N, 2)
+        task_pos : Tensor, shape (B, M, 2)
+        task_claimed : Tensor of bool, shape (B, M), optional
+            Claimed tasks, which are not sources (default none).
+        agent_task : Tensor of int64, shape (B, N), optional
+            The task each AGV holds, or -1 (default: none held).
+        active : Tensor of bool, shape (B,), optional
+            Environments that were running (default all).
+        kernels : ctypes.CDLL, optional
+            The fused kernels of :mod:`sim.native` to run with (they need float32 CPU
+            positions), or None for the torch path. Whoever owns the tensors decides (the
+            environment does, once); this method does not look the kernels up.
+        task_value, agent_value : float
+            The fixed potentials (+5 and -3 in the paper).
+        cache : TaskBlockCache, optional
+            Reused task factors, updated in place; keep one per batch of environments.
+        dtype : torch.dtype
+            ``torch.float64`` or ``torch.float32``, the dtype of the result.
+
+        Returns
+        -------
+        Tensor, shape (B, N), of ``dtype``
+
+        Raises
+        ------
+        ValueError
+            For a tensor of the wrong shape, or (with ``kernels``) of the wrong dtype or device;
+            the message names it.
         """
-        from sim import native
+        _check_batch_shapes(agent_pos, task_pos, task_claimed)
+        B, N = agent_pos.shape[:2]
+        for name, t, shape in (("agent_task", agent_task, (B, N)), ("active", active, (B,))):
+            if t is not None and tuple(t.shape) != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+        if dtype not in (torch.float64, torch.float32):
+            raise ValueError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
+        if kernels is not None:
+            return self._potentials_native(kernels, agent_pos, task_pos, task_claimed, True,
+                                           task_value, agent_value, cache, agent_task, active,
+                                           dtype)
+        task_open = None if task_claimed is None else ~task_claimed.to(torch.bool)
+        phi = self.agent_potentials(agent_pos, task_pos, task_open, task_value, agent_value,
+                                    cache=cache, native=False).double()
+        if agent_task is not None:
+            phi = torch.where(agent_task >= 0, task_value, phi)
+        if active is not None:
+            phi = phi * active.unsqueeze(1)
+        return phi.to(dtype)
 
-        if agent_pos.dtype != torch.float32 or task_pos.dtype != torch.float32 \
-                or task_pos.device.type != "cpu":
-            return None
-        lib = native.library_for(agent_pos.device)
-        if lib is None:
-            return None
-        green, _ = self._tables(agent_pos.device)
+    def _potentials_native(
+        self, kernels: Any, agent_pos: Tensor, task_pos: Tensor, mask: Tensor | None,
+        is_claimed: bool, task_value: float, agent_value: float,
+        cache: TaskBlockCache | None = None, agent_task: Tensor | None = None,
+        active: Tensor | None = None, dtype: torch.dtype = torch.float64,
+    ) -> Tensor:
+        """The fused kernel ``agv_ipf`` of ``kernels``, (B, N) of ``dtype``; shapes already
+        checked. ``mask`` (B, M) marks the claimed tasks if ``is_claimed``, else the open ones.
+        Every buffer reaches C through :func:`sim.native.pointer`."""
+        green, _ = self._tables(torch.device("cpu"))
         if self._free_index_t is None:
             self._free_index_t = torch.from_numpy(self.free_index)
             self._green_diag = green.diagonal().contiguous()
         B, N = agent_pos.shape[:2]
         M = task_pos.shape[1]
-        mask, is_claimed = (task_claimed, 1) if task_claimed is not None else (task_open, 0)
-        _check_batch_shapes(agent_pos, task_pos, mask)
-        for name, t, shape in (("agent_task", agent_task, (B, N)), ("active", active, (B,))):
-            if t is not None and tuple(t.shape) != shape:
-                raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+        F1 = self.num_free + 1
+        H, W = self.shape
         # Converted inputs are kept in `keep` so that they outlive the call (a pointer to a
         # temporary would dangle).
         keep = {
-            "agents": agent_pos.contiguous(), "tasks": task_pos.contiguous(),
+            "agent_pos": agent_pos.contiguous(), "task_pos": task_pos.contiguous(),
             "mask": None if mask is None else mask.to(device="cpu", dtype=torch.bool).contiguous(),
-            "held": None if agent_task is None
+            "agent_task": None if agent_task is None
             else agent_task.to(device="cpu", dtype=torch.int64).contiguous(),
             "active": None if active is None
             else active.to(device="cpu", dtype=torch.bool).contiguous(),
         }
-        ptr = {k: None if t is None else t.data_ptr() for k, t in keep.items()}
         out = torch.empty(B, N, dtype=dtype)
         tcache, dcache = (cache or TaskBlockCache()).native_buffers(self, B, M, task_value)
-        H, W = self.shape
+        ptr = sim_native.pointer
+        wide = dtype == torch.float64
         xmin, ymin, _, _ = self.world.bounds
-        wide = out.dtype == torch.float64
-        status = lib.agv_ipf(
-            B, N, M, ptr["agents"], ptr["tasks"], ptr["mask"], is_claimed, green.data_ptr(),
-            self._green_diag.data_ptr(), self.num_free, self._free_index_t.data_ptr(), H, W,
+        status = kernels.agv_ipf(
+            B, N, M, ptr(keep["agent_pos"], torch.float32, (B, N, 2), "agent_pos"),
+            ptr(keep["task_pos"], torch.float32, (B, M, 2), "task_pos"),
+            None if mask is None else ptr(keep["mask"], torch.bool, (B, M), "task mask"),
+            int(is_claimed), ptr(green, torch.float64, (F1, F1), "Green's function"),
+            ptr(self._green_diag, torch.float64, (F1,), "Green's diagonal"), self.num_free,
+            ptr(self._free_index_t, torch.int64, (H * W,), "free_index"), H, W,
             float(xmin), float(ymin), float(self.dx), float(self.dy), float(agent_value),
-            float(task_value), ptr["held"], ptr["active"], tcache.data_ptr(), dcache.data_ptr(),
-            out.data_ptr() if wide else None, None if wide else out.data_ptr(),
+            float(task_value),
+            None if agent_task is None
+            else ptr(keep["agent_task"], torch.int64, (B, N), "agent_task"),
+            None if active is None else ptr(keep["active"], torch.bool, (B,), "active"),
+            ptr(tcache, torch.int64, (B, 1 + M), "task cells cache"),
+            ptr(dcache, torch.float64, (B, M * M + M), "task factors cache"),
+            ptr(out, torch.float64, (B, N), "out") if wide else None,
+            None if wide else ptr(out, torch.float32, (B, N), "out"),
         )
         del keep
         if status < 0:
@@ -653,6 +738,30 @@ def _cached_grid(
     return IPFGrid(World(bounds=bounds, obstacles=obs.copy()), resolution, max_bytes)
 
 
+def check_resolution(resolution: object) -> float:
+    """``resolution`` as a float, if it is a positive, finite cell size.
+
+    Raises
+    ------
+    ValueError
+        For anything else (0, a negative number, NaN, infinity, a bool, a string, None).
+    """
+    number = isinstance(resolution, (int, float, np.integer, np.floating))
+    if isinstance(resolution, (bool, np.bool_)) or not number \
+            or not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError("resolution must be a positive, finite cell size in world units "
+                         f"(default {DEFAULT_RESOLUTION}), got {resolution!r}")
+    return float(resolution)
+
+
+def _check_max_bytes(max_bytes: object) -> int:
+    if isinstance(max_bytes, (bool, np.bool_)) or not isinstance(max_bytes, (int, np.integer)) \
+            or max_bytes < 8:
+        raise ValueError(f"max_bytes must be an integer number of bytes >= 8 (default "
+                         f"{MAX_GREEN_BYTES}), got {max_bytes!r}")
+    return int(max_bytes)
+
+
 def ipf_grid(
     world: World | None = None, resolution: float = DEFAULT_RESOLUTION,
     max_bytes: int = MAX_GREEN_BYTES,
@@ -665,13 +774,18 @@ def ipf_grid(
     Raises
     ------
     ValueError
-        For a resolution that gives fewer than 3 x 3 cells, or one whose Green's function
+        For a world that is not a :class:`sim.World`, a resolution that is not a positive
+        finite number or that gives fewer than 3 x 3 cells, or one whose Green's function
         would exceed ``max_bytes`` (the message names a resolution that fits).
     """
-    world = World() if world is None else world
+    if world is None:
+        world = World()
+    elif not isinstance(world, World):
+        raise ValueError(f"world must be a sim.World or None, got {type(world).__name__}")
+    resolution = check_resolution(resolution)
+    max_bytes = _check_max_bytes(max_bytes)
     obs = np.ascontiguousarray(world.obstacles, dtype=np.float64)
-    return _cached_grid(tuple(world.bounds), obs.tobytes(), len(obs), float(resolution),
-                        int(max_bytes))
+    return _cached_grid(tuple(world.bounds), obs.tobytes(), len(obs), resolution, max_bytes)
 
 
 # ---------------------------------------------------------------------- the reference
@@ -782,7 +896,10 @@ def _scene_sources(
     names = [f"AGV {i}" for i in others] + [f"task {j}" for j in open_tasks]
     cells = grid.cell_of(points).numpy()
     W = grid.shape[1]
-    for name, point, cell in zip(names, points, cells, strict=True):
+    own = int(grid.cell_of(agents[agent]))
+    checked = zip([f"AGV {agent} (whose field it is)", *names], [agents[agent], *points],
+                  [own, *cells], strict=True)
+    for name, point, cell in checked:
         if grid.free_index[cell] < 0:
             what = "a shelf" if grid.obstacle.ravel()[cell] else "the boundary ring"
             raise ValueError(
@@ -806,6 +923,36 @@ def _scene_sources(
     return cells[keep], values[keep]
 
 
+def _as_points(points: object, name: str) -> np.ndarray:
+    """``points`` as a float64 array, refusing what is not real numbers (``name`` in errors)."""
+    if isinstance(points, Tensor):
+        points = points.detach().cpu().numpy()
+    try:
+        arr = np.asarray(points)
+    except ValueError as err:  # ragged nested lists
+        raise ValueError(f"{name} must be an array of shape (K, 2), got {points!r}") from err
+    if arr.size and arr.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must hold real coordinates in world units, got dtype "
+                         f"{arr.dtype}")
+    return arr.astype(np.float64)
+
+
+def _as_claimed(claimed: object, num_tasks: int) -> np.ndarray:
+    """``claimed`` as a (M,) bool array: booleans, or the numbers 0 and 1."""
+    if claimed is None:
+        return np.zeros(num_tasks, dtype=bool)
+    arr = np.asarray(claimed.detach().cpu() if isinstance(claimed, Tensor) else claimed)
+    if arr.dtype.kind in "iuf" and np.isin(arr, (0, 1)).all():
+        arr = arr.astype(bool)
+    if arr.size and arr.dtype.kind != "b":
+        raise ValueError(f"claimed must hold booleans (one per task), got {claimed!r}")
+    arr = arr.astype(bool).ravel()
+    if arr.shape != (num_tasks,):
+        raise ValueError(f"claimed must have shape ({num_tasks},), one flag per task, got "
+                         f"{arr.shape}")
+    return arr
+
+
 def ipf_field(
     agents: np.ndarray,
     tasks: np.ndarray,
@@ -820,9 +967,9 @@ def ipf_field(
     Parameters
     ----------
     agents : array-like, shape (N, 2)
-        AGV positions in world units.
+        AGV positions in world units, N >= 1.
     tasks : array-like, shape (M, 2)
-        Task positions.
+        Task positions (M may be 0 when there are other AGVs).
     agent : int
         Whose field: that AGV is not a source, every other AGV is (``-3``).
     world : World, optional
@@ -837,14 +984,18 @@ def ipf_field(
     Returns
     -------
     IPFField
-        ``values`` (H, W) at cell centres ``x`` (W,), ``y`` (H,).
+        ``values`` (H, W) at cell centres ``x`` (W,), ``y`` (H,). With no open task the
+        field holds only the other AGVs' ``-3`` and is <= 0 everywhere.
 
     Raises
     ------
     ValueError
-        On bad shapes or positions (outside the world, inside a shelf), a source on a cell
-        fixed at 0, two sources of different value on one cell (grid too coarse), or a grid
-        that would need too much memory; each message says what would work.
+        On bad shapes, non-numeric or NaN positions, positions outside the world or inside a
+        shelf, an ``agent`` that is not an index of ``agents``, ``claimed`` of the wrong length,
+        a resolution that is not a positive finite cell size, an AGV or source on a cell fixed
+        at 0, two sources of different value on one cell (grid too coarse), a grid that would
+        need too much memory, or a field without any source (one AGV and no open task: the
+        field would be zero everywhere); each message says what would work.
 
     Examples
     --------
@@ -853,179 +1004,32 @@ def ipf_field(
     >>> f.values.shape, float(f.values.max()) <= 5.0
     ((40, 40), True)
     """
-    world = World() if world is None else world
-    agents = world.check_positions(agents, "agents")
-    tasks = world.check_positions(np.asarray(tasks, dtype=np.float64).reshape(-1, 2), "tasks")
+    if world is None:
+        world = World()
+    elif not isinstance(world, World):
+        raise ValueError(f"world must be a sim.World or None, got {type(world).__name__}")
+    agents = world.check_positions(_as_points(agents, "agents"), "agents")
+    tasks = _as_points(tasks, "tasks")
+    tasks = np.zeros((0, 2)) if tasks.size == 0 else world.check_positions(tasks, "tasks")
     if len(agents) == 0:
         raise ValueError("agents must hold at least one AGV, got shape (0, 2)")
-    if not (isinstance(agent, (int, np.integer)) and 0 <= agent < len(agents)):
+    if isinstance(agent, (bool, np.bool_)) or not (
+            isinstance(agent, (int, np.integer)) and 0 <= agent < len(agents)):
         raise ValueError(f"agent must be an index in [0, {len(agents)}), got {agent!r}")
-    claimed = (np.zeros(len(tasks), dtype=bool) if claimed is None
-               else np.asarray(claimed, dtype=bool).ravel())
-    if claimed.shape != (len(tasks),):
-        raise ValueError(f"claimed must have shape ({len(tasks)},), got {claimed.shape}")
+    claimed = _as_claimed(claimed, len(tasks))
+    if method not in ("fast", "jacobi"):
+        raise ValueError(f"method must be 'fast' or 'jacobi', got {method!r}")
+    if len(agents) == 1 and claimed.all():
+        raise ValueError(
+            "no source: with one AGV and no open task the field is zero everywhere; give at "
+            "least one unclaimed task (or another AGV)"
+        )
     grid = ipf_grid(world, resolution)
     cells, values = _scene_sources(grid, agents, tasks, int(agent), claimed)
     if method == "fast":
         field = grid.fields(torch.from_numpy(cells)[None], torch.from_numpy(values)[None])
         phi = field[0].numpy()
-    elif method == "jacobi":
-        phi = jacobi_field(grid, cells, values)
     else:
-        raise ValueError(f"method must be 'fast' or 'jacobi', got {method!r}")
+        phi = jacobi_field(grid, cells, values)
     own = int(grid.cell_of(agents[agent]))
     return IPFField(phi, grid.x.copy(), grid.y.copy(), int(agent), float(phi.ravel()[own]), world)
-
-
-# ---------------------------------------------------------------------- the reward
-class IPFReward:
-    """The paper's IPF reward ``r = r_IPF + r_g + r_c``, per AGV, with each term reported.
-
-    Terms (each ``(B, N)``, zero in environments that were already done):
-
-    - ``"ipf"``: ``r_IPF``, AGV i's own field at its own cell, from the state after the step
-      (claimed tasks have left the field; parked AGVs stay sources at -3). Exact, via
-      :meth:`IPFGrid.agent_potentials`. A parked AGV stands on the task it serves and receives
-      that task's value (+5), as an AGV on a target does in the paper: otherwise claiming
-      a task (which removes its +5 from the field) would pay less than hovering just outside
-      the capture radius, and learners learn to hover.
-    - ``"goal"``: ``r_g = -sum over tasks of the distance to the nearest AGV`` (all tasks, as in
-      the paper's R_t), shared by every AGV. The paper writes ``-sum_i min_j d_ij`` with
-      ``d_ij`` the distance between AGV i and task j, which read literally sums over AGVs; we
-      follow the design's reading, the MiniDist distance term, which rewards covering every
-      task rather than crowding one.
-    - ``"collision"``: ``r_c = -1`` if AGV i's disc overlaps any other AGV's (centres closer
-      than two radii, the environment's collision rule; the paper writes ``<=``), else 0.
-
-    Parameters
-    ----------
-    resolution : float
-        Grid cell size (default 0.05). Large floors may need a coarser one: the grid refuses
-        a Green's function over :data:`MAX_GREEN_BYTES` and names a resolution that fits, to
-        be passed as ``make_env(..., reward=IPFReward(resolution=...))``.
-    task_value, agent_value : float
-        The fixed potentials (+5, -3 in the paper).
-    """
-
-    zeroes_inactive = True
-
-    def __init__(
-        self,
-        resolution: float = DEFAULT_RESOLUTION,
-        task_value: float = TASK_VALUE,
-        agent_value: float = AGENT_VALUE,
-    ) -> None:
-        self.resolution = resolution
-        self.task_value = task_value
-        self.agent_value = agent_value
-        self._cache = TaskBlockCache()
-
-    def setup(self, world: World, kernels: Any = None) -> None:
-        """Bind the reward to the floor of the environment and to the kernels it uses."""
-        self._world = world
-        self._kernels = kernels
-
-    def __call__(self, state: SimState, ctx: StepContext) -> dict[str, Tensor]:
-        world = getattr(self, "_world", None)
-        if world is None:
-            raise ValueError("IPFReward.setup(world, kernels) must be called before the reward "
-                             "(sim.make_env does it)")
-        grid = ipf_grid(world, self.resolution)
-        # ctx's collision counts and team terms are already 0 where the env was not running.
-        goal = ctx.team_distance
-        collision = -ctx.collisions_per_agent.clamp_max(1.0)
-        potential = None
-        if self._kernels is not None:
-            potential = grid._potentials_native(
-                state.agent_pos, state.task_pos, None, self.task_value, self.agent_value,
-                self._cache, agent_task=state.agent_task, active=ctx.active,
-                task_claimed=state.task_claimed, dtype=goal.dtype,
-            )
-        if potential is None:
-            potential = grid.agent_potentials(
-                state.agent_pos, state.task_pos, ~state.task_claimed, self.task_value,
-                self.agent_value, cache=self._cache, native=False,
-            ).double()
-            potential = torch.where(state.agent_task >= 0, self.task_value, potential)
-            potential = potential * ctx.active.unsqueeze(1)
-            potential = potential.to(goal.dtype)
-        return {"ipf": potential, "goal": goal, "collision": collision}
-
-
-# ---------------------------------------------------------------------- the picture
-def plot_field(
-    field: IPFField,
-    agents: np.ndarray,
-    tasks: np.ndarray,
-    agent: int | None = None,
-    ax: Any = None,
-    path: str | None = None,
-    claimed: np.ndarray | None = None,
-) -> Figure:
-    """A heatmap of one AGV's field with the tasks and AGVs marked (the paper's Figs. 3, 4).
-
-    Parameters
-    ----------
-    field : IPFField
-        From :func:`ipf_field`.
-    agents : array-like, shape (N, 2)
-    tasks : array-like, shape (M, 2)
-    agent : int, optional
-        The AGV whose field it is (default ``field.agent``), drawn highlighted.
-    ax : matplotlib Axes, optional
-        Draw into it; a new figure otherwise.
-    path : str, optional
-        Save the figure there.
-    claimed : array-like of bool, shape (M,), optional
-        Claimed tasks, drawn hollow.
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import TwoSlopeNorm
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Circle, Rectangle
-
-    agents = np.asarray(agents, dtype=np.float64).reshape(-1, 2)
-    tasks = np.asarray(tasks, dtype=np.float64).reshape(-1, 2)
-    agent = field.agent if agent is None else int(agent)
-    claimed = (np.zeros(len(tasks), dtype=bool) if claimed is None
-               else np.asarray(claimed, dtype=bool))
-    world = field.world
-    if ax is None:  # a bare Agg figure: no pyplot, no global backend switch
-        fig = Figure(figsize=(5.0, 5.0 * world.size[1] / world.size[0] + 0.4))
-        FigureCanvasAgg(fig)
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
-    xmin, ymin, xmax, ymax = world.bounds
-    image = ax.imshow(
-        field.values, origin="lower", extent=(xmin, xmax, ymin, ymax), cmap="RdBu_r",
-        norm=TwoSlopeNorm(vcenter=0.0, vmin=AGENT_VALUE, vmax=TASK_VALUE), interpolation="nearest",
-    )
-    ax.contour(field.x, field.y, field.values, levels=[-2, -1, -0.25, 0.25, 0.5, 1, 2, 3, 4],
-               colors="k", linewidths=0.4, alpha=0.5)
-    for x0, y0, x1, y1 in world.obstacles:
-        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, color="0.35", zorder=2))
-    r = world.agent_radius
-    for i, (px, py) in enumerate(agents):
-        me = i == agent
-        ax.add_patch(Circle((px, py), r, fill=me, facecolor="gold" if me else "none",
-                            edgecolor="k", linewidth=1.5 if me else 1.0, zorder=3))
-        ax.annotate(str(i), (px, py), ha="center", va="center", fontsize=8, zorder=4)
-    if len(tasks):
-        ax.scatter(*tasks[~claimed].T, marker="*", s=140, c="yellow", edgecolors="k", zorder=4,
-                   label="task (+5)")
-        if claimed.any():
-            ax.scatter(*tasks[claimed].T, marker="*", s=140, facecolors="none", edgecolors="k",
-                       zorder=4, label="claimed task")
-    ax.set_xlim(xmin, xmax)
-    ax.set_ylim(ymin, ymax)
-    ax.set_aspect("equal")
-    ax.set_title(f"IPF of AGV {agent} (r_IPF = {field.value_at_agent:.3f})")
-    fig.colorbar(image, ax=ax, shrink=0.8, label="potential")
-    if path is not None:
-        atomic_save(lambda p: fig.savefig(p, dpi=120, bbox_inches="tight"), path)
-    return fig

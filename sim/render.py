@@ -1,4 +1,5 @@
-"""Headless pictures of scenes (PNG) and episodes (animated GIF) with matplotlib.
+"""Headless pictures with matplotlib: scenes (PNG), episodes (animated GIF) and one AGV's
+information potential field (the paper's Figs. 3 and 4; the field itself is :mod:`sim.ipf`).
 
 matplotlib is imported on first use with the Agg backend, so nothing here needs a screen.
 """
@@ -7,20 +8,33 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+from torch import Tensor
 
 from sim.io import atomic_save
+from sim.ipf import AGENT_VALUE, DEFAULT_RESOLUTION, TASK_VALUE, IPFField, ipf_field
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from sim.core import AGVEnv
+__all__ = ["draw_scene", "render_scene", "render_episode", "plot_field", "render_field"]
 
-__all__ = ["draw_scene", "render_scene", "render_episode"]
+
+class SceneSource(Protocol):
+    """What :func:`render_scene` reads of an environment (``sim.AGVEnv`` has all of it)."""
+
+    num_envs: int
+    world: World
+    scenario: Any
+    agent_pos: Tensor  # (B, N, 2)
+    task_pos: Tensor  # (B, M, 2)
+    task_claimed: Tensor  # (B, M) bool
+    agent_task: Tensor  # (B, N) int64
+    steps: Tensor  # (B,) int64
 
 _AGENT_COLORS = "tab:blue"
 _TASK_COLOR = "tab:orange"
@@ -96,7 +110,7 @@ def draw_scene(
 
 
 def render_scene(
-    env: AGVEnv,
+    env: SceneSource,
     env_index: int = 0,
     trails: np.ndarray | None = None,
     path: str | os.PathLike[str] | None = None,
@@ -106,7 +120,7 @@ def render_scene(
 
     Parameters
     ----------
-    env : AGVEnv
+    env : AGVEnv, or any object with the attributes of :class:`SceneSource`
     env_index : int
         Which of the B environments.
     trails : (T, N, 2), optional
@@ -166,12 +180,12 @@ def render_episode(
     """
     from matplotlib.animation import FuncAnimation, PillowWriter
 
-    from sim.core import AGVEnv
+    from sim import make_env
     from sim.evaluate import run_episodes
     from sim.scenarios import get_scenario
 
     scn = get_scenario(scenario)
-    env = AGVEnv(scn, num_envs=1, seed=seed)
+    env = make_env(scn, num_envs=1, seed=seed)
     rec = run_episodes(env, controller, seed=seed, record=True)
     pos, claimed, agent_task = rec["agent_pos"][:, 0], rec["claimed"][:, 0], rec["agent_task"][:, 0]
     tasks = env.task_pos[0].cpu().numpy()
@@ -192,3 +206,133 @@ def render_episode(
         atomic_save(lambda p: fig.savefig(p, dpi=110, format="png"), still)
     plt.close(fig)
     return out
+
+
+def plot_field(
+    field: IPFField,
+    agents: np.ndarray,
+    tasks: np.ndarray,
+    agent: int | None = None,
+    ax: Any = None,
+    path: str | os.PathLike[str] | None = None,
+    claimed: np.ndarray | None = None,
+) -> Figure:
+    """A heatmap of one AGV's field with the tasks and AGVs marked (the paper's Figs. 3, 4).
+
+    Parameters
+    ----------
+    field : IPFField
+        From :func:`sim.ipf.ipf_field`.
+    agents : array-like, shape (N, 2)
+    tasks : array-like, shape (M, 2)
+    agent : int, optional
+        The AGV whose field it is (default ``field.agent``), drawn highlighted.
+    ax : matplotlib Axes, optional
+        Draw into it; a new figure otherwise.
+    path : str or Path, optional
+        Save the figure there (PNG, written atomically).
+    claimed : array-like of bool, shape (M,), optional
+        Claimed tasks, drawn hollow.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import TwoSlopeNorm
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle, Rectangle
+
+    agents = np.asarray(agents, dtype=np.float64).reshape(-1, 2)
+    tasks = np.asarray(tasks, dtype=np.float64).reshape(-1, 2)
+    agent = field.agent if agent is None else int(agent)
+    claimed = (np.zeros(len(tasks), dtype=bool) if claimed is None
+               else np.asarray(claimed, dtype=bool))
+    world = field.world
+    if ax is None:  # a bare Agg figure: no pyplot, no global backend switch
+        fig = Figure(figsize=(5.0, 5.0 * world.size[1] / world.size[0] + 0.4))
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure
+    xmin, ymin, xmax, ymax = world.bounds
+    image = ax.imshow(
+        field.values, origin="lower", extent=(xmin, xmax, ymin, ymax), cmap="RdBu_r",
+        norm=TwoSlopeNorm(vcenter=0.0, vmin=AGENT_VALUE, vmax=TASK_VALUE), interpolation="nearest",
+    )
+    ax.contour(field.x, field.y, field.values, levels=[-2, -1, -0.25, 0.25, 0.5, 1, 2, 3, 4],
+               colors="k", linewidths=0.4, alpha=0.5)
+    for x0, y0, x1, y1 in world.obstacles:
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, color="0.35", zorder=2))
+    r = world.agent_radius
+    for i, (px, py) in enumerate(agents):
+        me = i == agent
+        ax.add_patch(Circle((px, py), r, fill=me, facecolor="gold" if me else "none",
+                            edgecolor="k", linewidth=1.5 if me else 1.0, zorder=3))
+        ax.annotate(str(i), (px, py), ha="center", va="center", fontsize=8, zorder=4)
+    if len(tasks):
+        ax.scatter(*tasks[~claimed].T, marker="*", s=140, c="yellow", edgecolors="k", zorder=4,
+                   label="task (+5)")
+        if claimed.any():
+            ax.scatter(*tasks[claimed].T, marker="*", s=140, facecolors="none", edgecolors="k",
+                       zorder=4, label="claimed task")
+    ax.set_xlim(xmin, xmax)
+    ax.set_ylim(ymin, ymax)
+    ax.set_aspect("equal")
+    ax.set_title(f"IPF of AGV {agent} (r_IPF = {field.value_at_agent:.3f})")
+    fig.colorbar(image, ax=ax, shrink=0.8, label="potential")
+    if path is not None:  # the temporary file ends in .tmp: take the format from the target
+        fmt = Path(path).suffix.lstrip(".").lower() or "png"
+        atomic_save(lambda p: fig.savefig(p, dpi=120, bbox_inches="tight", format=fmt), path)
+    return fig
+
+
+def render_field(
+    agents: np.ndarray,
+    tasks: np.ndarray,
+    agent: int = 0,
+    world: World | None = None,
+    out: str | os.PathLike[str] | None = None,
+    resolution: float = DEFAULT_RESOLUTION,
+    claimed: np.ndarray | None = None,
+) -> Figure:
+    """A picture of AGV ``agent``'s information potential field in one scene.
+
+    :func:`sim.ipf.ipf_field` then :func:`plot_field`, in one call.
+
+    Parameters
+    ----------
+    agents : array-like, shape (N, 2)
+        AGV positions in world units.
+    tasks : array-like, shape (M, 2)
+        Task positions.
+    agent : int
+        Whose field (drawn highlighted).
+    world : World, optional
+        Default ``sim.World()`` (the box ``[-1, 1]^2``).
+    out : str or Path, optional
+        Save the figure there (PNG, written atomically; missing folders are created).
+    resolution : float
+        Cell size of the field's grid in world units (default 0.05).
+    claimed : array-like of bool, shape (M,), optional
+        Claimed tasks: not sources, drawn hollow.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+
+    Raises
+    ------
+    ValueError
+        For any input :func:`sim.ipf.ipf_field` refuses; the message names it.
+
+    Examples
+    --------
+    >>> import numpy as np, sim
+    >>> fig = sim.render_field(np.array([[-0.5, 0.0], [0.5, 0.0]]), np.array([[0.0, 0.5]]))
+    >>> fig.axes[0].get_title()
+    'IPF of AGV 0 (r_IPF = 0.308)'
+    """
+    field = ipf_field(agents, tasks, agent=agent, world=world, resolution=resolution,
+                      claimed=claimed)
+    return plot_field(field, agents, tasks, agent=field.agent, path=out, claimed=claimed)

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import sim
+from sim import native
 from sim.ipf import (
     AGENT_VALUE,
     TASK_VALUE,
@@ -17,8 +18,8 @@ from sim.ipf import (
     ipf_field,
     ipf_grid,
     jacobi_field,
-    plot_field,
 )
+from sim.render import plot_field
 
 COARSE = 0.1  # 20 x 20 cells on the MPE box: fast Jacobi for the oracle tests
 SHELVES = sim.World(obstacles=np.array([[-0.6, -0.2, -0.1, 0.2], [0.2, -0.7, 0.5, 0.6]]))
@@ -150,8 +151,6 @@ def test_sources_keep_their_values_and_fixed_nodes_are_zero(shelf_field) -> None
 def test_own_cell_is_not_a_source() -> None:
     field = ipf_field(np.array([[-0.5, 0.0]]), np.array([[0.5, 0.0]]))
     assert 0.0 < field.value_at_agent < 1.0
-    lone = ipf_field(np.array([[0.0, 0.0]]), np.zeros((0, 2)))
-    assert np.all(lone.values == 0.0)
 
 
 # ---------------------------------------------------------------------- metamorphic checks
@@ -273,6 +272,17 @@ def test_bad_resolutions_are_refused(resolution: float) -> None:
         IPFGrid(sim.World(), resolution)
 
 
+@pytest.mark.parametrize("resolution", ["0.05", None, "fine", 1e-300])
+def test_ipf_grid_names_a_resolution_that_is_not_a_usable_number(resolution) -> None:
+    with pytest.raises(ValueError, match="resolution"):
+        ipf_grid(sim.World(), resolution)
+
+
+def test_ipf_grid_refuses_a_world_that_is_not_a_world() -> None:
+    with pytest.raises(ValueError, match="world must be a sim.World or None, got str"):
+        ipf_grid("warehouse")
+
+
 def test_bad_shapes_and_indices_are_refused() -> None:
     with pytest.raises(ValueError, match=r"agents must have shape \(K, 2\)"):
         ipf_field(np.zeros((3, 3)), np.zeros((1, 2)))
@@ -296,6 +306,66 @@ def test_plot_field_returns_a_figure_and_saves(tmp_path) -> None:
     path = tmp_path / "ipf.png"
     fig = plot_field(field, agents, tasks, 1, path=str(path), claimed=[False, True, False])
     assert fig.axes and path.stat().st_size > 1000
+
+
+# ---------------------------------------------------------------------- the reward's potentials
+def _reward_scene(seed: int = 0):
+    """Four 6v6 environments after a few random steps: claims, parked AGVs, a finished one."""
+    env = sim.make_env("6v6", num_envs=4, reward="minidist", seed=seed)
+    gen = torch.Generator().manual_seed(seed)
+    for _ in range(6):
+        env.step(torch.rand(4, 6, 2, generator=gen) * 2 - 1)
+    assert (env.agent_task >= 0).any() and (env.agent_task < 0).any()
+    return env, torch.tensor([True, False, True, True])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_reward_potentials_pay_parked_agvs_the_task_value_and_inactive_envs_zero(dtype) -> None:
+    env, active = _reward_scene()
+    grid = ipf_grid(env.world)
+    plain = grid.agent_potentials(env.agent_pos.double(), env.task_pos.double(),
+                                  ~env.task_claimed, native=False)
+    got = grid.reward_potentials(env.agent_pos, env.task_pos, env.task_claimed, env.agent_task,
+                                 active, dtype=dtype)
+    assert got.dtype == dtype
+    parked = env.agent_task >= 0
+    assert torch.all(got[1] == 0.0)
+    keep = active.unsqueeze(1) & ~parked
+    torch.testing.assert_close(got[keep].double(), plain[keep], atol=1e-5, rtol=0)
+    assert torch.all(got[active.unsqueeze(1) & parked] == TASK_VALUE)
+
+
+@pytest.mark.skipif(not native.available(), reason="fused kernels unavailable")
+def test_reward_potentials_kernel_path_equals_torch_path() -> None:
+    env, active = _reward_scene(seed=1)
+    grid = ipf_grid(env.world)
+    args = (env.agent_pos, env.task_pos, env.task_claimed, env.agent_task, active)
+    kernel = grid.reward_potentials(*args, kernels=native.library())
+    torch_path = grid.reward_potentials(*args, kernels=None)
+    torch.testing.assert_close(kernel, torch_path, atol=1e-5, rtol=0)
+
+
+@pytest.mark.skipif(not native.available(), reason="fused kernels unavailable")
+def test_reward_potentials_kernel_path_refuses_wrong_dtypes_naming_them() -> None:
+    env, active = _reward_scene()
+    grid = ipf_grid(env.world)
+    lib = native.library()
+    with pytest.raises(ValueError, match="task_pos .*float32"):
+        grid.reward_potentials(env.agent_pos, env.task_pos.double(), env.task_claimed,
+                               kernels=lib)
+    with pytest.raises(ValueError, match="agent_pos .*float32"):
+        grid.reward_potentials(env.agent_pos.double(), env.task_pos, kernels=lib)
+
+
+def test_reward_potentials_refuse_rule_tensors_of_the_wrong_shape() -> None:
+    env, active = _reward_scene()
+    grid = ipf_grid(env.world)
+    with pytest.raises(ValueError, match=r"agent_task must have shape \(4, 6\)"):
+        grid.reward_potentials(env.agent_pos, env.task_pos, agent_task=env.agent_task[:, :3])
+    with pytest.raises(ValueError, match=r"active must have shape \(4,\)"):
+        grid.reward_potentials(env.agent_pos, env.task_pos, active=active[:2])
+    with pytest.raises(ValueError, match="dtype must be"):
+        grid.reward_potentials(env.agent_pos, env.task_pos, dtype=torch.int64)
 
 
 # ---------------------------------------------------------------------- the two reward paths

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 import sim
-from sim.ipf import IPFReward, ipf_field
-from sim.rewards import REWARDS, Greedy, MiniDist, make_reward
+from sim.ipf import ipf_field
+from sim.rewards import REWARDS, Greedy, IPFReward, MiniDist, make_reward
 
 TERMS = {"minidist": {"distance", "collision"}, "greedy": {"progress", "collision"},
          "ipf": {"ipf", "goal", "collision"}}
@@ -49,6 +49,38 @@ def test_make_reward_by_name_or_callable() -> None:
     assert make_reward(custom) is custom
     with pytest.raises(ValueError, match=r"unknown reward 'ipf2'.*'greedy', 'ipf', 'minidist'"):
         make_reward("ipf2")
+
+
+@pytest.mark.parametrize("reward", [["ipf"], 3, 2.5, None, b"ipf"],
+                         ids=["list", "int", "float", "None", "bytes"])
+def test_make_reward_refuses_what_is_neither_a_name_nor_a_callable(reward) -> None:
+    with pytest.raises(ValueError, match=r"reward must be one of 'greedy', 'ipf', 'minidist' "
+                                         r"or a callable"):
+        make_reward(reward)
+
+
+def test_make_reward_refuses_a_reward_class_instead_of_an_instance() -> None:
+    with pytest.raises(ValueError, match=r"the class IPFReward; pass an instance, IPFReward\(\)"):
+        make_reward(IPFReward)
+
+
+@pytest.mark.parametrize("resolution", [0.0, -1.0, float("nan"), "fine"])
+def test_ipf_reward_refuses_a_bad_resolution_when_it_is_made(resolution) -> None:
+    with pytest.raises(ValueError, match="resolution must be a positive, finite cell size"):
+        IPFReward(resolution=resolution)
+
+
+@pytest.mark.parametrize("field", ["task_value", "agent_value"])
+def test_ipf_reward_refuses_potentials_that_are_not_finite_numbers(field: str) -> None:
+    for bad in (float("nan"), float("inf"), "5", True):
+        with pytest.raises(ValueError, match=f"{field} must be a finite number"):
+            IPFReward(**{field: bad})
+
+
+def test_ipf_reward_refuses_a_floor_its_resolution_does_not_fit_when_the_env_is_made() -> None:
+    with pytest.raises(ValueError, match=r"MiB .* use resolution >= "):
+        sim.make_env("warehouse", reward=IPFReward(resolution=0.01))
+
 
 
 # ---------------------------------------------------------------------- hand-made scenes

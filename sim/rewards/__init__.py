@@ -1,0 +1,72 @@
+"""Reward functions, chosen by name in :func:`sim.make_env`; one module each.
+
+A reward is a small callable ``reward(state, ctx) -> {term_name: (B, N) tensor}`` of the
+state after the step (:class:`sim.state.SimState`) and the step's context
+(:class:`sim.state.StepContext`, the distances and collisions the environment already computed
+for the step); the environment sums the terms into the per-agent reward and reports each term
+in ``info["reward_terms"]`` so that shaping can be audited.
+
+- ``minidist`` (global, :mod:`sim.rewards.minidist`): every AGV gets the paper's
+  R_t = -(sum over tasks of the distance to the nearest AGV) - (number of overlapping AGV
+  pairs). Terms ``distance``, ``collision``.
+- ``greedy`` (individual, :mod:`sim.rewards.greedy`): each idle AGV gets the distance it closed
+  to its nearest unclaimed task during the step, minus the number of AGVs it overlaps. Terms
+  ``progress``, ``collision``.
+- ``ipf`` (:mod:`sim.rewards.ipf`): r_IPF + r_g + r_c, the paper's information potential field
+  reward. Terms ``ipf``, ``goal``, ``collision``.
+
+Every term is a (B, N) tensor and is zero in environments that were already done before the
+step (the environment zeroes their summed reward too, so the reported terms add up to it).
+The protocol is :class:`sim.rewards.base.RewardFn`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from sim.rewards.base import RewardFn
+from sim.rewards.greedy import Greedy
+from sim.rewards.ipf import IPFReward
+from sim.rewards.minidist import MiniDist
+
+__all__ = ["RewardFn", "MiniDist", "Greedy", "IPFReward", "REWARDS", "make_reward"]
+
+REWARDS: dict[str, Callable[[], RewardFn]] = {
+    "minidist": MiniDist,
+    "greedy": Greedy,
+    "ipf": IPFReward,
+}
+"""Registered rewards by name."""
+
+
+def make_reward(reward: str | RewardFn) -> RewardFn:
+    """Return the reward callable for a registered name, or the callable itself.
+
+    Parameters
+    ----------
+    reward : str or RewardFn
+        A name of :data:`REWARDS` or an object called as ``reward(state, ctx)``.
+
+    Returns
+    -------
+    RewardFn
+
+    Raises
+    ------
+    ValueError
+        For an unknown name, a class instead of an instance, or anything that is neither a
+        name nor a callable (a list, a number, None); the message lists the known names.
+    """
+    names = ", ".join(repr(name) for name in sorted(REWARDS))
+    if isinstance(reward, str):
+        if reward not in REWARDS:
+            raise ValueError(f"unknown reward {reward!r}; expected one of {names}, or a "
+                             "callable reward(state, ctx) -> {term: (B, N) tensor}")
+        return REWARDS[reward]()
+    if isinstance(reward, type):
+        raise ValueError(f"reward must be a name or a reward object, got the class "
+                         f"{reward.__name__}; pass an instance, {reward.__name__}()")
+    if not callable(reward):
+        raise ValueError(f"reward must be one of {names} or a callable reward(state, ctx) -> "
+                         f"{{term: (B, N) tensor}}, got {type(reward).__name__} {reward!r}")
+    return reward

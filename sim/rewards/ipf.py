@@ -1,0 +1,106 @@
+"""The paper's IPF reward, ``r_IPF + r_g + r_c``; the field itself is :mod:`sim.ipf`."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Any
+
+from torch import Tensor
+
+from sim.ipf import (
+    AGENT_VALUE,
+    DEFAULT_RESOLUTION,
+    TASK_VALUE,
+    IPFGrid,
+    TaskBlockCache,
+    check_resolution,
+    ipf_grid,
+)
+from sim.state import SimState, StepContext
+from sim.world import World
+
+__all__ = ["IPFReward"]
+
+
+class IPFReward:
+    """The paper's IPF reward ``r = r_IPF + r_g + r_c``, per AGV, with each term reported.
+
+    Terms (each ``(B, N)``, zero in environments that were already done):
+
+    - ``"ipf"``: ``r_IPF``, AGV i's own field at its own cell, from the state after the step
+      (claimed tasks have left the field; parked AGVs stay sources at -3). Exact, via
+      :meth:`sim.ipf.IPFGrid.reward_potentials`. A parked AGV stands on the task it serves and
+      receives that task's value (+5), as an AGV on a target does in the paper: otherwise
+      claiming a task (which removes its +5 from the field) would pay less than hovering just
+      outside the capture radius, and learners learn to hover.
+    - ``"goal"``: ``r_g = -sum over tasks of the distance to the nearest AGV`` (all tasks, as in
+      the paper's R_t), shared by every AGV. The paper writes ``-sum_i min_j d_ij`` with
+      ``d_ij`` the distance between AGV i and task j, which read literally sums over AGVs; we
+      follow the design's reading, the MiniDist distance term, which rewards covering every
+      task rather than crowding one.
+    - ``"collision"``: ``r_c = -1`` if AGV i's disc overlaps any other AGV's (centres closer
+      than two radii, the environment's collision rule; the paper writes ``<=``), else 0.
+
+    Parameters
+    ----------
+    resolution : float
+        Grid cell size (default 0.05). Large floors may need a coarser one: the grid refuses
+        a Green's function over :data:`sim.ipf.MAX_GREEN_BYTES` and names a resolution that
+        fits, to be passed as ``make_env(..., reward=IPFReward(resolution=...))``.
+    task_value, agent_value : float
+        The fixed potentials (+5, -3 in the paper).
+
+    Raises
+    ------
+    ValueError
+        For a resolution that is not a positive finite cell size, or potentials that are not
+        finite numbers; :meth:`setup` for a floor the resolution does not fit.
+    """
+
+    zeroes_inactive = True
+
+    def __init__(
+        self,
+        resolution: float = DEFAULT_RESOLUTION,
+        task_value: float = TASK_VALUE,
+        agent_value: float = AGENT_VALUE,
+    ) -> None:
+        self.resolution = check_resolution(resolution)
+        for name, value in (("task_value", task_value), ("agent_value", agent_value)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                    or not math.isfinite(value):
+                raise ValueError(f"{name} must be a finite number, got {value!r}")
+        self.task_value = float(task_value)
+        self.agent_value = float(agent_value)
+        self._cache = TaskBlockCache()
+        self._grid: IPFGrid | None = None
+        self._kernels: Any = None
+
+    def setup(self, world: World, kernels: Any = None) -> None:
+        """Bind the reward to the floor of the environment and to the kernels it uses.
+
+        Parameters
+        ----------
+        world : World
+            The environment's floor; its grid is made here (the Green's function on the first
+            step), so a resolution that does not fit the floor is refused now.
+        kernels : ctypes.CDLL, optional
+            The environment's fused kernels (:mod:`sim.native`), or None for the torch path.
+        """
+        self._grid = ipf_grid(world, self.resolution)
+        self._kernels = kernels
+
+    def __call__(self, state: SimState, ctx: StepContext) -> dict[str, Tensor]:
+        if self._grid is None:
+            raise ValueError("IPFReward.setup(world, kernels) must be called before the reward "
+                             "(sim.make_env does it)")
+        # ctx's collision counts and team terms are already 0 where the env was not running.
+        goal = ctx.team_distance
+        collision = -ctx.collisions_per_agent.clamp_max(1.0)
+        potential = self._grid.reward_potentials(
+            state.agent_pos, state.task_pos, state.task_claimed, state.agent_task, ctx.active,
+            kernels=self._kernels, task_value=self.task_value, agent_value=self.agent_value,
+            cache=self._cache, dtype=goal.dtype,
+        )
+        return {"ipf": potential, "goal": goal, "collision": collision}
