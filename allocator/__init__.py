@@ -10,7 +10,6 @@ Heavy dependencies (OMPL, cvxpy, osqp, torch) are imported on first use only.
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -18,6 +17,7 @@ import numpy as np
 from allocator.base import ALLOCATORS, Allocator, Assignment, ClassicalAllocator, make, register
 from allocator.greedy import GreedyAllocator
 from allocator.hungarian import HungarianAllocator
+from allocator.learned import register_all as _register_learned
 
 if TYPE_CHECKING:  # pragma: no cover
     from sim.world import World
@@ -34,19 +34,7 @@ __all__ = [
     "GreedyAllocator",
 ]
 
-# --- Hook for the learned allocators ("maddpg-ipf", "bicnet-greedy", ...). ------------------
-# allocator/learned.py (owned by the learners engineer) adds its classes to ALLOCATORS when
-# imported, e.g. ``ALLOCATORS["maddpg-ipf"] = ...`` or through ``register(name)``. Only a
-# missing module is tolerated here; any other error inside it surfaces.
-try:
-    _learned = importlib.import_module("allocator.learned")
-except ModuleNotFoundError as _err:  # pragma: no cover - until learned.py exists
-    if _err.name != "allocator.learned":
-        raise
-else:  # pragma: no cover
-    if callable(getattr(_learned, "register_all", None)):
-        _learned.register_all(ALLOCATORS)
-# ----------------------------------------------------------------------------------------------
+_register_learned(ALLOCATORS)
 
 
 def assign(
@@ -61,15 +49,21 @@ def assign(
     Parameters
     ----------
     agents : array-like, shape (N, 2)
-        AGV positions in world units.
+        AGV positions in world units: real numbers (a torch tensor is detached), at most
+        :data:`allocator.base.MAX_COORDINATE` (1e150) in magnitude, so that squared distances
+        cannot overflow (larger coordinates are rejected). N >= 1; several AGVs may share a
+        position (they are then interchangeable; the solver picks which serves, the same way
+        every time).
     tasks : array-like, shape (M, 2)
-        Task positions; M may differ from N.
+        Task positions, likewise; M >= 1 and may differ from N.
     method : str
         A key of :data:`ALLOCATORS` (default ``"hungarian"``, the optimum).
     world : World, optional
-        Shelves make costs obstacle-aware; positions are checked against bounds and shelves.
+        A :class:`sim.world.World`; shelves make costs obstacle-aware; positions are checked
+        against bounds and shelves.
     **options
-        Constructor options of the solver (e.g. ``planner="ompl"`` to get paths).
+        Constructor options of the solver (e.g. ``planner="ompl"`` to get paths), checked when
+        it is made (see :func:`allocator.base.make`).
 
     Returns
     -------
@@ -81,7 +75,10 @@ def assign(
     Raises
     ------
     ValueError
-        On bad input or an unknown method.
+        On an unknown method or option, a bad option value, a ``world`` that is not a World,
+        or bad positions: not an (N, 2) array of real numbers (None, ragged rows, strings,
+        booleans, complex numbers, masked entries), empty, NaN or infinite, beyond 1e150,
+        outside the world or inside a shelf. The message names the argument.
 
     Examples
     --------
