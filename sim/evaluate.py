@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sim.core import AGVEnv
+from sim.env import AGVEnv
 from sim.scenarios import Scenario, get_scenario
 
 __all__ = ["Controller", "Metrics", "evaluate", "metrics_from_episodes", "run_episodes",

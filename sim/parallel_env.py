@@ -15,14 +15,14 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from sim.core import AGVEnv
+from sim.env import AGVEnv
 from sim.scenarios import Scenario, get_scenario
 
 __all__ = ["AGVParallelEnv", "pettingzoo_env"]
 
 
 class AGVParallelEnv(ParallelEnv):
-    """PettingZoo parallel API over :class:`sim.core.AGVEnv` with B = 1.
+    """PettingZoo parallel API over :class:`sim.env.AGVEnv` with B = 1.
 
     Agents are named ``"agv_0" ... "agv_{N-1}"``; observations are float32 vectors of length
     O; actions are accelerations in ``[-1, 1]^2``. Every agent's info holds ``"task"`` (int,
