@@ -8,8 +8,12 @@ scores any registry entry on the same episodes.
 
 from __future__ import annotations
 
+import inspect
+import numbers
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from decimal import Decimal
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
@@ -25,9 +29,25 @@ __all__ = [
     "ALLOCATORS",
     "register",
     "make",
+    "option_names",
     "check_inputs",
+    "as_real_array",
     "ClassicalAllocator",
+    "CONTROLLER_OPTIONS",
+    "MAX_COORDINATE",
 ]
+
+MAX_COORDINATE = 1e150
+"""Largest accepted magnitude of a coordinate: the squared distance of two points within it,
+at most ``8 * MAX_COORDINATE ** 2``, stays far from float64 overflow (about 1.8e308), and so
+does the assignment's cost scaling. Larger coordinates are rejected, not clipped."""
+
+CONTROLLER_OPTIONS = (
+    "avoidance", "planner", "max_speed", "brake", "reassign_every", "avoid_tasks",
+    "avoidance_options", "waypoint_tolerance", "stuck_steps", "seed",
+)
+"""The keyword options of :class:`allocator.controller.AllocatorController` (a test keeps this
+equal to its signature; listed here so that making an allocator does not import torch)."""
 
 
 @dataclass(frozen=True)
@@ -145,6 +165,28 @@ def register(name: str) -> Callable[[_T], _T]:
     return deco
 
 
+def option_names(cls: type) -> tuple[str, ...] | None:
+    """The keyword options ``cls(**options)`` accepts, sorted; None when it accepts any.
+
+    A class may declare them with a callable ``option_names()`` attribute (as
+    :class:`ClassicalAllocator` does, adding the controller's options); otherwise they are read
+    from its constructor's signature, and a constructor taking ``**kwargs`` accepts any.
+    """
+    declared = getattr(cls, "option_names", None)
+    if callable(declared):
+        return tuple(sorted(declared()))
+    try:
+        params = inspect.signature(cls).parameters.values()
+    except (TypeError, ValueError):  # no introspectable signature (e.g. a C type)
+        return None
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    return tuple(sorted(
+        p.name for p in params
+        if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    ))
+
+
 def make(name: str, **options: Any) -> Allocator:
     """Build a registered allocator.
 
@@ -153,7 +195,8 @@ def make(name: str, **options: Any) -> Allocator:
     name : str
         A key of :data:`ALLOCATORS`, e.g. ``"hungarian"`` or ``"greedy"``.
     **options
-        Passed to the allocator's constructor (e.g. ``planner="ompl"``, ``scenario="6v6"``).
+        Passed to the allocator's constructor (e.g. ``planner="ompl"``, ``scenario="6v6"``);
+        checked against :func:`option_names` before it is built.
 
     Returns
     -------
@@ -163,7 +206,9 @@ def make(name: str, **options: Any) -> Allocator:
     Raises
     ------
     ValueError
-        For an unknown name; the message lists the registered ones.
+        For a name that is not a registered string (the message lists the registered ones),
+        or an option the allocator does not take (the message lists the ones it takes); the
+        allocator's constructor raises ValueError for a bad option value.
 
     Examples
     --------
@@ -171,24 +216,102 @@ def make(name: str, **options: Any) -> Allocator:
     >>> solver = allocator.make("hungarian")
     >>> solver.assign([[0.0, 0.0], [1.0, 0.0]], [[0.9, 0.0], [0.1, 0.0]]).task_of_agent
     array([1, 0])
+    >>> allocator.make("hungarian", plannr="grid")
+    Traceback (most recent call last):
+    ...
+    ValueError: unknown option 'plannr' for allocator 'hungarian'; valid options: ...
     """
-    if name not in ALLOCATORS:
-        raise ValueError(f"unknown allocator {name!r}; expected one of {sorted(ALLOCATORS)}")
-    return ALLOCATORS[name](**options)
+    if not isinstance(name, str) or name not in ALLOCATORS:
+        raise ValueError(
+            f"unknown allocator {name!r}: expected a name (str), one of {sorted(ALLOCATORS)}"
+        )
+    cls = ALLOCATORS[name]
+    valid = option_names(cls)
+    unknown = [key for key in options if valid is not None and key not in valid]
+    if unknown:
+        listed = ", ".join(repr(k) for k in unknown)
+        raise ValueError(
+            f"unknown option{'s' if len(unknown) > 1 else ''} {listed} for allocator {name!r}; "
+            f"valid options: {', '.join(valid)}"
+        )
+    return cls(**options)
+
+
+def _describe(values: object) -> str:
+    """A short description of a value for an error message."""
+    text = repr(values)
+    return f"{type(values).__name__} {text if len(text) <= 60 else text[:57] + '...'}"
+
+
+def as_real_array(values: object, what: str, expected: str) -> np.ndarray:
+    """``values`` as a float64 array, refusing anything that is not real numbers.
+
+    Parameters
+    ----------
+    values : array-like
+        Numbers: a nested sequence, a numpy array of integers or floats, or a torch tensor
+        (detached and copied to the CPU, so ``requires_grad`` is fine).
+    what : str
+        Name of the argument, for the messages.
+    expected : str
+        What was expected, for the messages (e.g. ``"an (N, 2) array of real numbers"``).
+
+    Returns
+    -------
+    np.ndarray of float64
+        Same shape as ``values`` (not checked here).
+
+    Raises
+    ------
+    ValueError
+        For ``None``, ragged sequences, strings, booleans, complex numbers (their imaginary
+        part would be dropped), dates, masked entries, or numbers too large for a float.
+    """
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(values, torch.Tensor):
+        values = values.detach().cpu()
+    if np.ma.isMaskedArray(values) and np.ma.is_masked(values):
+        raise ValueError(f"{what} must be {expected}: got a masked array with masked entries")
+    if values is None:
+        raise ValueError(f"{what} must be {expected}, got None")
+    try:
+        raw = np.asarray(values)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"{what} must be {expected} (rows of equal length): {err}"
+        ) from None
+    kind = raw.dtype.kind
+    if kind == "O":
+        for v in raw.flat:
+            if isinstance(v, bool | np.bool_) or not isinstance(v, numbers.Real | Decimal):
+                raise ValueError(f"{what} must be {expected}: found {_describe(v)}")
+    elif kind not in "iuf":
+        why = {"b": "booleans", "c": "complex numbers (the imaginary part would be dropped)",
+               "U": "strings", "S": "bytes", "M": "dates", "m": "time spans"}.get(
+                   kind, f"dtype {raw.dtype}")
+        raise ValueError(f"{what} must be {expected}, got {why}")
+    try:
+        return raw.astype(np.float64)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise ValueError(f"{what} must be {expected}: {err}") from None
 
 
 def _as_points(points: object, what: str, letter: str) -> np.ndarray:
-    try:
-        arr = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{what} must be an ({letter}, 2) array of numbers: {err}") from None
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"{what} must have shape ({letter}, 2), got {arr.shape}")
-    if arr.shape[0] == 0:
+    arr = as_real_array(points, what, f"an ({letter}, 2) array of real numbers")
+    if arr.size == 0:
         raise ValueError(f"{what} is empty: expected at least one row of shape ({letter}, 2)")
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        hint = " (one point is [[x, y]])" if arr.shape == (2,) else ""
+        raise ValueError(f"{what} must have shape ({letter}, 2), got {arr.shape}{hint}")
     if not np.all(np.isfinite(arr)):
         bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
         raise ValueError(f"{what} contain NaN or infinite values at rows {bad.tolist()}")
+    huge = np.flatnonzero((np.abs(arr) > MAX_COORDINATE).any(axis=1))
+    if huge.size:
+        raise ValueError(
+            f"{what} rows {huge.tolist()} have coordinates beyond +-{MAX_COORDINATE:g}: their "
+            "squared distances would overflow (use smaller units)"
+        )
     return arr
 
 
@@ -197,12 +320,30 @@ def check_inputs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Validate a scene and return ``(agents (N, 2), tasks (M, 2))`` as float64.
 
+    Parameters
+    ----------
+    agents : array-like, shape (N, 2)
+    tasks : array-like, shape (M, 2)
+        Real numbers (see :func:`as_real_array`; torch tensors are detached), at most
+        :data:`MAX_COORDINATE` in magnitude. Several AGVs (or tasks) may share a position.
+    world : World, optional
+        A :class:`sim.world.World` (e.g. ``sim.scenarios.warehouse_world()``) or None.
+
     Raises
     ------
     ValueError
-        On a wrong shape, an empty array, NaN or infinite values, or (with a world) a point
+        On a wrong type or shape, an empty array, NaN or infinite values, coordinates beyond
+        :data:`MAX_COORDINATE`, a ``world`` that is not a World, or (with a world) a point
         outside the world's bounds or inside a shelf. The message names the array and rows.
     """
+    if world is not None:
+        from sim.world import World
+
+        if not isinstance(world, World):
+            raise ValueError(
+                "world must be None or a sim.world.World (e.g. sim.scenarios.warehouse_world())"
+                f", got {_describe(world)}"
+            )
     a = _as_points(agents, "agents", "N")
     t = _as_points(tasks, "tasks", "M")
     if world is not None:
@@ -221,14 +362,36 @@ class ClassicalAllocator:
     ----------
     **controller_options
         Passed to :class:`~allocator.controller.AllocatorController` (``avoidance``,
-        ``planner``, ``max_speed``, ...).
+        ``planner``, ``max_speed``, ...: :data:`CONTROLLER_OPTIONS`).
+
+    Raises
+    ------
+    ValueError
+        For an option that is neither the class's own nor the controller's (the message lists
+        the valid ones).
     """
 
     name = "classical"
 
     def __init__(self, **controller_options: Any) -> None:
+        unknown = [key for key in controller_options if key not in CONTROLLER_OPTIONS]
+        if unknown:
+            listed = ", ".join(repr(k) for k in unknown)
+            raise ValueError(
+                f"unknown option{'s' if len(unknown) > 1 else ''} {listed} for "
+                f"{type(self).__name__}; valid options: {', '.join(self.option_names())}"
+            )
         self.controller_options = controller_options
         self._controller: Any = None
+
+    @classmethod
+    def option_names(cls) -> tuple[str, ...]:
+        """The constructor's own keyword options and the controller's, sorted."""
+        own = (
+            p.name for p in inspect.signature(cls).parameters.values()
+            if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+        )
+        return tuple(sorted({*own, *CONTROLLER_OPTIONS}))
 
     def assign(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None

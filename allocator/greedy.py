@@ -11,7 +11,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from allocator.base import Assignment, ClassicalAllocator, check_inputs, register
-from allocator.hungarian import plan_paths, unserved_reasons
+from allocator.hungarian import (
+    _make_planner,
+    check_cost_matrix,
+    check_planner_options,
+    plan_paths,
+    unserved_reasons,
+)
 from allocator.paths import travel_costs
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -25,14 +31,21 @@ def greedy_matching(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    cost : np.ndarray, shape (N, M)
+    cost : array-like, shape (N, M)
+        Real travel costs; ``+inf`` marks a pair that cannot be served (never taken). NaN and
+        ``-inf`` are refused.
 
     Returns
     -------
     rows, cols : np.ndarray of int64
         Matched agent and task indices.
+
+    Raises
+    ------
+    ValueError
+        For a cost that is not a 2-D real matrix or holds NaN or ``-inf``.
     """
-    work = np.array(cost, dtype=np.float64, copy=True)
+    work = check_cost_matrix(cost)
     rows, cols = [], []
     for i in range(work.shape[0]):
         j = int(np.argmin(work[i]))
@@ -56,8 +69,15 @@ class GreedyAllocator(ClassicalAllocator):
         Plan a path for every served AGV in :meth:`assign` (None: no paths in the result).
     resolution : float
         Cell size of the occupancy grid used for obstacle-aware costs.
+    seed : int
+        Seed of the OMPL planner.
     **controller_options
         Passed to :class:`~allocator.controller.AllocatorController`.
+
+    Raises
+    ------
+    ValueError
+        For a bad ``planner``, ``resolution`` or ``seed``, or an unknown option.
     """
 
     name = "greedy"
@@ -67,10 +87,8 @@ class GreedyAllocator(ClassicalAllocator):
         **controller_options: Any,
     ) -> None:
         super().__init__(**controller_options)
-        from allocator.hungarian import _make_planner
-
+        check_planner_options(planner, resolution, seed)
         self.planner = planner
-        _make_planner(planner, None, seed)  # validates the name
         self.resolution = resolution
         self.seed = seed
         self._planner: Any = None
@@ -108,8 +126,6 @@ class GreedyAllocator(ClassicalAllocator):
         >>> allocator.make("hungarian").assign(agents, tasks).task_of_agent
         array([1, 0])
         """
-        from allocator.hungarian import _make_planner
-
         agents, tasks = check_inputs(agents, tasks, world)
         cost = travel_costs(agents, tasks, world, self.resolution)
         rows, cols = greedy_matching(cost)

@@ -7,33 +7,136 @@ unserved with the reason; it is never matched at infinite cost.
 
 from __future__ import annotations
 
+import numbers
+import sys
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from allocator.base import Assignment, ClassicalAllocator, check_inputs, register
+from allocator.base import Assignment, ClassicalAllocator, as_real_array, check_inputs, register
 from allocator.paths import travel_costs
 
 if TYPE_CHECKING:  # pragma: no cover
     from sim.world import World
 
-__all__ = ["HungarianAllocator", "solve_cost_matrix", "plan_paths", "unserved_reasons"]
+__all__ = [
+    "HungarianAllocator", "solve_cost_matrix", "plan_paths", "unserved_reasons", "PLANNERS",
+]
 
 UNREACHABLE = "unreachable: no AGV can reach this task (shelves or walls cut it off)"
 NO_AGENT_LEFT = "no AGV left: every AGV serves another task"
 
 
-def _check_task_vector(values: object, m: int, what: str) -> np.ndarray:
-    try:
-        arr = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{what} must be an array of M = {m} numbers: {err}") from None
-    if arr.shape != (m,):
-        raise ValueError(f"{what} must have shape (M,) = ({m},), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{what} contain NaN or infinite values")
+PLANNERS = (None, "grid", "ompl", "rrtconnect", "prm")
+"""Values of the ``planner`` option of the classical allocators (``"ompl"``: RRTConnect)."""
+
+MAX_EXACT_PRIORITY = 2**53
+"""Float priorities above this may already have lost their last digits (float64 holds every
+integer only up to 2**53): pass integers instead."""
+
+
+def check_planner_options(planner: object, resolution: object, seed: object) -> None:
+    """Validate the ``planner``, ``resolution`` and ``seed`` options of a classical allocator.
+
+    Raises
+    ------
+    ValueError
+        Naming the option and what it accepts.
+    """
+    if not (planner is None or isinstance(planner, str) and planner in PLANNERS):
+        raise ValueError(
+            f"planner must be one of {list(PLANNERS)} (None: no paths; 'ompl' is RRTConnect), "
+            f"got {planner!r}"
+        )
+    if isinstance(resolution, bool) or not isinstance(resolution, numbers.Real) or not (
+        np.isfinite(float(resolution)) and float(resolution) > 0
+    ):
+        raise ValueError(f"resolution must be a positive number (world units), got {resolution!r}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+
+
+def check_cost_matrix(cost: object) -> np.ndarray:
+    """Validate a travel-cost matrix and return it as a float64 copy.
+
+    Parameters
+    ----------
+    cost : array-like, shape (N, M)
+        Real numbers; ``+inf`` marks a forbidden pair.
+
+    Returns
+    -------
+    np.ndarray of float64, shape (N, M)
+
+    Raises
+    ------
+    ValueError
+        If ``cost`` is not a 2-D array of real numbers, or holds NaN or ``-inf``.
+    """
+    arr = as_real_array(cost, "cost", "an (N, M) matrix of real numbers")
+    if arr.ndim != 2:
+        raise ValueError(f"cost must be a 2-D (N, M) matrix, got shape {arr.shape}")
+    for bad, name in ((np.isnan(arr), "NaN"), (np.isneginf(arr), "-inf")):
+        if bad.any():
+            where = [tuple(ij) for ij in np.argwhere(bad)[:5].tolist()]
+            raise ValueError(
+                f"cost holds {name} at (agent, task) {where}: use +inf for a forbidden pair"
+            )
     return arr
+
+
+def check_weights(values: object, m: int) -> np.ndarray:
+    """Per-task cost multipliers as a float64 array of shape (M,), all positive and finite."""
+    arr = as_real_array(values, "weights", f"an array of M = {m} positive numbers")
+    if arr.shape != (m,):
+        raise ValueError(f"weights must have shape (M,) = ({m},), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("weights contain NaN or infinite values")
+    if np.any(arr <= 0):
+        raise ValueError("weights must be positive")
+    return arr
+
+
+def priority_levels(values: object, m: int) -> np.ndarray:
+    """Check integer priorities of shape (M,) and return their dense ranks, shape (M,).
+
+    The ranks (0 for the lowest priority given, 1 for the next, ...) order the tasks exactly
+    as the priorities do, however large the integers, and stay small, so the costs keep their
+    precision next to them. The plans are the same: the tasks a matching can serve form a
+    matroid, whose best sets depend only on the order of the priorities.
+
+    Raises
+    ------
+    ValueError
+        For a wrong shape, negative, fractional, non-finite or boolean values, or float values
+        beyond :data:`MAX_EXACT_PRIORITY`.
+    """
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(values, torch.Tensor):
+        values = values.detach().cpu()
+    try:
+        raw = np.asarray(values)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"priorities must be an array of M = {m} integers: {err}") from None
+    if raw.shape != (m,):
+        raise ValueError(f"priorities must have shape (M,) = ({m},), got {raw.shape}")
+    ints = [v for v in raw.tolist() if isinstance(v, int) and not isinstance(v, bool)]
+    if raw.dtype.kind not in "iu" and len(ints) != m:
+        floats = as_real_array(raw, "priorities", f"an array of M = {m} integers")
+        if not np.all(np.isfinite(floats)) or np.any(floats != np.round(floats)):
+            raise ValueError("priorities must be non-negative integers")
+        if np.any(np.abs(floats) > MAX_EXACT_PRIORITY):
+            raise ValueError(
+                f"priorities given as floats must be at most 2**53 = {MAX_EXACT_PRIORITY}: "
+                "beyond it a float cannot hold every integer (pass integers instead)"
+            )
+        raw = floats
+    elif raw.dtype.kind == "O":
+        raw = np.array(ints, dtype=object)
+    if np.any(raw < 0):
+        raise ValueError("priorities must be non-negative integers")
+    return np.unique(raw, return_inverse=True)[1].reshape(m).astype(np.float64)
 
 
 def solve_cost_matrix(
@@ -48,34 +151,65 @@ def solve_cost_matrix(
 
     Parameters
     ----------
-    cost : np.ndarray, shape (N, M)
-        Non-negative travel costs, ``inf`` for a pair that cannot be served.
-    weights : np.ndarray, shape (M,), optional
+    cost : array-like, shape (N, M)
+        Real travel costs; ``+inf`` marks a pair that cannot be served (never matched). NaN
+        and ``-inf`` are refused. N or M may be 0 (nothing is matched).
+    weights : array-like, shape (M,), optional
         Positive per-task cost multipliers (default 1).
-    priorities : np.ndarray, shape (M,), optional
-        Non-negative integer priority levels (higher is served first when M > N).
+    priorities : array-like of int, shape (M,), optional
+        Non-negative integer priority levels (higher is served first when not every task can
+        be served); handled exactly whatever their size (see :func:`priority_levels`).
 
     Returns
     -------
     rows, cols : np.ndarray of int64
         Matched agent and task indices, only pairs with finite cost.
+
+    Raises
+    ------
+    ValueError
+        For a cost that is not a 2-D real matrix or holds NaN or ``-inf``, bad weights or
+        priorities, or weighted costs that overflow float64.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from allocator.hungarian import solve_cost_matrix
+    >>> solve_cost_matrix([[1.0, np.inf], [2.0, 5.0]])
+    (array([0, 1]), array([0, 1]))
     """
+    cost = check_cost_matrix(cost)
     n, m = cost.shape
-    obj = cost if weights is None else cost * weights[None, :]
+    w = None if weights is None else check_weights(weights, m)
+    p = None if priorities is None else priority_levels(priorities, m)
+    if n == 0 or m == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    with np.errstate(over="ignore"):
+        obj = cost if w is None else cost * w[None, :]
     finite = np.isfinite(obj)
-    if priorities is None and finite.all():
+    if w is not None and not np.array_equal(finite, np.isfinite(cost)):
+        raise ValueError("weights * cost overflows float64: use smaller weights or cost units")
+    if p is None and finite.all():
         rows, cols = linear_sum_assignment(obj)
         return rows.astype(np.int64), cols.astype(np.int64)
     k = min(n, m)
+    low = float(obj[finite].min()) if finite.any() else 0.0
+    if low < 0.0:  # the scaling below needs costs >= 0; a shift keeps the optimum
+        obj = obj - low
     top = float(obj[finite].max()) if finite.any() else 0.0
     span = k * top + 1.0  # any set of finite pairs costs less than this
     work = np.where(finite, obj, 0.0)
     max_priority = 0.0
-    if priorities is not None:
-        work = work - span * priorities[None, :]
-        max_priority = float(priorities.max())
+    if p is not None:
+        work = work - span * p[None, :]
+        max_priority = float(p.max())
     # Larger than any change of the finite part: serving one more pair always wins.
     unreachable = span * (2.0 + k * max_priority)
+    if not np.isfinite(unreachable):
+        raise ValueError(
+            f"cost values up to {top:g} are too large to rank the plans in float64: use "
+            "smaller cost units"
+        )
     work = np.where(finite, work, unreachable)
     rows, cols = linear_sum_assignment(work)
     keep = finite[rows, cols]
@@ -121,13 +255,9 @@ def _make_planner(kind: str | None, world: World | None, seed: int) -> Any:
         from allocator.paths import grid_for
 
         return grid_for(world)
-    if kind in ("ompl", "rrtconnect", "prm"):
-        from allocator.paths import OMPLPlanner
+    from allocator.paths import OMPLPlanner
 
-        return OMPLPlanner(world, planner="prm" if kind == "prm" else "rrtconnect", seed=seed)
-    raise ValueError(
-        f"planner must be None, 'grid', 'ompl' (RRTConnect) or 'prm', got {kind!r}"
-    )
+    return OMPLPlanner(world, planner="prm" if kind == "prm" else "rrtconnect", seed=seed)
 
 
 @register("hungarian")
@@ -145,7 +275,13 @@ class HungarianAllocator(ClassicalAllocator):
         Seed of the OMPL planner.
     **controller_options
         Passed to :class:`~allocator.controller.AllocatorController` when the allocator is
-        used as a controller (``avoidance``, ``planner``, ``max_speed``, ...).
+        used as a controller (``avoidance``, ``max_speed``, ...).
+
+    Raises
+    ------
+    ValueError
+        For a bad ``planner``, ``resolution`` or ``seed``, or an unknown option (the message
+        lists the valid ones).
     """
 
     name = "hungarian"
@@ -158,10 +294,7 @@ class HungarianAllocator(ClassicalAllocator):
         **controller_options: Any,
     ) -> None:
         super().__init__(**controller_options)
-        if planner not in (None, "grid", "ompl", "rrtconnect", "prm"):
-            raise ValueError(
-                f"planner must be None, 'grid', 'ompl' (RRTConnect) or 'prm', got {planner!r}"
-            )
+        check_planner_options(planner, resolution, seed)
         self.planner = planner
         self.resolution = resolution
         self.seed = seed
@@ -196,7 +329,8 @@ class HungarianAllocator(ClassicalAllocator):
         weights : array-like, shape (M,), optional
             Positive per-task multipliers of the travel cost (urgent tasks weigh more).
         priorities : array-like of int, shape (M,), optional
-            Priority levels; when M > N, higher levels are served first.
+            Non-negative integer priority levels, exact at any size; when not every task can
+            be served, higher levels are served first.
 
         Returns
         -------
@@ -225,15 +359,8 @@ class HungarianAllocator(ClassicalAllocator):
         """
         agents, tasks = check_inputs(agents, tasks, world)
         m = len(tasks)
-        w = p = None
-        if weights is not None:
-            w = _check_task_vector(weights, m, "weights")
-            if np.any(w <= 0):
-                raise ValueError("weights must be positive")
-        if priorities is not None:
-            p = _check_task_vector(priorities, m, "priorities")
-            if np.any(p < 0) or np.any(p != np.round(p)):
-                raise ValueError("priorities must be non-negative integers")
+        w = None if weights is None else check_weights(weights, m)
+        p = None if priorities is None else priority_levels(priorities, m)
         cost = self.cost_matrix(agents, tasks, world)
         rows, cols = solve_cost_matrix(cost, w, p)
         result_cost = float(cost[rows, cols].sum())

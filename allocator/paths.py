@@ -24,6 +24,8 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
+from allocator.base import MAX_COORDINATE
+
 if TYPE_CHECKING:  # pragma: no cover
     from sim.world import World
 
@@ -279,9 +281,34 @@ def travel_costs(
 
     Straight-line distances in an open world (or where a segment is clear of every shelf);
     obstacle-aware grid path lengths otherwise; ``inf`` for a task an AGV cannot reach.
+
+    Parameters
+    ----------
+    agents : array-like, shape (N, 2)
+    tasks : array-like, shape (M, 2)
+        Finite coordinates, at most :data:`allocator.base.MAX_COORDINATE` in magnitude (so
+        that no distance overflows to ``inf``, which would read as "unreachable").
+    world : World, optional
+    resolution : float
+        Cell size of the occupancy grid.
+
+    Returns
+    -------
+    np.ndarray, shape (N, M)
+
+    Raises
+    ------
+    ValueError
+        For coordinates that are not finite or beyond ``MAX_COORDINATE``.
     """
     agents = np.asarray(agents, dtype=np.float64)
     tasks = np.asarray(tasks, dtype=np.float64)
+    for what, arr in (("agents", agents), ("tasks", tasks)):
+        if arr.size and not np.abs(arr).max() <= MAX_COORDINATE:
+            raise ValueError(
+                f"{what} must hold finite coordinates within +-{MAX_COORDINATE:g} (their "
+                "squared distances would overflow)"
+            )
     if world is None or not world.has_obstacles:
         return cdist(agents, tasks)
     return grid_for(world, resolution).cost_matrix(agents, tasks)
