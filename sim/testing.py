@@ -15,6 +15,7 @@ Three checks, each raising an ``AssertionError`` that says what differs, where a
   ``done`` and ``info``; finite values; AGVs inside the walls; ``done`` and claims never undone;
   the step counter; a finished environment frozen, with zero reward and zero reward terms;
   the terms adding up to the reward; the observation size independent of the batch size;
+  ``reset(env_ids)`` starting new episodes only where asked;
 - **determinism**: two environments made with the same seed start from the same scenes and,
   given the same actions, follow the same trajectory exactly; a seeded ``reset`` repeats its
   scenes;
@@ -204,6 +205,25 @@ def _check_step(env: Any, where: str, before: dict[str, Tensor], obs: Tensor, re
         raise _fail("conformance", where, "an AGV's disc crosses the walls")
 
 
+def _check_partial_reset(env: Any) -> None:
+    """``reset(env_ids=[0])`` starts a new episode in environment 0 and leaves the rest."""
+    before = _state(env)
+    obs = env.reset(env_ids=[0])
+    where = "reset(env_ids=[0])"
+    _check_types(where, "obs", obs, (env.num_envs, env.num_agents, env.obs_dim), torch.float32)
+    fresh = {"steps": torch.zeros_like(before["steps"][:1]),
+             "done": torch.zeros_like(before["done"][:1]),
+             "task_claimed": torch.zeros_like(before["task_claimed"][:1]),
+             "agent_task": torch.full_like(before["agent_task"][:1], -1),
+             "agent_vel": torch.zeros_like(before["agent_vel"][:1])}
+    for name, value in fresh.items():
+        _close("conformance", where, f"{name} of the reset environment", getattr(env, name)[:1],
+               value, exact=True)
+    for name, value in before.items():
+        _close("conformance", where, f"{name} of the environments not reset",
+               getattr(env, name)[1:], value[1:], exact=True)
+
+
 def _state(env: Any) -> dict[str, Tensor]:
     return {name: getattr(env, name).clone() for name in
             ("agent_pos", "agent_vel", "task_claimed", "agent_task", "steps", "done")}
@@ -311,6 +331,8 @@ def check_env(
     for t in range(T):
         actions.append(_actions(first, generator))
         reference.append(_step(first, actions[-1], f"{B} environments, step {t}", conform=True))
+
+    _check_partial_reset(first)
 
     # Determinism: the same seed gives the same scenes and, with the same actions, the same
     # trajectory; a seeded reset repeats its scenes.

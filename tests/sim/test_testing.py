@@ -99,3 +99,16 @@ def test_check_env_refuses_a_reward_with_a_factory() -> None:
 def test_check_env_names_a_bad_count(name: str, value: object) -> None:
     with pytest.raises(ValueError, match=name):
         check_env("3v3", **{name: value})
+
+
+class _ResetsEveryEnvironment(sim.AGVEnv):
+    """A deliberately broken environment: reset(env_ids) resets all of them."""
+
+    def reset(self, env_ids: object = None, seed: int | None = None) -> torch.Tensor:
+        return super().reset(None, seed)
+
+
+def test_check_env_fails_on_a_partial_reset_that_resets_everything() -> None:
+    with pytest.raises(AssertionError, match=r"\[conformance\] reset\(env_ids=\[0\]\): .*not "
+                                             r"reset"):
+        check_env(lambda num_envs, seed: _ResetsEveryEnvironment("3v3", num_envs, seed=seed))
