@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
+from sim.tasks import claim
 
 __all__ = ["AllocatorController"]
 
@@ -353,10 +354,7 @@ class AllocatorController:
     def _claims(
         self, where: np.ndarray, idle: np.ndarray, claimed: np.ndarray, tasks: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The simulator's claim rule at positions ``where`` (B, N, 2).
-
-        An idle AGV within the capture radius of an unclaimed task is eligible; each task goes
-        to its nearest eligible AGV and an AGV that wins several takes its nearest.
+        """The simulator's claim rule (:func:`sim.tasks.claim`) at positions ``where`` (B, N, 2).
 
         Returns
         -------
@@ -365,23 +363,13 @@ class AllocatorController:
         taken : np.ndarray of bool, shape (B, M)
             Tasks claimed.
         """
-        B, N, _ = where.shape
-        M = tasks.shape[1]
-        if M == 0:
-            return np.zeros((B, N), dtype=bool), np.zeros((B, 0), dtype=bool)
         d = np.linalg.norm(where[:, :, None, :] - tasks[:, None, :, :], axis=-1)  # (B, N, M)
+        holding = torch.as_tensor(np.where(idle, -1, 0))
+        running = torch.ones(where.shape[0], dtype=torch.bool)
         # A claim decided by less than the simulator's float32 rounding is not predicted.
-        eligible = (d <= self._world.capture_radius - 1e-5) & idle[..., None] \
-            & ~claimed[:, None, :]
-        dm = np.where(eligible, d, np.inf)
-        best = dm.argmin(axis=1)  # (B, M): nearest eligible AGV per task
-        won = eligible & (np.arange(N)[None, :, None] == best[:, None, :])
-        takes = won.any(axis=2)
-        task = np.where(won, d, np.inf).argmin(axis=2)  # (B, N)
-        taken = np.zeros((B, M), dtype=bool)
-        bi, ai = np.nonzero(takes)
-        taken[bi, task[bi, ai]] = True
-        return takes, taken
+        _, _, taken, takes = claim(torch.as_tensor(d), holding, torch.as_tensor(claimed), running,
+                                   self._world.capture_radius - 1e-5)
+        return takes.numpy(), taken.numpy()
 
     def _replan_stuck(
         self, pos: np.ndarray, vel: np.ndarray, held: np.ndarray, tasks: np.ndarray,

@@ -73,6 +73,25 @@ def test_look_ahead_predicts_the_simulators_positions_and_claims() -> None:
     assert predicted_claims > 0
 
 
+def test_look_ahead_calls_the_simulators_claim_rule_instead_of_a_copy() -> None:
+    # Two idle AGVs reach the same two tasks: task 0 goes to its nearest AGV (1), AGV 1 wins
+    # both tasks and takes its nearest (0); AGV 0 wins nothing this step. A parked AGV (2)
+    # within reach of task 2 claims nothing.
+    import allocator.controller as controller_module
+    from sim.tasks import claim
+
+    assert controller_module.claim is claim
+    env = sim.make_env("3v3", num_envs=1, seed=0)
+    solver = allocator.make("hungarian")
+    solver.reset(env)
+    where = np.array([[[0.0, 0.0], [0.03, 0.0], [0.5, 0.5]]])
+    tasks = np.array([[[0.05, 0.0], [0.09, 0.02], [0.52, 0.5]]])
+    idle = np.array([[True, True, False]])
+    takes, taken = solver.controller._claims(where, idle, np.zeros((1, 3), dtype=bool), tasks)
+    assert takes.tolist() == [[False, True, False]]
+    assert taken.tolist() == [[True, False, False]]
+
+
 def test_committed_agv_keeps_its_velocity_and_others_take_full_responsibility() -> None:
     # Head-on pair: B is committed to driving straight on. A alone must clear B's path within
     # the time horizon; with reciprocal rows it only does half and the two would touch.
