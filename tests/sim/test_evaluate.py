@@ -39,11 +39,14 @@ def test_evaluate_metrics_of_a_moving_controller_do_not_depend_on_batch_size() -
 
 
 # Today's figures for the default batch size, measured on the code before this change with
-#   cd /tmp && PYTHONPATH=/tmp/base python -c "import sim, torch; \
-#     from sim.controllers import NearestTaskController as C; \
-#     m = sim.evaluate(C(), '3v3', 300, seed=0); print(repr(m.avg_reward), ...)"
-# (and likewise for the other rows): the paper tables' calls (300 episodes, batch 1024)
-# keep their scenes exactly.
+#   cd /tmp && PYTHONPATH=/tmp/base python -c "
+#   import sim, torch; from sim.controllers import NearestTaskController as C
+#   z = lambda obs: torch.zeros(*obs.shape[:2], 2)
+#   for c, s, e, seed in [(z, '6v6', 20, 3), (C(), '3v3', 300, 0), (C(), 'warehouse', 50, 1)]:
+#       m = sim.evaluate(c, s, e, seed=seed)
+#       print(repr(m.avg_reward), m.response_rate, m.avg_time, m.collisions,
+#             m.claims_per_episode.sum())"
+# The paper tables' calls (300 episodes, batch 1024) keep their scenes exactly.
 @pytest.mark.parametrize(
     ("controller", "scenario", "episodes", "seed", "expected"),
     [
