@@ -154,8 +154,12 @@ def test_check_allocator_fails_under_python_O_on_a_broken_allocator() -> None:
             name = "twice"
 
             def assign(self, agents, tasks, world=None):
-                n, m = len(agents), len(tasks)
-                return Unchecked(np.zeros(n, np.int64), np.full(m, -1, np.int64), 1.0)
+                a, t = np.asarray(agents, float), np.asarray(tasks, float)
+                if a.ndim != 2 or t.ndim != 2 or a.shape[1:] != (2,) or t.shape[1:] != (2,):
+                    raise ValueError("agents and tasks must have shape (K, 2)")
+                if not (len(a) and len(t) and np.isfinite(a).all() and np.isfinite(t).all()):
+                    raise ValueError("agents and tasks must be non-empty and finite")
+                return Unchecked(np.zeros(len(a), np.int64), np.full(len(t), -1, np.int64), 1.0)
 
         assert False, "this bare assert is stripped by -O"
         check_allocator(ServesTaskZeroTwice(), episodes=1)
