@@ -51,11 +51,13 @@ from learners.buffer import Batch, ReplayBuffer
 from learners.checkpoint import (
     code_version,
     load_checkpoint,
+    read_metadata,
     resolve_checkpoint_path,
     save_checkpoint,
+    write_sidecar,
 )
 from learners.common import ActorCritic, check_bool, check_int, check_real
-from sim.io import atomic_write_bytes, atomic_write_text
+from sim.io import atomic_write_bytes, atomic_write_text, clean_stale_temporaries
 
 __all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS"]
 
@@ -328,6 +330,7 @@ def train(
                              f"by `agv train --run-dir {run_dir}` every --checkpoint-every "
                              "episodes)")
         saved, meta = load_checkpoint(ckpt_path, kind="training")
+        _saved_train_config(meta, ckpt_path, run_dir)
         for key in ("algo", "reward", "scenario", "seed"):
             if meta[key] != getattr(config, key):
                 raise ValueError(f"cannot resume {run_dir}: it was trained with {key}="
@@ -388,6 +391,11 @@ def train(
             recent_terms[t].extend(saved[f"stats.recent_term.{t}"].tolist())
         counters.update({k: meta[k] for k in counters})
     run_dir.mkdir(parents=True, exist_ok=True)
+    clean_stale_temporaries(run_dir)  # left by a run killed in the middle of a write
+    if resume:  # a kill between a checkpoint and its sidecar leaves the sidecar behind
+        for name in ("checkpoint", "policy", "best"):
+            if (run_dir / f"{name}.safetensors").is_file():
+                write_sidecar(run_dir / f"{name}.safetensors")
     config.run_dir = str(run_dir)
     if not resume:
         atomic_write_text(run_dir / "config.json", json.dumps(
@@ -526,8 +534,6 @@ def load_run_config(run_dir: str | os.PathLike[str]) -> tuple[TrainConfig, dict[
     ValueError
         If the folder holds no checkpoint to resume.
     """
-    from learners.checkpoint import read_metadata
-
     path = resolve_checkpoint_path(run_dir)
     if not path.is_file():
         raise ValueError(f"nothing to resume: expected a checkpoint at {path} (written by "
@@ -536,7 +542,20 @@ def load_run_config(run_dir: str | os.PathLike[str]) -> tuple[TrainConfig, dict[
     if meta.get("kind") != "training":
         raise ValueError(f"{path} is a {meta.get('kind')!r} checkpoint; resuming needs the "
                          "run's checkpoint.safetensors")
+    folder = Path(run_dir) if Path(run_dir).is_dir() else path.parent
+    return _saved_train_config(meta, path, folder), meta["config"]
+
+
+def _saved_train_config(meta: dict[str, Any], path: Path, run_dir: Path) -> TrainConfig:
+    """The TrainConfig stored in a training checkpoint's header, checked, with ``run_dir``."""
     names = {f.name for f in dataclasses.fields(TrainConfig)}
-    tc = TrainConfig(**{k: v for k, v in meta["train_config"].items() if k in names})
-    tc.run_dir = str(Path(run_dir) if Path(run_dir).is_dir() else path.parent)
-    return tc, meta["config"]
+    saved = meta["train_config"]
+    unknown = sorted(set(saved) - names)
+    if unknown:
+        raise ValueError(f"checkpoint {path} has a bad header: field 'train_config' holds "
+                         f"unknown TrainConfig field(s) {unknown}")
+    try:
+        return TrainConfig(**{**saved, "run_dir": str(run_dir)})
+    except ValueError as err:
+        raise ValueError(f"checkpoint {path} has a bad header: field 'train_config' is "
+                         f"invalid: {err}") from None

@@ -27,11 +27,23 @@ def _policy_file(tmp_path: Path, algo: str = "maddpg", scenario: str = "3v3") ->
     return save_checkpoint(tmp_path / f"{algo}.safetensors", learner.policy_tensors(), meta)
 
 
+def _training_meta(learner: MADDPG) -> dict:
+    import dataclasses
+
+    from learners.train import TrainConfig
+
+    return {"kind": "training", "algo": "maddpg", "reward": "ipf", "scenario": "3v3",
+            "seed": 0, "num_agents": 3, "num_tasks": 3, "obs_dim": 24, "state_dim": 24,
+            "config": dataclasses.asdict(learner.config),
+            "train_config": dataclasses.asdict(TrainConfig()), "episodes": 0, "env_steps": 0,
+            "updates": 0, "seconds": 0.0, "best_response_rate": -1.0, "last_eval": {}}
+
+
 def test_round_trip_training_state(tmp_path):
     torch.manual_seed(0)
     learner = MADDPG(24, 24, 3, MADDPGConfig(hidden=8))
     path = save_checkpoint(tmp_path / "ckpt", learner.training_tensors(),
-                           {"kind": "training", "algo": "maddpg"})
+                           _training_meta(learner))
     assert path.name == "ckpt.safetensors" and path.with_suffix(".json").is_file()
     tensors, meta = load_checkpoint(path, algo="maddpg")
     other = MADDPG(24, 24, 3, MADDPGConfig(hidden=8))
@@ -40,7 +52,8 @@ def test_round_trip_training_state(tmp_path):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     sidecar = json.loads(path.with_suffix(".json").read_text())
     assert sidecar["sha256"] == meta["sha256"] and "package" in sidecar["code_version"]
-    assert not list(tmp_path.glob("*.tmp")), "temporary files left behind"
+    assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*")), (
+        "temporary files left behind")
 
 
 def test_policy_loads_and_acts(tmp_path):
