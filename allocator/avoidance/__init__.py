@@ -34,7 +34,7 @@ Modules, one per part:
 
 - :mod:`~allocator.avoidance.config`: :class:`AvoidanceConfig`;
 - :mod:`~allocator.avoidance.rows`: :class:`ConstraintRows`, the row kinds and the fallback
-  weights (:func:`fallback_weights`, built once per set of rows as ``ConstraintRows.weight``);
+  weights (:func:`fallback_weights`, built once with the rows as ``ConstraintRows.weight``);
 - :mod:`~allocator.avoidance.orca`: the ORCA half-planes and every AGV's rows;
 - :mod:`~allocator.avoidance.exact_qp`: the exact 2-D QP, :func:`solve_qp_2d`;
 - :mod:`~allocator.avoidance.least_violation`: the exact least-violation program;

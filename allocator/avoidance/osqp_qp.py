@@ -9,7 +9,7 @@ import scipy.sparse as sp
 
 from allocator.avoidance.config import AvoidanceConfig
 from allocator.avoidance.osqp_least_violation import LeastViolation
-from allocator.avoidance.rows import HARD, PAD, ConstraintRows, take_rows
+from allocator.avoidance.rows import ConstraintRows, take_rows
 
 __all__ = ["BlockOSQP"]
 
@@ -78,7 +78,7 @@ class BlockOSQP:
         lo = rows.lower.reshape(-1).copy()
         hi = rows.upper.reshape(-1).copy()
         q = -rows.preferred.reshape(-1)
-        soft = (rows.kind != HARD) & (rows.kind != PAD)
+        soft = rows.weight > 0
         suspects = np.zeros(n, dtype=bool)
         # AGVs whose preferred velocity already satisfies their rows keep it: switch their
         # rows off so they cost the solver nothing (the pattern stays fixed).

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -58,8 +57,8 @@ class ConstraintRows:
     active : np.ndarray of bool, shape (n,)
         AGVs that move (static ones get velocity 0 and no rows).
     weight : np.ndarray, shape (R,)
-        The fallback weight per row slot (:func:`fallback_weights` of ``kind``, built on first
-        use).
+        How much each row slot may be violated in the fallback (0: hard); by default
+        :func:`fallback_weights` of ``kind``, built here once and used by every solver.
     """
 
     A: np.ndarray
@@ -68,15 +67,14 @@ class ConstraintRows:
     preferred: np.ndarray
     kind: np.ndarray
     active: np.ndarray
+    weight: np.ndarray | None = None
 
-
-    @cached_property
-    def weight(self) -> np.ndarray:
-        """The fallback weight per row slot, shape (R,) (0: hard)."""
-        return fallback_weights(self.kind)
+    def __post_init__(self) -> None:
+        if self.weight is None:
+            self.weight = fallback_weights(self.kind)
 
 
 def take_rows(rows: ConstraintRows, idx: Any) -> ConstraintRows:
     """The rows of some AGVs (``idx``: indices, a slice or a mask over the n AGVs)."""
     return ConstraintRows(rows.A[idx], rows.lower[idx], rows.upper[idx], rows.preferred[idx],
-                          rows.kind, rows.active[idx])
+                          rows.kind, rows.active[idx], rows.weight)

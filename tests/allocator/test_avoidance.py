@@ -12,10 +12,12 @@ from allocator.avoidance import (
     ConstraintRows,
     LeastViolation,
     VelocityAvoidance,
+    fallback_weights,
     least_violation_2d,
     solve_qp_2d,
     solve_reference,
 )
+from allocator.avoidance.rows import take_rows
 from sim.world import World
 from tests.allocator.conftest import spaced_points
 
@@ -182,6 +184,37 @@ def test_conflicting_constraints_fall_back_and_say_so() -> None:
     np.testing.assert_allclose(out.velocity, ref, atol=1e-3)
     # It still brakes as hard as it can: the acceleration box is hard.
     assert out.velocity[0, 0] == pytest.approx(0.75 * 2.0 - 0.5, abs=1e-3)
+
+
+def test_fallback_weights_are_built_once_with_the_rows_and_used_by_every_solver() -> None:
+    world = World(bounds=(-2.0, -2.0, 2.0, 2.0))
+    pos = np.array([[0.0, 0.0], [0.38, 0.1], [0.38, -0.1], [-1.5, 1.5]])
+    vel = np.array([[2.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.3, 0.0]])
+    static = np.array([False, True, True, False])
+    rows = VelocityAvoidance(world).constraints(pos, vel, vel, static=static)
+    expected = [FALLBACK_WEIGHT.get(int(k), 0.0) for k in rows.kind]
+    assert rows.weight.tolist() == expected == fallback_weights(rows.kind).tolist()
+    assert take_rows(rows, [0, 3]).weight is rows.weight
+    # Other weights (AGV 0 may violate its first neighbour row twice as much) reach the exact
+    # solver, both OSQP back ends and the cvxpy reference alike, and change the answer.
+    weight = rows.weight.copy()
+    weight[0] = 2.0
+    custom = ConstraintRows(rows.A, rows.lower, rows.upper, rows.preferred, rows.kind,
+                            rows.active, weight)
+    ref, fell = solve_reference(custom)
+    assert fell.tolist() == [True, False, False, False]
+    assert abs(ref[0, 1]) > 0.2  # with the default weights it is 0
+    for solver in ("exact", "osqp"):
+        v, fell_back, _, _ = VelocityAvoidance(world, solver=solver).solve_rows(custom)
+        assert fell_back.tolist() == [True, False, False, False]
+        np.testing.assert_allclose(v[0], ref[0], atol=1e-5)
+    v, _ = least_violation_2d(custom.A[:1], custom.lower[:1], custom.upper[:1],
+                              custom.preferred[:1], custom.weight)
+    np.testing.assert_allclose(v[0], ref[0], atol=1e-6)
+    v, _ = LeastViolation().solve(take_rows(custom, [0]))
+    np.testing.assert_allclose(v[0], ref[0], atol=1e-5)
+    default, _ = solve_reference(rows)
+    assert abs(default[0, 1]) < 1e-6
 
 
 def simulate(world: World, start: np.ndarray, goal: np.ndarray, steps: int,
