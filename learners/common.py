@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from learners.buffer import Batch
 from learners.networks import torch_ops
+from sim.observations import HOLDING
 
 __all__ = [
     "ActorCritic", "OffPolicyConfig", "movable_mask", "soft_update_", "check_bool",
@@ -180,10 +181,10 @@ class OffPolicyConfig:
 def movable_mask(obs: Tensor) -> Tensor:
     """1.0 for AGVs that still move, 0.0 for parked ones, shape (B, N, 1).
 
-    The last observation feature is the "holds a task" bit (see ``sim.core.AGVEnv.observe``);
-    a parked AGV ignores its action, so its action is zeroed and carries no actor loss.
+    Reads the "holds a task" bit (:data:`sim.observations.HOLDING`, the last feature of every
+    layout); a parked AGV ignores its action, so its action is zeroed and carries no actor loss.
     """
-    return 1.0 - obs[..., -1:]
+    return 1.0 - obs[..., HOLDING]
 
 
 @torch.no_grad()

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
+from sim.observations import ObsLayout
 from sim.world import Physics
 
 __all__ = ["NearestTaskController", "RandomController"]
@@ -24,19 +27,32 @@ class NearestTaskController:
         Desired velocity per unit distance (1/s).
     max_speed : float
         Cap on the commanded speed.
+    layout : ObsLayout, optional
+        Where the features sit in the observations; :meth:`reset` takes the environment's.
+        Until then, any layout with task slots (the nearest task's slot is at the same place
+        in all of them).
     """
 
     def __init__(self, physics: Physics | None = None, gain: float = 4.0,
-                 max_speed: float = 1.2) -> None:
+                 max_speed: float = 1.2, layout: ObsLayout | None = None) -> None:
         self.physics = physics or Physics()
         self.gain = gain
         self.max_speed = max_speed
+        self.layout = layout
+
+    def reset(self, env: Any) -> None:
+        """Read the observation layout of ``env`` (an :class:`~sim.env.AGVEnv`)."""
+        self.layout = env.obs_layout
 
     def act(self, obs: Tensor) -> Tensor:
         """Actions (B, N, 2) from observations (B, N, O)."""
         ph = self.physics
-        vel = obs[..., 0:2]
-        rel = obs[..., 4:6] * obs[..., 6:7]  # nearest task, zero when none is visible
+        lay = self.layout or ObsLayout(k_tasks=1, k_agents=0)
+        vel = obs[..., lay.vel]
+        if lay.k_tasks:  # the nearest task, zero when none is visible
+            rel = obs[..., lay.task_rel(0)] * obs[..., lay.task_mask(0)]
+        else:
+            rel = torch.zeros_like(vel)
         v_cmd = rel * self.gain
         speed = torch.linalg.vector_norm(v_cmd, dim=-1, keepdim=True)
         v_cmd = v_cmd * (self.max_speed / speed.clamp_min(self.max_speed))
