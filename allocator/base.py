@@ -216,7 +216,7 @@ def make(name: str, **options: Any) -> Allocator:
     >>> solver = allocator.make("hungarian")
     >>> solver.assign([[0.0, 0.0], [1.0, 0.0]], [[0.9, 0.0], [0.1, 0.0]]).task_of_agent
     array([1, 0])
-    >>> allocator.make("hungarian", plannr="grid")
+    >>> allocator.make("hungarian", plannr="grid")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
     ValueError: unknown option 'plannr' for allocator 'hungarian'; valid options: ...
