@@ -122,3 +122,108 @@ def test_birnn_couples_agents_and_handles_any_n():
     x2[:, 2] += 1.0  # changing the last agent's input changes the first agent's output
     assert not torch.allclose(net(x2)[:, 0], y[:, 0])
     assert net(torch.randn(5, 7, 6)).shape == (5, 7, 2)
+
+
+# ---------------------------------------------------------------- private torch ops
+@pytest.fixture
+def restore_torch_ops():
+    """Put the import-time selection back after a test that forces the fallbacks."""
+    from learners.networks import select_torch_ops, torch_ops
+
+    before = torch_ops()
+    yield
+    select_torch_ops(private_ops=bool(before.private), fused_adam=before.adam_fused)
+
+
+def test_private_torch_ops_and_their_public_fallbacks_give_the_same_numbers(restore_torch_ops):
+    """aten._add_relu_, aten.threshold_backward.grad_input and torch._foreach_lerp_ had no
+    public fallback; each now has one, chosen once, with the same results."""
+    from learners.common import soft_update_
+    from learners.networks import add_relu_, relu_backward_, select_torch_ops
+
+    gen = torch.Generator().manual_seed(0)
+    z = torch.randn(3, 64, 32, generator=gen)
+    bias = torch.randn(3, 1, 32, generator=gen)
+    grad = torch.randn(3, 64, 32, generator=gen)
+    src, dst = StackedMLP(3, 5, 2, hidden=8), StackedMLP(3, 5, 2, hidden=8)
+
+    def run() -> list[torch.Tensor]:
+        target = copy.deepcopy(dst)
+        soft_update_(target, src, 0.01)
+        return [add_relu_(z.clone(), bias), relu_backward_(grad.clone(), z),
+                *target.parameters()]
+
+    chosen = select_torch_ops()
+    assert set(chosen.private) == {"aten._add_relu_", "aten.threshold_backward.grad_input",
+                                   "torch._foreach_lerp_"}  # all present in torch 2.13
+    private = run()
+    fallback = select_torch_ops(private_ops=False)
+    assert fallback.private == ()
+    public = run()
+    for a, b in zip(private, public, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    assert torch.equal(private[0], torch.relu(z + bias))
+    assert torch.equal(private[1], torch.where(z > 0, grad, torch.zeros_like(grad)))
+
+
+def test_a_private_op_that_is_missing_or_raises_is_replaced_by_its_fallback():
+    from learners.networks import _agrees, _probe_args, _relu_backward_public
+
+    def missing(grad, act):
+        return torch.ops.aten.no_such_op_(grad, act)
+
+    def raises(grad, act):
+        raise RuntimeError("not implemented for this build")
+
+    def wrong(grad, act):
+        return grad.zero_()
+
+    args = _probe_args()["relu_backward_"]
+    assert _agrees(_relu_backward_public, _relu_backward_public, args)
+    for op in (missing, raises, wrong):
+        assert not _agrees(op, _relu_backward_public, args), op.__name__
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "bicnet"])
+def test_training_with_the_public_fallbacks_and_foreach_adam_gives_the_same_weights(
+        restore_torch_ops, algo):
+    """Five updates with every private op and fused Adam, and with every fallback (public ops,
+    Adam(foreach=True), what a torch 2.3 build gets), end at the same weights."""
+    from learners.algorithms import make_learner
+    from learners.networks import select_torch_ops
+
+    env, batch = make_batch("3v3")
+
+    def five_updates():
+        torch.manual_seed(0)
+        learner = make_learner(algo, env.obs_dim, env.state_dim, env.num_agents,
+                               {"hidden": 32, "batch_size": 64})
+        for _ in range(5):
+            learner.update(batch)
+        return learner
+
+    assert select_torch_ops().adam_fused
+    fast = five_updates()
+    assert fast.actor_optimizer.defaults["fused"]
+    select_torch_ops(private_ops=False, fused_adam=False)
+    public = five_updates()
+    assert public.actor_optimizer.defaults["foreach"] and not public.actor_optimizer.defaults[
+        "fused"]
+    fast_t, public_t = fast.training_tensors(), public.training_tensors()
+    assert fast_t.keys() == public_t.keys()
+    for k in fast_t:
+        torch.testing.assert_close(fast_t[k].float(), public_t[k].float(), rtol=1e-5,
+                                   atol=1e-6, msg=k)
+
+
+def test_private_ops_can_be_turned_off_for_a_process():
+    import os
+    import subprocess
+    import sys
+
+    code = ("from learners.networks import torch_ops; o = torch_ops(); "
+            "print(len(o.private), o.adam_fused)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "AGV_PRIVATE_TORCH_OPS": "0",
+                                           "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert out.stdout.split() == ["0", "True"], out.stderr
