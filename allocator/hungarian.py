@@ -21,7 +21,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from sim.world import World
 
 __all__ = [
-    "HungarianAllocator", "solve_cost_matrix", "plan_paths", "unserved_reasons", "PLANNERS",
+    "HungarianAllocator", "solve_cost_matrix", "check_cost_matrix", "priority_levels",
+    "plan_paths", "unserved_reasons", "PLANNERS",
 ]
 
 UNREACHABLE = "unreachable: no AGV can reach this task (shelves or walls cut it off)"
