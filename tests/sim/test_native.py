@@ -84,6 +84,52 @@ def test_step_matches_torch_path_with_short_lists_and_range(n: int, m: int, opti
     _run_both_paths(paper_scenario(n, m, **options))
 
 
+@pytest.mark.parametrize("scenario", ["3v3", "6v6", "9v4", "warehouse"])
+def test_fused_step_equals_each_rules_torch_reference(scenario: str) -> None:
+    # The kernel's claims, overlaps, team reward R_t and observations, each against the one
+    # torch function that defines it (sim.tasks, sim.physics, sim.observations).
+    from sim import physics, tasks
+    from sim.observations import observe
+
+    seen: list[sim.StepContext] = []
+
+    def spy(state: sim.SimState, ctx: sim.StepContext) -> dict:
+        seen.append(ctx)
+        return {}
+
+    env = AGVEnv(scenario, num_envs=64, reward=spy, seed=5, native=True)
+    gen = torch.Generator().manual_seed(2)
+    claims = 0
+    for _ in range(30):
+        obs, _, _, info = env.step(torch.rand(64, env.num_agents, 2, generator=gen) * 2 - 1)
+        ctx = seen[-1]
+        rel = env.task_pos.unsqueeze(1) - env.agent_pos.unsqueeze(2)
+        dist = torch.linalg.vector_norm(rel, dim=-1)
+        torch.testing.assert_close(ctx.agent_task_dist, dist, atol=1e-6, rtol=0)
+        agent_task, task_claimed, claimed_now, _ = tasks.claim(
+            ctx.agent_task_dist, ctx.prev_agent_task, ctx.prev_task_claimed, ctx.active,
+            env.world.capture_radius)
+        assert torch.equal(env.agent_task, agent_task)
+        assert torch.equal(env.task_claimed, task_claimed)
+        assert torch.equal(info["claimed_now"], claimed_now)
+        claims += int(claimed_now.sum())
+        pair = physics.pair_distances(env.agent_pos)
+        eye = torch.eye(env.num_agents, dtype=torch.bool)
+        per_agent, pairs = physics.collisions(pair, ctx.active, env.world.agent_radius, eye,
+                                              torch.ones_like(eye).triu(1))
+        assert torch.equal(info["collisions_per_agent"], per_agent)
+        assert torch.equal(info["collision_pairs"], pairs)
+        team = tasks.team_reward(ctx.agent_task_dist, pairs, ctx.active)
+        torch.testing.assert_close(info["team_reward"], team, atol=1e-5, rtol=0)
+        reference = observe(env.agent_pos, env.agent_vel, env.task_claimed, env.agent_task,
+                            env.obs_layout, env.scenario.sensing_range, (rel, dist), pair, eye)
+        torch.testing.assert_close(obs, reference, atol=1e-6, rtol=0)
+        done = env.done
+        if done.any():
+            env.reset(env_ids=done)
+    assert claims > 0
+
+
 def test_step_outputs_are_fresh_contiguous_float32() -> None:
     """The step allocates its outputs from expanded templates (torch.empty_like)."""
     env = AGVEnv("6v6", num_envs=4, seed=0, native=True)
@@ -177,7 +223,8 @@ def test_ipf_kernel_matches_torch_paths(scenario: str) -> None:
     n, m = get_scenario(scenario).num_agents, get_scenario(scenario).num_tasks
     agents, tasks, open_ = _random_sources(world, 64, n, m, seed=len(scenario))
     for mask in (open_, None):
-        kernel = grid._potentials_native(agents, tasks, mask, TASK_VALUE, AGENT_VALUE)
+        claimed = None if mask is None else ~mask
+        kernel = grid.reward_potentials(agents, tasks, claimed, kernels=native.library())
         torch_path = grid.agent_potentials(agents.double(), tasks.double(), mask, native=False)
         torch.testing.assert_close(kernel, torch_path, atol=1e-10, rtol=0)
 
@@ -187,7 +234,7 @@ def test_ipf_kernel_matches_jacobi() -> None:
     grid = ipf_grid(world, 0.1)
     agents = torch.tensor([[[-0.8, -0.7], [0.3, 0.4], [0.7, -0.5]]], dtype=torch.float32)
     tasks = torch.tensor([[[0.0, 0.7], [0.6, 0.0]]], dtype=torch.float32)
-    pot = grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE)
+    pot = grid.reward_potentials(agents, tasks, kernels=native.library())
     for i in range(3):
         others = np.delete(agents[0].double().numpy(), i, axis=0)
         cells = grid.cell_of(np.concatenate([others, tasks[0].double().numpy()])).numpy()
@@ -206,9 +253,9 @@ def test_ipf_kernel_cache_follows_resets_and_claims() -> None:
         if k % 5 == 4:
             env.reset(env_ids=[0, 3, 5])
         env.step(torch.rand(16, 6, 2, generator=gen) * 2 - 1)
-        args = (env.agent_pos, env.task_pos, ~env.task_claimed, TASK_VALUE, AGENT_VALUE)
-        cached = grid._potentials_native(*args, cache=cache)
-        fresh = grid._potentials_native(*args)
+        args = (env.agent_pos, env.task_pos, env.task_claimed)
+        cached = grid.reward_potentials(*args, kernels=native.library(), cache=cache)
+        fresh = grid.reward_potentials(*args, kernels=native.library())
         assert torch.equal(cached, fresh)
     assert env.task_claimed.any()
 
@@ -223,8 +270,8 @@ def test_ipf_kernel_refuses_bad_shapes_and_converts_masks() -> None:
     with pytest.raises(ValueError, match=r"task_pos must have shape \(2, M, 2\)"):
         grid.agent_potentials(agents, torch.zeros(3, 2, 2))
     with pytest.raises(ValueError, match=r"active must have shape \(2,\)"):
-        grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE,
-                                active=torch.ones(3, dtype=torch.bool))
+        grid.reward_potentials(agents, tasks, active=torch.ones(3, dtype=torch.bool),
+                               kernels=native.library())
     # A float mask (converted inside) gives the same values as the bool mask.
     agents = torch.tensor([[[-0.5, 0.0], [0.5, 0.1], [0.0, -0.5]]] * 2)
     mask = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
@@ -237,11 +284,11 @@ def test_ipf_kernel_parked_and_inactive_rules() -> None:
     grid = ipf_grid()
     agents = torch.tensor([[[-0.5, 0.0], [0.5, 0.1]]] * 2)
     tasks = torch.tensor([[[0.0, 0.6], [0.5, -0.6]]] * 2)
-    plain = grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE)
+    plain = grid.reward_potentials(agents, tasks, kernels=native.library())
     held = torch.tensor([[-1, 0], [-1, -1]])
     active = torch.tensor([True, False])
-    ruled = grid._potentials_native(agents, tasks, None, TASK_VALUE, AGENT_VALUE,
-                                    agent_task=held, active=active)
+    ruled = grid.reward_potentials(agents, tasks, agent_task=held, active=active,
+                                   kernels=native.library())
     assert ruled[0, 0] == plain[0, 0] and ruled[0, 1] == TASK_VALUE
     assert ruled[1].tolist() == [0.0, 0.0]
 
