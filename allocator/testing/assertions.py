@@ -386,8 +386,8 @@ def assert_serves_every_reachable_task(
     """
     agents = _points(agents, "agents")
     tasks = _points(tasks, "tasks")
-    t = np.asarray(result.task_of_agent)
-    a = np.asarray(result.agent_of_task)
+    t = _index_array(result, "task_of_agent", len(agents), len(tasks))
+    a = _index_array(result, "agent_of_task", len(tasks), len(agents))
     reachable = np.isfinite(_costs(agents, tasks, world, cost_matrix))
     best, _ = _max_matching(reachable)
     served = int(np.count_nonzero(t >= 0))
@@ -480,7 +480,7 @@ def assert_optimal(
     tasks = _points(tasks, "tasks")
     cost = _costs(agents, tasks, world, cost_matrix)
     most, optimum, best_pairs = _brute_force(cost)
-    t = np.asarray(result.task_of_agent)
+    t = _index_array(result, "task_of_agent", len(agents), len(tasks))
     served = np.flatnonzero(t >= 0)
     plan_pairs = [(int(i), int(t[i])) for i in served]
     plan_cost = float(cost[served, t[served]].sum()) if len(served) else 0.0
@@ -578,9 +578,12 @@ def assert_equivariant(
     moved = solver.assign(agents[pa].copy(), tasks[pt].copy(), world)
     new_index_of_task = np.empty(m, dtype=np.int64)
     new_index_of_task[pt] = np.arange(m)
-    t0 = np.asarray(base.task_of_agent)[pa]
+    t0 = _index_array(base, "task_of_agent", n, m)[pa]
     expected = np.where(t0 >= 0, new_index_of_task[np.maximum(t0, 0)], -1)
-    got = np.asarray(moved.task_of_agent)
+    try:
+        got = _index_array(moved, "task_of_agent", n, m)
+    except AssertionError as err:
+        raise AssertionError(f"the plan of the permuted scene: {err}") from None
     if np.array_equal(got, expected):
         return
     c0, c1 = float(base.cost), float(moved.cost)

@@ -434,6 +434,21 @@ def test_assert_equivariant_accepts_a_tie_broken_differently() -> None:
     assert_equivariant(Broken(first_index), agents, tasks, agent_perm=[1, 0])
 
 
+def test_helpers_report_an_out_of_range_plan_instead_of_crashing() -> None:
+    bad = unchecked([0, 1, 7], [0, 1, -1], 1.0)
+    for check in (assert_optimal, assert_serves_every_reachable_task):
+        with pytest.raises(AssertionError, match=r"task_of_agent holds values out of range"):
+            check(bad, AGENTS, TASKS)
+    with pytest.raises(AssertionError, match=r"permuted scene: task_of_agent holds values out"):
+        assert_equivariant(Broken(lambda a, t, w: bad if a[0, 0] != AGENTS[0, 0]
+                                  else allocator.assign(a, t)), AGENTS, TASKS)
+
+
+def test_check_allocator_fails_an_allocator_that_returns_no_assignment() -> None:
+    with pytest.raises(AssertionError, match="assign returned dict, expected an allocator"):
+        check_allocator(Broken(lambda a, t, w: {"task_of_agent": [0, 1, 2]}), episodes=1)
+
+
 def test_assert_equivariant_rejects_bad_arguments() -> None:
     solver = allocator.make("hungarian")
     with pytest.raises(ValueError, match=r"agent_perm must be a permutation of range\(3\)"):
