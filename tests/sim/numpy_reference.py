@@ -13,16 +13,21 @@ as an independent reference for the batched step:
 6. overlapping discs, R_t, the MiniDist and Greedy terms;
 7. observations: own velocity and position, the K nearest open tasks and K nearest other AGVs
    within the sensing range (sorted, ties to the lower index, zero-padded with a mask bit),
-   whether the AGV holds a task.
+   whether the AGV holds a task;
+8. the IPF reward (``docs/ipf.md``): each AGV's own field, solved as the discrete Dirichlet
+   problem it is (a sparse linear solve per AGV), at its own cell.
 
 A finished environment is frozen: nothing moves and every reward is zero.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sparse
+from scipy.sparse.linalg import spsolve
 
 
 @dataclass
@@ -44,6 +49,7 @@ class Rules:
     k_tasks: int
     k_agents: int
     max_steps: int
+    floor_shelves: np.ndarray  # (K, 4) the same shelves in float64, as the IPF grid reads them
 
     @classmethod
     def of(cls, scenario) -> Rules:
@@ -52,7 +58,7 @@ class Rules:
                    ph.contact_margin, w.agent_radius, w.capture_radius, tuple(w.bounds),
                    _float32(np.asarray(w.obstacles, dtype=np.float64).reshape(-1, 4)), w.walls,
                    float(scenario.sensing_range), scenario.k_tasks, scenario.k_agents,
-                   scenario.max_steps)
+                   scenario.max_steps, np.asarray(w.obstacles, dtype=np.float64).reshape(-1, 4))
 
 
 def _float32(x: np.ndarray | float) -> np.ndarray:
@@ -215,3 +221,108 @@ def step(rules: Rules, s: dict[str, np.ndarray], action: np.ndarray) -> dict:
     return {**new, "obs": observe(rules, new), "claimed_now": claimed_now,
             "collision_pairs": pairs, "collisions_per_agent": per_agent, "team_reward": team,
             "minidist": minidist, "greedy": greedy}
+
+
+IPF_RESOLUTION, IPF_TASK, IPF_AGENT = 0.05, 5.0, -3.0
+"""The paper's grid cell size and source values."""
+
+
+def _grid(rules: Rules) -> tuple[int, int, float, float, np.ndarray]:
+    """``H, W, dx, dy`` and the fixed cells (H, W): the boundary ring and every cell whose
+    centre lies in a shelf, edges included."""
+    xmin, ymin, xmax, ymax = rules.bounds
+    W = int(round((xmax - xmin) / IPF_RESOLUTION))
+    H = int(round((ymax - ymin) / IPF_RESOLUTION))
+    dx, dy = (xmax - xmin) / W, (ymax - ymin) / H
+    fixed = np.zeros((H, W), dtype=bool)
+    fixed[[0, -1], :] = True
+    fixed[:, [0, -1]] = True
+    cy = (ymin + (np.arange(H) + 0.5) * dy)[:, None]  # cell centres
+    cx = (xmin + (np.arange(W) + 0.5) * dx)[None, :]
+    for x0, y0, x1, y1 in rules.floor_shelves:
+        fixed |= (x0 <= cx) & (cx <= x1) & (y0 <= cy) & (cy <= y1)
+    return H, W, dx, dy, fixed
+
+
+def _cell(rules: Rules, point: np.ndarray, grid: tuple) -> tuple[int, int]:
+    H, W, dx, dy, _ = grid
+    col = min(max(int(np.floor((point[0] - rules.bounds[0]) / dx)), 0), W - 1)
+    row = min(max(int(np.floor((point[1] - rules.bounds[1]) / dy)), 0), H - 1)
+    return row, col
+
+
+@functools.cache
+def _adjacency(H: int, W: int) -> sparse.csr_matrix:
+    """The 4-neighbour adjacency of an H x W grid of cells (row-major), (H W, H W)."""
+    def path(n: int) -> sparse.spmatrix:
+        return sparse.diags([np.ones(n - 1), np.ones(n - 1)], [-1, 1])
+
+    return (sparse.kron(sparse.identity(H), path(W)) + sparse.kron(path(H), sparse.identity(W))
+            ).tocsr()
+
+
+def harmonic_field(fixed: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The field equal to ``values`` on the ``fixed`` cells (H, W) and, on every other cell,
+    the mean of its four neighbours: the discrete Dirichlet problem, one sparse solve
+    ``(4 I - A_FF) phi_F = A_FX values_X``."""
+    H, W = fixed.shape
+    adjacency = _adjacency(H, W)
+    free = np.flatnonzero(~fixed.ravel())
+    held = np.flatnonzero(fixed.ravel())
+    a_ff = adjacency[free][:, free]
+    system = (4.0 * sparse.identity(len(free)) - a_ff).tocsc()
+    rhs = adjacency[free][:, held] @ values.ravel()[held]
+    field = values.astype(np.float64).copy()
+    field.ravel()[free] = spsolve(system, rhs)
+    return field
+
+
+def ipf_terms(rules: Rules, new: dict[str, np.ndarray], active: bool) -> dict[str, np.ndarray]:
+    """The IPF reward's terms (N,) of one environment, from its state ``new`` after the step
+    (``docs/ipf.md``); ``active``: whether it was running during the step.
+
+    ``ipf``: AGV i's own field at its own cell (sources: open tasks +5, the other AGVs -3,
+    an AGV winning a cell it shares with a task, sources on fixed cells ignored; AGV i reading
+    the value of a source on its own cell); a parked AGV gets its task's +5. ``goal``:
+    -(sum over tasks of the distance to the nearest AGV). ``collision``: -1 for an AGV whose
+    disc overlaps another's.
+    """
+    n = len(new["agent_pos"])
+    zeros = np.zeros(n)
+    if not active:
+        return {"ipf": zeros, "goal": zeros, "collision": zeros.copy()}
+    grid = _grid(rules)
+    fixed = grid[4]
+    agent_cells = [_cell(rules, p, grid) for p in new["agent_pos"]]
+    task_cells = [_cell(rules, t, grid) for j, t in enumerate(new["task_pos"])
+                  if not new["task_claimed"][j]]
+    ipf = np.zeros(n)
+    for i in range(n):
+        if new["agent_task"][i] >= 0:
+            ipf[i] = IPF_TASK
+            continue
+        sources: dict[tuple[int, int], float] = {}
+        for cell in task_cells:
+            sources[cell] = IPF_TASK
+        for k, cell in enumerate(agent_cells):
+            if k != i:
+                sources[cell] = IPF_AGENT  # an AGV wins a cell it shares with a task
+        own = agent_cells[i]
+        if fixed[own]:
+            continue  # a fixed cell reads 0
+        if own in sources:
+            ipf[i] = sources[own]
+            continue
+        values = np.zeros(fixed.shape)
+        is_fixed = fixed.copy()
+        for cell, value in sources.items():
+            if not fixed[cell]:  # a source on a fixed cell is ignored: 0 wins
+                values[cell] = value
+                is_fixed[cell] = True
+        ipf[i] = harmonic_field(is_fixed, values)[own]
+    pos, tasks = new["agent_pos"], new["task_pos"]
+    goal = -np.linalg.norm(pos[:, None] - tasks[None], axis=-1).min(axis=0).sum()
+    gaps = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    gaps[np.eye(n, dtype=bool)] = np.inf
+    overlaps = (gaps < 2 * rules.radius).any(axis=1)
+    return {"ipf": ipf, "goal": np.full(n, goal), "collision": -overlaps.astype(np.float64)}
