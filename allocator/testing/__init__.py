@@ -42,14 +42,17 @@ __all__ = [
     "assert_serves_every_reachable_task",
     "assert_is_assignment",
     "MAX_BRUTE_FORCE",
-    "scenes",
-    "worlds",
     "in_ci",
     "skip_or_fail_in_ci",
     "make_or_skip",
 ]
 
 _STRATEGIES = ("scenes", "worlds")
+"""Imported on first access (they need hypothesis), so ``__all__`` leaves them out."""
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_STRATEGIES])
 
 
 def __getattr__(name: str) -> Any:

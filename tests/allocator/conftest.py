@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.scenarios import warehouse_world
+from allocator.testing.plugin import make_world
 from sim.world import World
 
 
@@ -30,9 +30,11 @@ def spaced_points(rng: np.random.Generator, k: int, world: World, gap: float,
 
 @pytest.fixture(scope="session")
 def shelf_world() -> World:
-    return warehouse_world()
+    """The shelf warehouse of the ``agv_world`` fixture, shared by the session."""
+    return make_world("warehouse")
 
 
 @pytest.fixture(scope="session")
 def open_world() -> World:
-    return World()
+    """The open MPE box of the ``agv_world`` fixture, shared by the session."""
+    return make_world("open")

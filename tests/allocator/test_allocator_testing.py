@@ -519,7 +519,8 @@ def test_allocator_testing_imports_without_hypothesis() -> None:
         import sys
         sys.modules["hypothesis"] = None  # as if hypothesis were not installed
         import allocator.testing as t
-        t.check_allocator, t.assert_optimal
+        from allocator.testing import *
+        t.check_allocator, t.assert_optimal, check_allocator
         try:
             t.scenes
         except ImportError as err:
