@@ -88,6 +88,7 @@ __all__ = [
     "IPFField",
     "TaskBlockCache",
     "check_resolution",
+    "check_scene",
     "ipf_grid",
     "ipf_field",
     "jacobi_field",
@@ -953,6 +954,58 @@ def _as_claimed(claimed: object, num_tasks: int) -> np.ndarray:
     return arr
 
 
+def check_scene(
+    agents: object,
+    tasks: object,
+    agent: object = 0,
+    world: World | None = None,
+    claimed: object = None,
+) -> tuple[World, np.ndarray, np.ndarray, int, np.ndarray]:
+    """One scene as :func:`ipf_field` takes it, validated (and used by the plots).
+
+    Parameters
+    ----------
+    agents : array-like, shape (N, 2)
+        AGV positions, N >= 1.
+    tasks : array-like, shape (M, 2)
+        Task positions; an empty sequence means M = 0.
+    agent : int
+        An index of ``agents``.
+    world : World, optional
+        Default ``sim.World()``.
+    claimed : array-like of bool, shape (M,), optional
+        Booleans or the numbers 0 and 1 (default none claimed).
+
+    Returns
+    -------
+    world : World
+    agents : np.ndarray of float64, shape (N, 2)
+    tasks : np.ndarray of float64, shape (M, 2)
+    agent : int
+    claimed : np.ndarray of bool, shape (M,)
+
+    Raises
+    ------
+    ValueError
+        Naming the argument: a world that is not a :class:`sim.World`, positions that are not
+        (K, 2) real numbers, NaN, outside the world or inside a shelf, no AGV, an ``agent``
+        that is not an index of ``agents``, ``claimed`` not one boolean per task.
+    """
+    if world is None:
+        world = World()
+    elif not isinstance(world, World):
+        raise ValueError(f"world must be a sim.World or None, got {type(world).__name__}")
+    agents = world.check_positions(_as_points(agents, "agents"), "agents")
+    tasks = _as_points(tasks, "tasks")
+    tasks = np.zeros((0, 2)) if tasks.size == 0 else world.check_positions(tasks, "tasks")
+    if len(agents) == 0:
+        raise ValueError("agents must hold at least one AGV, got shape (0, 2)")
+    if isinstance(agent, (bool, np.bool_)) or not (
+            isinstance(agent, (int, np.integer)) and 0 <= agent < len(agents)):
+        raise ValueError(f"agent must be an index in [0, {len(agents)}), got {agent!r}")
+    return world, agents, tasks, int(agent), _as_claimed(claimed, len(tasks))
+
+
 def ipf_field(
     agents: np.ndarray,
     tasks: np.ndarray,
@@ -1004,19 +1057,7 @@ def ipf_field(
     >>> f.values.shape, float(f.values.max()) <= 5.0
     ((40, 40), True)
     """
-    if world is None:
-        world = World()
-    elif not isinstance(world, World):
-        raise ValueError(f"world must be a sim.World or None, got {type(world).__name__}")
-    agents = world.check_positions(_as_points(agents, "agents"), "agents")
-    tasks = _as_points(tasks, "tasks")
-    tasks = np.zeros((0, 2)) if tasks.size == 0 else world.check_positions(tasks, "tasks")
-    if len(agents) == 0:
-        raise ValueError("agents must hold at least one AGV, got shape (0, 2)")
-    if isinstance(agent, (bool, np.bool_)) or not (
-            isinstance(agent, (int, np.integer)) and 0 <= agent < len(agents)):
-        raise ValueError(f"agent must be an index in [0, {len(agents)}), got {agent!r}")
-    claimed = _as_claimed(claimed, len(tasks))
+    world, agents, tasks, agent, claimed = check_scene(agents, tasks, agent, world, claimed)
     if method not in ("fast", "jacobi"):
         raise ValueError(f"method must be 'fast' or 'jacobi', got {method!r}")
     if len(agents) == 1 and claimed.all():
@@ -1025,11 +1066,11 @@ def ipf_field(
             "least one unclaimed task (or another AGV)"
         )
     grid = ipf_grid(world, resolution)
-    cells, values = _scene_sources(grid, agents, tasks, int(agent), claimed)
+    cells, values = _scene_sources(grid, agents, tasks, agent, claimed)
     if method == "fast":
         field = grid.fields(torch.from_numpy(cells)[None], torch.from_numpy(values)[None])
         phi = field[0].numpy()
     else:
         phi = jacobi_field(grid, cells, values)
     own = int(grid.cell_of(agents[agent]))
-    return IPFField(phi, grid.x.copy(), grid.y.copy(), int(agent), float(phi.ravel()[own]), world)
+    return IPFField(phi, grid.x.copy(), grid.y.copy(), agent, float(phi.ravel()[own]), world)

@@ -14,7 +14,14 @@ import numpy as np
 from torch import Tensor
 
 from sim.io import atomic_save
-from sim.ipf import AGENT_VALUE, DEFAULT_RESOLUTION, TASK_VALUE, IPFField, ipf_field
+from sim.ipf import (
+    AGENT_VALUE,
+    DEFAULT_RESOLUTION,
+    TASK_VALUE,
+    IPFField,
+    check_scene,
+    ipf_field,
+)
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -230,25 +237,30 @@ def plot_field(
     ax : matplotlib Axes, optional
         Draw into it; a new figure otherwise.
     path : str or Path, optional
-        Save the figure there (PNG, written atomically).
+        Save the figure there, in the format its suffix names (PNG without one), atomically.
     claimed : array-like of bool, shape (M,), optional
         Claimed tasks, drawn hollow.
 
     Returns
     -------
     matplotlib.figure.Figure
+
+    Raises
+    ------
+    ValueError
+        For a ``field`` that is not an :class:`sim.ipf.IPFField`, and for the inputs
+        :func:`sim.ipf.check_scene` refuses (in the field's world); the message names them.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.colors import TwoSlopeNorm
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle, Rectangle
 
-    agents = np.asarray(agents, dtype=np.float64).reshape(-1, 2)
-    tasks = np.asarray(tasks, dtype=np.float64).reshape(-1, 2)
-    agent = field.agent if agent is None else int(agent)
-    claimed = (np.zeros(len(tasks), dtype=bool) if claimed is None
-               else np.asarray(claimed, dtype=bool))
-    world = field.world
+    if not isinstance(field, IPFField):
+        raise ValueError(f"field must be an IPFField (from sim.ipf_field), got "
+                         f"{type(field).__name__}")
+    world, agents, tasks, agent, claimed = check_scene(
+        agents, tasks, field.agent if agent is None else agent, field.world, claimed)
     if ax is None:  # a bare Agg figure: no pyplot, no global backend switch
         fig = Figure(figsize=(5.0, 5.0 * world.size[1] / world.size[0] + 0.4))
         FigureCanvasAgg(fig)
@@ -311,7 +323,8 @@ def render_field(
     world : World, optional
         Default ``sim.World()`` (the box ``[-1, 1]^2``).
     out : str or Path, optional
-        Save the figure there (PNG, written atomically; missing folders are created).
+        Save the figure there, in the format its suffix names (PNG without one), atomically;
+        missing folders are created.
     resolution : float
         Cell size of the field's grid in world units (default 0.05).
     claimed : array-like of bool, shape (M,), optional

@@ -8,6 +8,7 @@ import pytest
 
 import sim
 from sim.ipf import AGENT_VALUE, ipf_field
+from sim.render import plot_field
 
 AGENTS = np.array([[-0.5, 0.0], [0.5, 0.1]])
 TASKS = np.array([[0.0, 0.5], [0.3, -0.6]])
@@ -157,3 +158,20 @@ def test_render_field_refuses_bad_input_naming_it(tmp_path) -> None:
     with pytest.raises(ValueError, match="no source"):
         sim.render_field(AGENTS[:1], [], out=tmp_path / "x.png")
     assert not list(tmp_path.iterdir())
+
+
+def test_plot_field_refuses_what_is_not_a_field() -> None:
+    with pytest.raises(ValueError, match="field must be an IPFField .*got ndarray"):
+        plot_field(np.zeros((40, 40)), AGENTS, TASKS)
+
+
+def test_plot_field_refuses_claimed_of_the_wrong_length_instead_of_an_index_error() -> None:
+    field = ipf_field(AGENTS, TASKS)
+    with pytest.raises(ValueError, match=r"claimed must have shape \(2,\)"):
+        plot_field(field, AGENTS, TASKS, claimed=[True, False, True])
+
+
+def test_plot_field_refuses_an_agent_to_highlight_that_is_not_an_index() -> None:
+    field = ipf_field(AGENTS, TASKS)
+    with pytest.raises(ValueError, match=r"agent must be an index in \[0, 2\)"):
+        plot_field(field, AGENTS, TASKS, agent=7)
