@@ -14,6 +14,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from decimal import Decimal
+from functools import lru_cache
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
@@ -165,6 +166,24 @@ def register(name: str) -> Callable[[_T], _T]:
     return deco
 
 
+@lru_cache(maxsize=256)
+def _keyword_parameters(cls: type) -> tuple[tuple[str, ...], bool]:
+    """The named keyword parameters of ``cls``'s constructor, and whether it takes
+    ``**kwargs``."""
+    params = inspect.signature(cls).parameters.values()
+    named = tuple(
+        p.name for p in params
+        if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    )
+    return named, any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+
+
+@lru_cache(maxsize=256)
+def _with_controller_options(cls: type) -> tuple[str, ...]:
+    """The named keyword parameters of ``cls``'s constructor and :data:`CONTROLLER_OPTIONS`."""
+    return tuple(sorted({*_keyword_parameters(cls)[0], *CONTROLLER_OPTIONS}))
+
+
 def option_names(cls: type) -> tuple[str, ...] | None:
     """The keyword options ``cls(**options)`` accepts, sorted; None when it accepts any.
 
@@ -176,15 +195,10 @@ def option_names(cls: type) -> tuple[str, ...] | None:
     if callable(declared):
         return tuple(sorted(declared()))
     try:
-        params = inspect.signature(cls).parameters.values()
+        named, takes_any = _keyword_parameters(cls)
     except (TypeError, ValueError):  # no introspectable signature (e.g. a C type)
         return None
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
-        return None
-    return tuple(sorted(
-        p.name for p in params
-        if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-    ))
+    return None if takes_any else tuple(sorted(named))
 
 
 def make(name: str, **options: Any) -> Allocator:
@@ -259,7 +273,8 @@ def as_real_array(values: object, what: str, expected: str) -> np.ndarray:
     Returns
     -------
     np.ndarray of float64
-        Same shape as ``values`` (not checked here).
+        Same shape as ``values`` (not checked here); ``values`` itself when it already is a
+        float64 array.
 
     Raises
     ------
@@ -291,7 +306,7 @@ def as_real_array(values: object, what: str, expected: str) -> np.ndarray:
                    kind, f"dtype {raw.dtype}")
         raise ValueError(f"{what} must be {expected}, got {why}")
     try:
-        return raw.astype(np.float64)
+        return np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as err:
         raise ValueError(f"{what} must be {expected}: {err}") from None
 
@@ -303,11 +318,11 @@ def _as_points(points: object, what: str, letter: str) -> np.ndarray:
     if arr.ndim != 2 or arr.shape[1] != 2:
         hint = " (one point is [[x, y]])" if arr.shape == (2,) else ""
         raise ValueError(f"{what} must have shape ({letter}, 2), got {arr.shape}{hint}")
-    if not np.all(np.isfinite(arr)):
-        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-        raise ValueError(f"{what} contain NaN or infinite values at rows {bad.tolist()}")
-    huge = np.flatnonzero((np.abs(arr) > MAX_COORDINATE).any(axis=1))
-    if huge.size:
+    if not np.abs(arr).max() <= MAX_COORDINATE:  # also False for NaN
+        if not np.all(np.isfinite(arr)):
+            bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+            raise ValueError(f"{what} contain NaN or infinite values at rows {bad.tolist()}")
+        huge = np.flatnonzero((np.abs(arr) > MAX_COORDINATE).any(axis=1))
         raise ValueError(
             f"{what} rows {huge.tolist()} have coordinates beyond +-{MAX_COORDINATE:g}: their "
             "squared distances would overflow (use smaller units)"
@@ -387,11 +402,7 @@ class ClassicalAllocator:
     @classmethod
     def option_names(cls) -> tuple[str, ...]:
         """The constructor's own keyword options and the controller's, sorted."""
-        own = (
-            p.name for p in inspect.signature(cls).parameters.values()
-            if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-        )
-        return tuple(sorted({*own, *CONTROLLER_OPTIONS}))
+        return _with_controller_options(cls)
 
     def assign(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None

@@ -45,7 +45,7 @@ def greedy_matching(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ValueError
         For a cost that is not a 2-D real matrix or holds NaN or ``-inf``.
     """
-    work = check_cost_matrix(cost)
+    work = check_cost_matrix(cost).copy()
     rows, cols = [], []
     for i in range(work.shape[0]):
         j = int(np.argmin(work[i]))

@@ -59,7 +59,7 @@ def check_planner_options(planner: object, resolution: object, seed: object) -> 
 
 
 def check_cost_matrix(cost: object) -> np.ndarray:
-    """Validate a travel-cost matrix and return it as a float64 copy.
+    """Validate a travel-cost matrix and return it as float64 (not copied if it already is).
 
     Parameters
     ----------
@@ -78,12 +78,13 @@ def check_cost_matrix(cost: object) -> np.ndarray:
     arr = as_real_array(cost, "cost", "an (N, M) matrix of real numbers")
     if arr.ndim != 2:
         raise ValueError(f"cost must be a 2-D (N, M) matrix, got shape {arr.shape}")
-    for bad, name in ((np.isnan(arr), "NaN"), (np.isneginf(arr), "-inf")):
-        if bad.any():
-            where = [tuple(ij) for ij in np.argwhere(bad)[:5].tolist()]
-            raise ValueError(
-                f"cost holds {name} at (agent, task) {where}: use +inf for a forbidden pair"
-            )
+    if arr.size and not arr.min() > -np.inf:  # the minimum is NaN or -inf
+        for bad, name in ((np.isnan(arr), "NaN"), (arr == -np.inf, "-inf")):
+            if bad.any():
+                where = [tuple(ij) for ij in np.argwhere(bad)[:5].tolist()]
+                raise ValueError(
+                    f"cost holds {name} at (agent, task) {where}: use +inf for a forbidden pair"
+                )
     return arr
 
 
