@@ -7,6 +7,8 @@ matplotlib is imported on first use with the Agg backend, so nothing here needs 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -207,7 +209,15 @@ def render_episode(
                    f"{label}  step {t}  claimed {int(claimed[t].sum())}/{len(tasks)}")
 
     anim = FuncAnimation(fig, frame, frames=len(pos), interval=1000 / fps)
-    out = atomic_save(lambda p: anim.save(p, writer=PillowWriter(fps=fps)), path)
+
+    def save_gif(tmp: str) -> None:
+        # Pillow picks the format from the name, and the temporary ends in .tmp.
+        with tempfile.TemporaryDirectory() as scratch:
+            gif = os.path.join(scratch, "episode.gif")
+            anim.save(gif, writer=PillowWriter(fps=fps))
+            shutil.copyfile(gif, tmp)
+
+    out = atomic_save(save_gif, path)
     if still is not None:
         frame(len(pos) - 1)
         atomic_save(lambda p: fig.savefig(p, dpi=110, format="png"), still)

@@ -175,3 +175,14 @@ def test_plot_field_refuses_an_agent_to_highlight_that_is_not_an_index() -> None
     field = ipf_field(AGENTS, TASKS)
     with pytest.raises(ValueError, match=r"agent must be an index in \[0, 2\)"):
         plot_field(field, AGENTS, TASKS, agent=7)
+
+
+def test_render_episode_writes_a_gif_although_the_atomic_temporary_ends_in_tmp(tmp_path) -> None:
+    from sim.controllers import RandomController
+
+    gif = tmp_path / "episode.gif"
+    scenario = sim.get_scenario("3v3", max_steps=4)
+    sim.render_episode(RandomController(), scenario, seed=0, path=gif, still=tmp_path / "s.png")
+    assert gif.read_bytes()[:6] == b"GIF89a"
+    assert (tmp_path / "s.png").read_bytes()[:4] == b"\x89PNG"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode.gif", "s.png"]
