@@ -87,8 +87,20 @@ class IPFReward:
             step), so a resolution that does not fit the floor is refused now.
         kernels : ctypes.CDLL, optional
             The environment's fused kernels (:mod:`sim.native`), or None for the torch path.
+
+        Raises
+        ------
+        ValueError
+            If the reward is already bound to another floor or another choice of kernels (an
+            ``IPFReward`` serves the environments of one floor and one kernel choice).
         """
-        self._grid = ipf_grid(world, self.resolution)
+        grid = ipf_grid(world, self.resolution)
+        if self._grid is not None and (self._grid is not grid or self._kernels is not kernels):
+            raise ValueError(
+                "this IPFReward is already set up for another environment's floor or kernels; "
+                "give each environment its own IPFReward(...)"
+            )
+        self._grid = grid
         self._kernels = kernels
 
     def __call__(self, state: SimState, ctx: StepContext) -> dict[str, Tensor]:

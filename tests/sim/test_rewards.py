@@ -77,6 +77,17 @@ def test_ipf_reward_refuses_potentials_that_are_not_finite_numbers(field: str) -
             IPFReward(**{field: bad})
 
 
+def test_ipf_reward_shared_by_two_floors_is_refused_instead_of_using_the_last_one() -> None:
+    reward = IPFReward()
+    sim.make_env("3v3", reward=reward)
+    sim.make_env("3v3", reward=reward)  # the same floor and kernels: fine
+    with pytest.raises(ValueError, match="already set up for another environment's floor"):
+        sim.make_env("warehouse", reward=reward)
+    if sim.make_env("3v3").native:  # the kernels run by default here: refuse the torch path
+        with pytest.raises(ValueError, match="give each environment its own IPFReward"):
+            sim.make_env("3v3", reward=reward, native=False)
+
+
 def test_ipf_reward_refuses_a_floor_its_resolution_does_not_fit_when_the_env_is_made() -> None:
     with pytest.raises(ValueError, match=r"MiB .* use resolution >= "):
         sim.make_env("warehouse", reward=IPFReward(resolution=0.01))
