@@ -50,7 +50,7 @@ def assign(
     ----------
     agents : array-like, shape (N, 2)
         AGV positions in world units: real numbers (a torch tensor is detached), at most
-        :data:`allocator.base.MAX_COORDINATE` (1e150) in magnitude, so that squared distances
+        :data:`allocator.paths.MAX_COORDINATE` (1e150) in magnitude, so that squared distances
         cannot overflow (larger coordinates are rejected). N >= 1; several AGVs may share a
         position (they are then interchangeable; the solver picks which serves, the same way
         every time).

@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
+from allocator.paths import MAX_COORDINATE
+
 if TYPE_CHECKING:  # pragma: no cover
     from torch import Tensor
 
@@ -37,11 +39,6 @@ __all__ = [
     "CONTROLLER_OPTIONS",
     "MAX_COORDINATE",
 ]
-
-MAX_COORDINATE = 1e150
-"""Largest accepted magnitude of a coordinate: the squared distance of two points within it,
-at most ``8 * MAX_COORDINATE ** 2``, stays far from float64 overflow (about 1.8e308), and so
-does the assignment's cost scaling. Larger coordinates are rejected, not clipped."""
 
 CONTROLLER_OPTIONS = (
     "avoidance", "planner", "max_speed", "brake", "reassign_every", "avoid_tasks",

@@ -24,8 +24,6 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from allocator.base import MAX_COORDINATE
-
 if TYPE_CHECKING:  # pragma: no cover
     from sim.world import World
 
@@ -36,7 +34,13 @@ __all__ = [
     "path_is_free",
     "path_length",
     "travel_costs",
+    "MAX_COORDINATE",
 ]
+
+MAX_COORDINATE = 1e150
+"""Largest accepted magnitude of a coordinate: the squared distance of two points within it,
+at most ``8 * MAX_COORDINATE ** 2``, stays far from float64 overflow (about 1.8e308), and so
+does the assignment's cost scaling. Larger coordinates are rejected, not clipped."""
 
 DEFAULT_MARGIN = 0.01
 """Extra clearance (world units) that planned paths keep from shelves and walls."""
@@ -286,7 +290,7 @@ def travel_costs(
     ----------
     agents : array-like, shape (N, 2)
     tasks : array-like, shape (M, 2)
-        Finite coordinates, at most :data:`allocator.base.MAX_COORDINATE` in magnitude (so
+        Finite coordinates, at most :data:`MAX_COORDINATE` in magnitude (so
         that no distance overflows to ``inf``, which would read as "unreachable").
     world : World, optional
     resolution : float
