@@ -12,6 +12,8 @@ Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidis
 
 from __future__ import annotations
 
+import dataclasses
+import numbers
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -57,7 +59,7 @@ class LearnedAllocator:
         A policy file (``.safetensors`` or its ``.json``) or a run folder from ``agv train``,
         instead of the shipped weights.
     max_steps : int, optional
-        Step limit of :meth:`assign`'s rollout (default: the scenario's).
+        Step limit of :meth:`assign`'s rollout (a positive integer; default: the scenario's).
 
     Raises
     ------
@@ -65,8 +67,9 @@ class LearnedAllocator:
         If no checkpoint is given and no weights ship for this scenario (the message names the
         file and the ``agv train`` command that creates it).
     ValueError
-        If the checkpoint was trained for another algorithm, reward or scenario, or is
-        truncated or corrupted.
+        For an unknown option (the message lists the valid ones), a ``max_steps`` that is not
+        a positive integer, a ``checkpoint`` that is not a path, or a checkpoint trained for
+        another algorithm, reward or scenario, or truncated or corrupted.
     """
 
     name = "learned"
@@ -75,11 +78,24 @@ class LearnedAllocator:
 
     def __init__(
         self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
-        max_steps: int | None = None,
+        max_steps: int | None = None, **options: Any,
     ) -> None:
         from learners.policy import LearnedPolicy
         from sim.scenarios import get_scenario
 
+        if options:
+            listed = ", ".join(repr(k) for k in options)
+            raise ValueError(f"unknown option{'s' if len(options) > 1 else ''} {listed} for "
+                             f"allocator {self.name!r}; valid options: "
+                             f"{', '.join(self.option_names())}")
+        if max_steps is not None and (isinstance(max_steps, bool)
+                                      or not isinstance(max_steps, numbers.Integral)
+                                      or max_steps < 1):
+            raise ValueError(f"max_steps must be a positive integer or None (the scenario's "
+                             f"limit), got {max_steps!r}")
+        if checkpoint is not None and not isinstance(checkpoint, (str, os.PathLike)):
+            raise ValueError(f"checkpoint must be a path to a policy .safetensors file (or "
+                             f"None for the shipped weights), got {checkpoint!r}")
         self.scenario = get_scenario(scenario)
         if checkpoint is None:
             path = weights_path(self.algo, self.reward, self.scenario.name)
@@ -94,9 +110,14 @@ class LearnedAllocator:
         self.checkpoint = Path(checkpoint)
         self.policy: LearnedPolicy = LearnedPolicy.load(
             checkpoint, algo=self.algo, reward=self.reward, scenario=self.scenario.name)
-        self.max_steps = max_steps
+        self.max_steps = None if max_steps is None else int(max_steps)
         self.last_trajectories: np.ndarray | None = None
         """(T + 1, N, 2) positions of every AGV during the last :meth:`assign` rollout."""
+
+    @classmethod
+    def option_names(cls) -> tuple[str, ...]:
+        """The keyword options the constructor takes."""
+        return ("checkpoint", "max_steps", "scenario")
 
     # ------------------------------------------------------------------ controller
     def reset(self, env: Any) -> None:
@@ -107,21 +128,13 @@ class LearnedAllocator:
         return self.policy.act(obs)
 
     # ------------------------------------------------------------------ allocator
-    def _scene_scenario(self, n: int, m: int, world: World | None) -> Any:
-        """The trained scenario's sensing and step limit on a scene of N AGVs and M tasks."""
-        from sim.scenarios import Scenario
-
+    def _scene_scenario(self, agents: np.ndarray, tasks: np.ndarray,
+                        world: World | None) -> Any:
+        """The trained scenario's sensing and step limit on the given scene (see
+        :func:`_given_scene`)."""
         base = self.scenario
-        if n == base.num_agents and m == base.num_tasks and world is None:
-            scn = base
-        else:
-            scn = Scenario(name=base.name, world=world or base.world, num_agents=n,
-                           num_tasks=m, max_steps=base.max_steps, k_tasks=base.k_tasks,
-                           k_agents=base.k_agents, sensing_range=base.sensing_range,
-                           agent_sampler=base.agent_sampler, task_sampler=base.task_sampler)
-        if self.max_steps is not None:
-            scn = scn.with_options(max_steps=int(self.max_steps))
-        return scn
+        return _given_scene(base, agents, tasks, world or base.world,
+                            base.max_steps if self.max_steps is None else self.max_steps)
 
     def assign(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
@@ -150,13 +163,15 @@ class LearnedAllocator:
         Raises
         ------
         ValueError
-            On bad input (shapes, NaN, positions outside the world).
+            On bad input (shapes, NaN, positions outside the world or inside a shelf).
 
         Notes
         -----
-        Scenes of another size keep the trained scenario's sensing (``k_tasks``, ``k_agents``),
-        so the observation size matches; BiCNet runs at any N, and MADDPG drives AGV i with
-        actor ``i mod N_trained``.
+        Any scene the floor holds is run as given, whether or not the scenario's random
+        spawner could have drawn it (AGVs closer together than the spawn spacing, more AGVs or
+        tasks than it could place). Scenes of another size keep the trained scenario's
+        sensing (``k_tasks``, ``k_agents``), so the observation size matches; BiCNet runs at
+        any N, and MADDPG drives AGV i with actor ``i mod N_trained``.
         """
         import torch
 
@@ -164,7 +179,11 @@ class LearnedAllocator:
 
         agents, tasks = check_inputs(agents, tasks, world)
         n, m = len(agents), len(tasks)
-        env = AGVEnv(self._scene_scenario(n, m, world), num_envs=1, reward="minidist", seed=0)
+        scenario = self._scene_scenario(agents, tasks, world)
+        # in float64, before the simulator's float32 turns a huge coordinate into inf
+        scenario.world.check_positions(agents, "agents")
+        scenario.world.check_positions(tasks, "tasks")
+        env = AGVEnv(scenario, num_envs=1, reward="minidist", seed=0)
         env.set_state(agents[None], tasks[None])
         obs = env.observe()
         frames = [env.agent_pos[0].clone()]
@@ -203,6 +222,38 @@ class LearnedAllocator:
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(scenario={self.scenario.name!r}, "
                 f"checkpoint={str(self.checkpoint)!r})")
+
+
+def _given_scene(base: Any, agents: np.ndarray, tasks: np.ndarray, world: World,
+                 max_steps: int) -> Any:
+    """A scenario whose every episode is the given scene, with ``base``'s sensing.
+
+    The scenario's random spawner has rules for drawing scenes (AGVs one diameter apart,
+    tasks apart, room to place N + M of them); a scene given by the caller is run as it is, so
+    the copy spawns exactly it and skips the room check that a :class:`sim.scenarios.Scenario`
+    makes when it is built. Positions are checked by the caller (``World.check_positions``).
+    """
+    import torch
+
+    from sim.scenarios import Scenario
+
+    given_agents = torch.as_tensor(agents, dtype=torch.float32)
+    given_tasks = torch.as_tensor(tasks, dtype=torch.float32)
+
+    @dataclasses.dataclass(frozen=True)
+    class GivenScene(Scenario):
+        def __post_init__(self) -> None:  # nothing is drawn at random: no room to check
+            pass
+
+        def spawn(self, B: int, gen: torch.Generator, device: torch.device,
+                  native: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+            return (given_agents.to(device).expand(B, -1, -1).clone(),
+                    given_tasks.to(device).expand(B, -1, -1).clone())
+
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(Scenario)}
+    fields.update(world=world, num_agents=len(agents), num_tasks=len(tasks),
+                  max_steps=max_steps)
+    return GivenScene(**fields)
 
 
 def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:

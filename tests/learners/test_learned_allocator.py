@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 import pytest
@@ -76,11 +77,91 @@ def test_checkpoint_of_another_kind_is_refused(tmp_path):
         allocator.make("maddpg-ipf", scenario="6v6", checkpoint=path)
 
 
+def _require_shipped(path) -> None:
+    """Skip when shipped weights are missing, except under CI (``CI`` set), where it fails."""
+    if path.exists():
+        return
+    if os.environ.get("CI"):
+        pytest.fail(f"shipped weights missing: {path} (CI is set, so this is not skipped)")
+    pytest.skip(f"no shipped weights at {path}")
+
+
+def test_missing_shipped_weights_fail_instead_of_skipping_under_ci(tmp_path, monkeypatch):
+    missing = tmp_path / "3v3" / "maddpg-ipf.safetensors"
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="shipped weights missing"):
+        _require_shipped(missing)
+    monkeypatch.delenv("CI")
+    with pytest.raises(pytest.skip.Exception):
+        _require_shipped(missing)
+    _require_shipped(weights_path("maddpg", "ipf", "3v3"))  # present: neither
+
+
 @pytest.mark.parametrize("name", sorted(LEARNED))
 def test_shipped_weights_load_and_respond(name):
     path = weights_path(*name.split("-"), "3v3")
-    if not path.exists():
-        pytest.skip(f"no shipped weights for {name} on 3v3")
+    _require_shipped(path)
     solver = allocator.make(name, scenario="3v3")
     metrics = sim.evaluate(solver, "3v3", episodes=100, seed=7)
     assert metrics.response_rate > 0.5
+
+
+@pytest.mark.parametrize("bad", [2.5, 0, -3, True, "25", float("nan")])
+def test_max_steps_that_is_not_a_positive_integer_is_refused(tmp_path, bad):
+    """max_steps=2.5 was accepted."""
+    path = _checkpoint(tmp_path, "maddpg-ipf")
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        allocator.make("maddpg-ipf", scenario="3v3", checkpoint=path, max_steps=bad)
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        LEARNED["maddpg-ipf"](scenario="3v3", checkpoint=path, max_steps=bad)
+    solver = LEARNED["maddpg-ipf"](scenario="3v3", checkpoint=path, max_steps=np.int64(4))
+    assert solver.max_steps == 4 and type(solver.max_steps) is int
+
+
+def test_unknown_option_of_a_learned_allocator_lists_the_valid_ones(tmp_path):
+    path = _checkpoint(tmp_path, "bicnet-ipf")
+    for make in (lambda **kw: allocator.make("bicnet-ipf", **kw), LEARNED["bicnet-ipf"]):
+        with pytest.raises(ValueError, match="unknown option 'max_step' for allocator "
+                                             "'bicnet-ipf'; valid options: checkpoint, "
+                                             "max_steps, scenario"):
+            make(scenario="3v3", checkpoint=path, max_step=10)
+    with pytest.raises(ValueError, match="checkpoint must be a path"):
+        LEARNED["bicnet-ipf"](scenario="3v3", checkpoint=3)
+
+
+@pytest.mark.parametrize("name", ["maddpg-ipf", "bicnet-ipf"])
+@pytest.mark.parametrize("n, m", [(3, 20), (20, 20)])
+def test_explicit_scene_the_spawner_could_not_place_is_run(tmp_path, name, n, m):
+    """A 3v3 policy refused 3 AGVs and 20 tasks (or 20 and 20): the scenario's random spawner
+    has no room to draw such a scene, but the caller gives it, so it is run as given."""
+    solver = allocator.make(name, scenario="3v3", checkpoint=_checkpoint(tmp_path, name))
+    rng = np.random.default_rng(n + m)
+    agents, tasks = rng.uniform(-0.8, 0.8, (n, 2)), rng.uniform(-0.8, 0.8, (m, 2))
+    result = solver.assign(agents, tasks)
+    assert result.task_of_agent.shape == (n,) and result.agent_of_task.shape == (m,)
+    served = result.task_of_agent[result.task_of_agent >= 0]
+    assert len(set(served.tolist())) == len(served)
+    np.testing.assert_allclose(solver.last_trajectories[0], agents, atol=1e-6)
+
+
+def test_agvs_closer_than_the_spawn_spacing_are_run_as_given(tmp_path):
+    solver = allocator.make("bicnet-ipf", scenario="3v3",
+                            checkpoint=_checkpoint(tmp_path, "bicnet-ipf"))
+    agents = np.array([[0.0, 0.0], [0.05, 0.0], [0.0, 0.05]])  # overlapping AGV discs
+    tasks = np.array([[0.0, 0.02], [0.8, 0.8], [-0.8, -0.8]])
+    result = solver.assign(agents, tasks)
+    np.testing.assert_allclose(solver.last_trajectories[0], agents, atol=1e-6)
+    assert result.task_of_agent.shape == (3,)
+
+
+@pytest.mark.parametrize("what", ["agents", "tasks"])
+@pytest.mark.parametrize("big", [1e39, -3e38, 5e100])
+def test_points_beyond_float32_are_reported_outside_the_world_bounds(tmp_path, what, big):
+    """They were reported as "NaN or infinite" after the simulator's float32 overflowed."""
+    solver = allocator.make("maddpg-ipf", scenario="3v3",
+                            checkpoint=_checkpoint(tmp_path, "maddpg-ipf"))
+    scene = {"agents": np.array([[0.0, 0.0], [0.5, 0.5], [-0.5, 0.5]]),
+             "tasks": np.array([[0.8, 0.8], [-0.8, 0.8], [0.8, -0.8]])}
+    scene[what][1, 0] = big
+    with pytest.raises(ValueError, match=rf"{what} rows \[1\] lie outside the world bounds"):
+        solver.assign(scene["agents"], scene["tasks"])
