@@ -2,15 +2,21 @@
 
 The step's claims, collisions, team reward and K-nearest observations, and the IPF reward's
 small per-environment solves, are a few dozen tiny tensor operations each in torch; on the
-CPU their dispatch and memory traffic cost several times the physics itself. The C source in
-``sim/_native/kernels.c`` does the same work in one pass per environment. It is compiled with
-the system's C compiler the first time it is needed (about a second) and cached in
-``$AGV_CACHE_DIR`` (default ``~/.cache/agv-allocation``), keyed by a hash of the source, the
-flags and the machine.
+CPU their dispatch and memory traffic cost several times the physics itself. The C sources in
+``sim/_native/`` do the same work in one pass per environment, one file per concept beside
+its torch reference (``observations.h``: :mod:`sim.observations`; ``physics.h``:
+:mod:`sim.physics`; ``tasks.h``: :mod:`sim.tasks`; ``step.c`` the fused step; ``ipf.c``:
+:mod:`sim.ipf`; ``spawn.c``: :mod:`sim.scenarios`), compiled as one translation unit
+(``kernels.c`` includes them) so that the compiler inlines across them. They are compiled with
+the system's C compiler the first time they are needed (about a second) and cached in
+``$AGV_CACHE_DIR`` (default ``~/.cache/agv-allocation``), keyed by a hash of the sources, the
+flags and the machine. The ctypes signatures are read from the C definitions
+(:func:`signatures`), so the table cannot drift from the source.
 
-The torch code in :mod:`sim.core` and :mod:`sim.ipf` stays the definition and runs wherever
-the kernels cannot: tensors on another device, no C compiler, or ``AGV_NATIVE=0`` in the
-environment. Tests check that both paths agree.
+The torch code stays the definition and runs wherever the kernels cannot: tensors on another
+device, no C compiler, or ``AGV_NATIVE=0`` in the environment. Tests check that both paths
+agree. Every pointer that reaches C comes from a tensor whose dtype, shape, device and
+contiguity were checked, by :func:`pointer` or once where the tensor is made.
 """
 
 from __future__ import annotations
@@ -19,32 +25,68 @@ import ctypes
 import hashlib
 import os
 import platform
+import re
 import shutil
 import subprocess
 import tempfile
 import warnings
 from pathlib import Path
+from typing import Any
 
 import torch
 
-__all__ = ["available", "library", "library_for", "disabled_reason", "pointer"]
+__all__ = ["available", "disabled_reason", "library", "library_for", "parse_signatures",
+           "pointer", "signatures", "sources"]
 
-SOURCE = Path(__file__).parent / "_native" / "kernels.c"
+NATIVE_DIR = Path(__file__).parent / "_native"
+SOURCE = NATIVE_DIR / "kernels.c"
 FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
 
 _lib: ctypes.CDLL | None = None
 _tried = False
 _reason: str | None = None
 
-_P, _I, _F, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_double
-_SIGNATURES = {
-    "agv_observe": (ctypes.c_int, [_I, _I, _I, _I, _I, _F] + [_P] * 6),
-    "agv_post_step": (ctypes.c_int, [_I, _I, _I, _I, _I, _F, _F, _F, _I] + [_P] * 20),
-    "agv_prepare": (ctypes.c_int64, [_I, _I] + [_P] * 5),
-    "agv_spawn_pick": (None, [_I, _I, _I, _I] + [_P] * 6),
-    "agv_ipf": (ctypes.c_int, [_I, _I, _I, _P, _P, _P, _I, _P, _P, _I, _P, _I, _I]
-                + [_D] * 6 + [_P] * 6),
-}
+_SCALARS = {"int": ctypes.c_int, "int64_t": ctypes.c_int64, "float": ctypes.c_float,
+            "double": ctypes.c_double}
+_EXPORTED = re.compile(r"^(int|int64_t|void)\s+(agv_\w+)\(([^)]*)\)\s*\{", re.MULTILINE)
+
+
+def sources() -> list[Path]:
+    """The C files of the kernels (``kernels.c`` includes the others: one translation unit)."""
+    return sorted(p for p in NATIVE_DIR.iterdir() if p.suffix in (".c", ".h"))
+
+
+def parse_signatures(text: str) -> dict[str, tuple[Any, list[Any]]]:
+    """The ctypes ``(restype, argtypes)`` of every exported ``agv_*`` function defined in C
+    source ``text`` (pointers of any type become ``c_void_p``).
+
+    Raises
+    ------
+    ValueError
+        For a return or parameter type the table does not know.
+    """
+    out: dict[str, tuple[Any, list[Any]]] = {}
+    for ret, name, params in _EXPORTED.findall(text):
+        argtypes = []
+        for param in " ".join(params.split()).split(","):
+            if "*" in param:
+                argtypes.append(ctypes.c_void_p)
+                continue
+            words = [w for w in param.split() if w != "const"]
+            if len(words) != 2 or words[0] not in _SCALARS:
+                raise ValueError(f"{name}: parameter {param.strip()!r} has no ctypes mapping "
+                                 f"(known: pointers and {sorted(_SCALARS)})")
+            argtypes.append(_SCALARS[words[0]])
+        out[name] = (None if ret == "void" else _SCALARS[ret], argtypes)
+    return out
+
+
+def signatures() -> dict[str, tuple[Any, list[Any]]]:
+    """The ctypes signature table of the kernels, read from their C definitions."""
+    table: dict[str, tuple[Any, list[Any]]] = {}
+    for path in sources():
+        table.update(parse_signatures(path.read_text()))
+    return table
 
 
 def pointer(tensor: torch.Tensor, dtype: torch.dtype, shape: tuple[int, ...], name: str) -> int:
@@ -110,10 +152,11 @@ def _build() -> ctypes.CDLL:
     cc = _compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (tried $CC, cc, gcc, clang)")
-    source = SOURCE.read_bytes()
-    key = hashlib.sha256(
-        source + " ".join([cc, *FLAGS, platform.machine(), platform.system()]).encode()
-    ).hexdigest()[:16]
+    digest = hashlib.sha256()
+    for path in sources():
+        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    digest.update(" ".join([cc, *FLAGS, platform.machine(), platform.system()]).encode())
+    key = digest.hexdigest()[:16]
     target = _cache_dir() / f"agv_kernels_{key}.so"
     if target.exists():
         try:
@@ -137,7 +180,7 @@ def _build() -> ctypes.CDLL:
             if os.path.exists(tmp):
                 os.unlink(tmp)
         lib = ctypes.CDLL(str(target))
-    for name, (restype, argtypes) in _SIGNATURES.items():
+    for name, (restype, argtypes) in signatures().items():
         fn = getattr(lib, name)
         fn.restype = restype
         fn.argtypes = argtypes

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import ctypes
 import os
+import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -340,3 +343,71 @@ def test_damaged_cache_entry_is_rebuilt(tmp_path) -> None:
     second = _run(code, AGV_CACHE_DIR=str(tmp_path))
     assert second.stdout.strip() == "True", second.stderr
     assert built.read_bytes()[:4] == b"\x7fELF" or sys.platform != "linux"
+
+
+def test_signature_table_is_read_from_every_exported_c_function() -> None:
+    table = native.signatures()
+    defined = set()
+    for path in native.sources():
+        for line in path.read_text().splitlines():
+            head = line.split("(")[0].split()
+            if len(head) == 2 and head[1].startswith("agv_") and not line.startswith("static"):
+                defined.add(head[1])
+    assert defined == set(table) and len(table) == 5
+    assert table["agv_prepare"] == (ctypes.c_int64, [ctypes.c_int64] * 2 + [ctypes.c_void_p] * 5)
+    # Every kernel a Python module calls is in the table, so it is called with checked types.
+    called = set()
+    for path in (ROOT / "sim").rglob("*.py"):
+        called |= set(re.findall(r"\.(agv_\w+)\(", path.read_text()))
+    assert called and called <= set(table)
+    lib = native.library()
+    for name, (restype, argtypes) in table.items():
+        assert getattr(lib, name).argtypes == argtypes
+        assert getattr(lib, name).restype == restype
+
+
+def test_signature_parser_refuses_a_c_type_it_cannot_map() -> None:
+    with pytest.raises(ValueError, match=r"agv_x: parameter 'uint8_t flag'"):
+        native.parse_signatures("int agv_x(int64_t n, uint8_t flag) {\n")
+    assert native.parse_signatures("void agv_y(const float *a,\n    double x) {") == {
+        "agv_y": (None, [ctypes.c_void_p, ctypes.c_double])}
+    assert native.parse_signatures("static int agv_z(int64_t n) {") == {}
+
+
+def test_kernel_calls_with_the_wrong_argument_count_are_refused() -> None:
+    with pytest.raises(TypeError):
+        native.library().agv_prepare(1, 1)
+
+
+def test_build_key_covers_every_included_source_file(tmp_path) -> None:
+    # kernels.c includes the concept files: a change in any of them must rebuild the library.
+    src = tmp_path / "src"
+    shutil.copytree(native.NATIVE_DIR, src)
+    cache = tmp_path / "cache"
+    code = ("import pathlib, sim.native as n\n"
+            f"n.NATIVE_DIR = pathlib.Path({str(src)!r}); n.SOURCE = n.NATIVE_DIR / 'kernels.c'\n"
+            "print(n.available())")
+    assert _run(code, AGV_CACHE_DIR=str(cache)).stdout.strip() == "True"
+    (src / "tasks.h").write_text((src / "tasks.h").read_text() + "\n/* edited */\n")
+    assert _run(code, AGV_CACHE_DIR=str(cache)).stdout.strip() == "True"
+    assert len(list(cache.glob("agv_kernels_*.so"))) == 2
+
+
+@pytest.mark.parametrize("bad, match", [
+    (torch.zeros(2, 3, 2, dtype=torch.float64), "dtype torch.float64"),
+    (torch.zeros(2, 3, 3), r"shape \(2, 3, 3\)"),
+    (torch.zeros(3, 2, 2).transpose(0, 1), "non-contiguous"),
+    (np.zeros((2, 3, 2), dtype=np.float32), "got ndarray"),
+    (torch.zeros(2, 3, 2, dtype=torch.int32), "dtype torch.int32"),
+])
+def test_pointer_refuses_what_c_would_misread(bad, match: str) -> None:  # noqa: ANN001
+    with pytest.raises(ValueError, match=f"task_pos must be a C-contiguous CPU tensor.*{match}"):
+        native.pointer(bad, torch.float32, (2, 3, 2), "task_pos")
+
+
+def test_pointer_accepts_the_exact_tensor_and_wildcards() -> None:
+    t = torch.zeros(2, 3, 2)
+    assert native.pointer(t, torch.float32, (2, 3, 2), "t") == t.data_ptr()
+    assert native.pointer(t, torch.float32, (-1, 3, 2), "t") == t.data_ptr()
+    with pytest.raises(ValueError, match="shape"):
+        native.pointer(t, torch.float32, (-1, 3), "t")
