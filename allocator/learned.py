@@ -13,6 +13,7 @@ Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidis
 from __future__ import annotations
 
 import dataclasses
+import functools
 import numbers
 import os
 from pathlib import Path
@@ -224,6 +225,32 @@ class LearnedAllocator:
                 f"checkpoint={str(self.checkpoint)!r})")
 
 
+@functools.cache
+def _given_scene_class() -> type:
+    """The :class:`sim.scenarios.Scenario` subclass of :func:`_given_scene` (made once)."""
+    import torch
+
+    from sim.scenarios import Scenario
+
+    @dataclasses.dataclass(frozen=True)
+    class GivenScene(Scenario):
+        """A scenario whose every episode is one given scene (see :func:`_given_scene`)."""
+
+        scene_agents: Any = dataclasses.field(default=None, repr=False, compare=False)
+        scene_tasks: Any = dataclasses.field(default=None, repr=False, compare=False)
+
+        def __post_init__(self) -> None:  # nothing is drawn at random: no room to check
+            pass
+
+        def spawn(self, B: int, *args: Any, **kwargs: Any) -> tuple[torch.Tensor, torch.Tensor]:
+            """The given scene in each of the B environments (CPU tensors, where
+            :meth:`LearnedAllocator.assign` runs; the spawner's other arguments are unused)."""
+            return (self.scene_agents.expand(B, -1, -1).clone(),
+                    self.scene_tasks.expand(B, -1, -1).clone())
+
+    return GivenScene
+
+
 def _given_scene(base: Any, agents: np.ndarray, tasks: np.ndarray, world: World,
                  max_steps: int) -> Any:
     """A scenario whose every episode is the given scene, with ``base``'s sensing.
@@ -237,23 +264,11 @@ def _given_scene(base: Any, agents: np.ndarray, tasks: np.ndarray, world: World,
 
     from sim.scenarios import Scenario
 
-    given_agents = torch.as_tensor(agents, dtype=torch.float32)
-    given_tasks = torch.as_tensor(tasks, dtype=torch.float32)
-
-    @dataclasses.dataclass(frozen=True)
-    class GivenScene(Scenario):
-        def __post_init__(self) -> None:  # nothing is drawn at random: no room to check
-            pass
-
-        def spawn(self, B: int, gen: torch.Generator, device: torch.device,
-                  native: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-            return (given_agents.to(device).expand(B, -1, -1).clone(),
-                    given_tasks.to(device).expand(B, -1, -1).clone())
-
     fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(Scenario)}
     fields.update(world=world, num_agents=len(agents), num_tasks=len(tasks),
-                  max_steps=max_steps)
-    return GivenScene(**fields)
+                  max_steps=max_steps, scene_agents=torch.as_tensor(agents, dtype=torch.float32),
+                  scene_tasks=torch.as_tensor(tasks, dtype=torch.float32))
+    return _given_scene_class()(**fields)
 
 
 def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:
