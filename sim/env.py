@@ -338,7 +338,7 @@ class AGVEnv:
         idx = self._env_index(env_ids)
         if idx.numel():
             agents, tasks_ = self.scenario.spawn(len(idx), self.generator, self.device,
-                                                 native=self.native)
+                                                 kernels=self._native)
             self._place(idx, agents, tasks_, torch.zeros_like(agents))
         return self.observe()
 

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sim.native import pointer
 from sim.world import World
 
 __all__ = ["Scenario", "SCENARIOS", "get_scenario", "warehouse_world", "scenario_names"]
@@ -117,28 +118,33 @@ class Scenario:
             raise ValueError(f"scenario {self.name!r}: {err}") from None
 
     def spawn(self, B: int, gen: torch.Generator, device: torch.device,
-              native: bool | None = None) -> tuple[Tensor, Tensor]:
+              kernels: Any = None) -> tuple[Tensor, Tensor]:
         """Draw B scenes.
 
         Parameters
         ----------
-        native : bool, optional
-            Check candidates with the fused CPU kernel of :mod:`sim.native` (default: where
-            available); the same draws give the same scenes either way.
+        B : int
+            Number of scenes.
+        gen : torch.Generator
+            Source of every random draw.
+        device : torch.device
+            Where the scenes are made.
+        kernels : ctypes.CDLL, optional
+            The fused kernels of :mod:`sim.native` to check candidates with (CPU only), as the
+            caller chose them (the environment passes its own); None for the torch path. The
+            same draws give the same scenes either way.
 
         Returns
         -------
         agents : Tensor, shape (B, N, 2)
         tasks : Tensor, shape (B, M, 2)
         """
-        from sim import native as native_kernels
-
         w = self.world
         agent_sampler, task_sampler = self._samplers()
         obstacles = torch.tensor(np.array(w.obstacles), dtype=torch.float32, device=device)
         r, cap = w.agent_radius, w.capture_radius
         n, m = self.num_agents, self.num_tasks
-        lib = native_kernels.library_for(device, native)
+        lib = kernels if torch.device(device).type == "cpu" else None
         # Entities are placed one at a time (agents, then tasks), each for all B scenes at once.
         # gap[k, j]: minimum distance between entity k and an earlier entity j.
         kinds = torch.tensor([True] * n + [False] * m, device=device)
@@ -155,11 +161,17 @@ class Scenario:
                 cand = sampler(len(todo), _CANDIDATES, gen, device).float()  # (b, C, 2)
                 ok = _clear_of_obstacles(cand, obstacles, r)  # (b, C)
                 if lib is not None:  # the same rule, one pass in C
+                    b = len(todo)
                     cand, ok = cand.contiguous(), ok.contiguous()
-                    found = torch.empty(len(todo), dtype=torch.bool)
+                    found = torch.empty(b, dtype=torch.bool)
                     lib.agv_spawn_pick(
-                        len(todo), _CANDIDATES, n + m, k, cand.data_ptr(), ok.data_ptr(),
-                        todo.data_ptr(), gap_k.data_ptr(), placed.data_ptr(), found.data_ptr(),
+                        b, _CANDIDATES, n + m, k,
+                        pointer(cand, torch.float32, (b, _CANDIDATES, 2), "candidates"),
+                        pointer(ok, torch.bool, (b, _CANDIDATES), "candidate mask"),
+                        pointer(todo, torch.int64, (b,), "todo"),
+                        pointer(gap_k, torch.float32, (k,), "gap"),
+                        pointer(placed, torch.float32, (B, n + m, 2), "placed"),
+                        pointer(found, torch.bool, (b,), "found"),
                     )
                 else:
                     if k:

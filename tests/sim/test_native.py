@@ -200,8 +200,8 @@ def test_observation_ties_in_lanes_go_to_the_lower_index() -> None:
 @pytest.mark.parametrize("scenario", ["3v3", "6v6", "warehouse", "20v20"])
 def test_spawn_gives_the_same_scenes(scenario: str) -> None:
     sc = get_scenario(scenario)
-    scenes = [sc.spawn(256, torch.Generator().manual_seed(5), torch.device("cpu"), native=flag)
-              for flag in (True, False)]
+    scenes = [sc.spawn(256, torch.Generator().manual_seed(5), torch.device("cpu"), kernels=lib)
+              for lib in (native.library(), None)]
     assert torch.equal(scenes[0][0], scenes[1][0])
     assert torch.equal(scenes[0][1], scenes[1][1])
 
