@@ -1,7 +1,7 @@
 """Static world parameters: bounds, shelves, AGV size and the physics constants.
 
 A :class:`World` never changes during an episode; the changing state lives in
-:class:`sim.core.SimState`. Every geometric helper here works on numpy arrays so that the
+:class:`sim.state.SimState`. Every geometric helper here works on numpy arrays so that the
 classical solvers (``allocator``) and the IPF field share one definition of "free space".
 """
 
