@@ -1,21 +1,348 @@
-"""The ``agv`` command line: ``demo``, ``train``, ``evaluate``, ``bench``, ``render``."""
+"""The ``agv`` command line: ``assign``, ``demo``, ``train``, ``evaluate``, ``bench``,
+``render``.
+
+Every user error (a bad value, a missing file, an unknown name) ends with a one-line
+``agv <command>: error: ...`` on standard error and exit status 2, never a traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
+import csv
+import importlib.metadata
+import io
+import json
+import math
 import sys
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
-__all__ = ["main", "build_parser"]
+import numpy as np
+
+import allocator
+import sim
+from learners.cli import (
+    add_evaluate_arguments,
+    add_train_arguments,
+    non_negative_int,
+    output_dir,
+    output_file,
+    positive_int,
+    print_metrics,
+    run_evaluate,
+    run_train,
+    scenario_name,
+    seed,
+)
+
+__all__ = ["main", "build_parser", "read_scene", "read_floor"]
+
+_SCENARIOS_HELP = f"{', '.join(sim.scenario_names())} or NvM (N AGVs, M tasks)"
+
+SCENE_FORMATS = """\
+scene formats:
+  JSON  {"agents": [[x, y], ...], "tasks": [[x, y], ...]}
+  CSV   a header row "kind,x,y", then one row per AGV or task, kind "agent" or "task":
+          kind,x,y
+          agent,0.0,0.0
+          task,1.0,0.9
+AGVs and tasks are numbered from 0 in the order they appear. The format follows the file's
+suffix (.json, .csv); on standard input (SCENE "-") a first character "{" means JSON.
+
+floor plan (--floor), JSON:
+  {"bounds": [xmin, ymin, xmax, ymax], "shelves": [[xmin, ymin, xmax, ymax], ...],
+   "agent_radius": 0.15}
+  "shelves" and "agent_radius" are optional. With shelves, distances are obstacle-aware path
+  lengths; every AGV and task must lie inside the bounds and outside the shelves.
+
+output: one row per AGV with its task ("-": idle) and the travel distance to it (a straight
+line, or the path around the shelves), then the unserved tasks with the reason; "cost" is the
+solver's total (a learned method: the length of its simulated trajectories). --json prints
+{"method", "agents", "tasks", "cost", "plan": [{"agent", "task", "distance"}, ...],
+ "idle_agents": [...], "unserved_tasks": [{"task", "reason"}, ...]}.
+"""
+
+
+# ---------------------------------------------------------------------- scene files
+def _read_text(path: str, what: str) -> str:
+    if path == "-":
+        return sys.stdin.read()
+    try:
+        return Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise ValueError(f"{what} file {path!r} does not exist") from None
+    except IsADirectoryError:
+        raise ValueError(f"{what} {path!r} is a folder, expected a file") from None
+    except PermissionError:
+        raise ValueError(f"{what} file {path!r} cannot be read (permission denied)") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{what} file {path!r} is not a UTF-8 text file") from None
+
+
+def _reject_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a number (JSON has no NaN or infinity)")
+
+
+def _load_json(text: str, source: str) -> Any:
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{source} is not valid JSON: {err}") from None
+    except ValueError as err:
+        raise ValueError(f"{source}: {err}") from None
+
+
+def _number(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where} must be a number, got {value!r}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise ValueError(f"{where} must be a finite number, got {value!r}")
+    return number
+
+
+def _json_points(value: Any, key: str, source: str) -> np.ndarray:
+    if not isinstance(value, list) or not value:
+        raise ValueError(f"{source}: {key!r} must be a non-empty list of [x, y] pairs, got "
+                         f"{value!r}")
+    rows = []
+    for i, row in enumerate(value):
+        if not isinstance(row, list) or len(row) != 2:
+            raise ValueError(f"{source}: {key}[{i}] must be an [x, y] pair, got {row!r}")
+        rows.append([_number(v, f"{source}: {key}[{i}]") for v in row])
+    return np.array(rows, dtype=np.float64)
+
+
+def _scene_from_json(text: str, source: str) -> tuple[np.ndarray, np.ndarray]:
+    data = _load_json(text, source)
+    if not isinstance(data, dict):
+        raise ValueError(f"{source}: expected a JSON object {{\"agents\": [[x, y], ...], "
+                         f"\"tasks\": [[x, y], ...]}}, got a {type(data).__name__}")
+    missing = sorted({"agents", "tasks"} - set(data))
+    extra = sorted(set(data) - {"agents", "tasks"})
+    if missing or extra:
+        raise ValueError(f"{source}: expected the keys 'agents' and 'tasks'"
+                         + (f"; missing {missing}" if missing else "")
+                         + (f"; unknown {extra}" if extra else ""))
+    return (_json_points(data["agents"], "agents", source),
+            _json_points(data["tasks"], "tasks", source))
+
+
+def _scene_from_csv(text: str, source: str) -> tuple[np.ndarray, np.ndarray]:
+    reader = csv.reader(io.StringIO(text))
+    header: list[str] | None = None
+    points: dict[str, list[list[float]]] = {"agent": [], "task": []}
+    for row in reader:
+        if not any(cell.strip() for cell in row):
+            continue
+        where = f"{source}, line {reader.line_num}"
+        if header is None:
+            header = [cell.strip().lower() for cell in row]
+            if sorted(header) != ["kind", "x", "y"]:
+                raise ValueError(f"{where}: the header must name the columns kind, x, y "
+                                 f"(in any order), got {row}")
+            continue
+        if len(row) != 3:
+            raise ValueError(f"{where}: expected 3 values (kind, x, y), got {len(row)}: {row}")
+        cells = dict(zip(header, (cell.strip() for cell in row), strict=True))
+        kind = cells["kind"].lower()
+        if kind not in points:
+            raise ValueError(f"{where}: kind must be 'agent' or 'task', got {cells['kind']!r}")
+        xy = []
+        for axis in ("x", "y"):
+            try:
+                value = float(cells[axis])
+            except ValueError:
+                raise ValueError(f"{where}: {axis} must be a number, got "
+                                 f"{cells[axis]!r}") from None
+            if not math.isfinite(value):
+                raise ValueError(f"{where}: {axis} must be a finite number, got "
+                                 f"{cells[axis]!r}")
+            xy.append(value)
+        points[kind].append(xy)
+    if header is None:
+        raise ValueError(f"{source} is empty: expected a header row kind,x,y and one row per "
+                         "AGV or task")
+    for kind in ("agent", "task"):
+        if not points[kind]:
+            raise ValueError(f"{source} has no {kind} rows: expected at least one row "
+                             f"'{kind},x,y'")
+    return (np.array(points["agent"], dtype=np.float64),
+            np.array(points["task"], dtype=np.float64))
+
+
+def read_scene(path: str, fmt: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Read AGV and task positions from a JSON or CSV file (``"-"``: standard input).
+
+    Parameters
+    ----------
+    path : str
+        The file, or ``"-"`` for standard input. The formats are described in
+        ``agv assign --help``.
+    fmt : {"auto", "json", "csv"}
+        ``auto`` follows the suffix, or (for standard input and other suffixes) the first
+        character: ``{`` means JSON.
+
+    Returns
+    -------
+    agents : np.ndarray, shape (N, 2)
+    tasks : np.ndarray, shape (M, 2)
+
+    Raises
+    ------
+    ValueError
+        For a missing or unreadable file, bad JSON, a wrong CSV header or row, a value that is
+        not a finite number, or no AGV or no task; the message names the file and the line or
+        entry.
+    """
+    source = "standard input" if path == "-" else repr(path)
+    text = _read_text(path, "scene")
+    if fmt == "auto":
+        suffix = Path(path).suffix.lower()
+        if suffix in (".json", ".csv"):
+            fmt = suffix[1:]
+        else:
+            fmt = "json" if text.lstrip().startswith("{") else "csv"
+    if fmt == "json":
+        return _scene_from_json(text, source)
+    if fmt == "csv":
+        return _scene_from_csv(text, source)
+    raise ValueError(f"format must be 'auto', 'json' or 'csv', got {fmt!r}")
+
+
+_FLOOR_KEYS = ("bounds", "shelves", "agent_radius")
+
+
+def read_floor(path: str) -> sim.World:
+    """Build a :class:`sim.World` from a floor-plan JSON file.
+
+    Parameters
+    ----------
+    path : str
+        A JSON object with ``bounds`` ``[xmin, ymin, xmax, ymax]``, optional ``shelves``, a list
+        of ``[xmin, ymin, xmax, ymax]`` rectangles, and optional ``agent_radius`` (default
+        0.15).
+
+    Returns
+    -------
+    sim.World
+
+    Raises
+    ------
+    ValueError
+        For a missing file, bad JSON, unknown or missing keys, or values that
+        :class:`sim.World` refuses; the message names the file and the key.
+    """
+    source = repr(path)
+    data = _load_json(_read_text(path, "floor plan"), source)
+    if not isinstance(data, dict):
+        raise ValueError(f"{source}: a floor plan is a JSON object with the keys "
+                         f"{list(_FLOOR_KEYS)}, got a {type(data).__name__}")
+    extra = sorted(set(data) - set(_FLOOR_KEYS))
+    if extra or "bounds" not in data:
+        raise ValueError(f"{source}: a floor plan needs 'bounds' and may have 'shelves' and "
+                         f"'agent_radius'" + (f"; unknown {extra}" if extra else ""))
+    bounds = data["bounds"]
+    if not isinstance(bounds, list) or len(bounds) != 4:
+        raise ValueError(f"{source}: 'bounds' must be [xmin, ymin, xmax, ymax], got {bounds!r}")
+    box = tuple(_number(v, f"{source}: bounds[{i}]") for i, v in enumerate(bounds))
+    shelves = data.get("shelves", [])
+    if not isinstance(shelves, list):
+        raise ValueError(f"{source}: 'shelves' must be a list of [xmin, ymin, xmax, ymax], got "
+                         f"{shelves!r}")
+    rects = []
+    for k, shelf in enumerate(shelves):
+        if not isinstance(shelf, list) or len(shelf) != 4:
+            raise ValueError(f"{source}: shelves[{k}] must be [xmin, ymin, xmax, ymax], got "
+                             f"{shelf!r}")
+        rects.append([_number(v, f"{source}: shelves[{k}]") for v in shelf])
+    options: dict[str, Any] = {}
+    if "agent_radius" in data:
+        options["agent_radius"] = _number(data["agent_radius"], f"{source}: agent_radius")
+    try:
+        return sim.World(bounds=box, obstacles=np.array(rects, dtype=np.float64).reshape(-1, 4),
+                         **options)
+    except ValueError as err:
+        raise ValueError(f"{source}: {err}") from None
+
+
+# ---------------------------------------------------------------------- subcommands
+def _add_assign(sub: argparse._SubParsersAction) -> None:
+    names = sorted(allocator.ALLOCATORS)
+    p = sub.add_parser(
+        "assign", help="assign AGVs to tasks for a scene read from a JSON or CSV file",
+        description="Assign AGVs to tasks (allocator.assign) for one scene and print the plan.",
+        epilog=SCENE_FORMATS, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE",
+                   help="JSON or CSV file of AGV and task positions, or - for standard input")
+    p.add_argument("--floor", metavar="FLOOR.json", default=None,
+                   help="floor plan (bounds and shelves); default an open floor")
+    p.add_argument("--method", choices=names, default="hungarian",
+                   help=f"allocator: {', '.join(names)} (default hungarian)")
+    p.add_argument("--scenario", type=scenario_name, default=None,
+                   help="for a learned --method: the scenario whose shipped weights it uses "
+                        "(default NvM of the scene)")
+    p.add_argument("--format", dest="fmt", choices=("auto", "json", "csv"), default="auto",
+                   help="format of SCENE (default auto: the suffix, or '{' first for JSON)")
+    p.add_argument("--json", action="store_true",
+                   help="print the plan as JSON instead of a table")
+    p.set_defaults(func=_run_assign)
+
+
+def _run_assign(args: argparse.Namespace) -> int:
+    from allocator.learned import LEARNED
+    from allocator.paths import travel_costs
+
+    agents, tasks = read_scene(args.scene, args.fmt)
+    world = read_floor(args.floor) if args.floor is not None else None
+    options: dict[str, Any] = {}
+    if args.method in LEARNED:
+        options["scenario"] = args.scenario or f"{len(agents)}v{len(tasks)}"
+    elif args.scenario is not None:
+        raise ValueError(f"--scenario is only for a learned --method, not {args.method!r}")
+    solver = allocator.make(args.method, **options)
+    result = solver.assign(agents, tasks, world=world)
+    cost_of = getattr(solver, "cost_matrix", None)
+    costs = (cost_of(agents, tasks, world) if callable(cost_of)
+             else travel_costs(agents, tasks, world))
+    plan = [{"agent": int(i), "task": int(j), "distance": float(costs[i, j])}
+            for i, j in result.pairs()]
+    idle = [int(i) for i in np.flatnonzero(result.task_of_agent < 0)]
+    unserved = [{"task": int(j), "reason": result.unserved.get(int(j), "")}
+                for j in np.flatnonzero(result.agent_of_task < 0)]
+    if args.json:
+        print(json.dumps({"method": args.method, "agents": len(agents), "tasks": len(tasks),
+                          "cost": result.cost, "plan": plan, "idle_agents": idle,
+                          "unserved_tasks": unserved}, indent=2, allow_nan=False))
+        return 0
+    print(f"{args.method}: {len(agents)} AGVs, {len(tasks)} tasks, {len(plan)} served, "
+          f"cost {result.cost:.4f}")
+    print(f"{'agent':>6} {'task':>6} {'distance':>10}")
+    for i, j in enumerate(result.task_of_agent):
+        if j < 0:
+            print(f"{i:>6} {'-':>6} {'-':>10}")
+        else:
+            print(f"{i:>6} {j:>6} {costs[i, j]:>10.4f}")
+    for row in unserved:
+        print(f"task {row['task']} unserved: {row['reason']}")
+    return 0
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="evaluate every method on the paper's scenarios and draw it")
-    p.add_argument("--quick", action="store_true", help="fewer episodes (a smoke run)")
-    p.add_argument("--episodes", type=int, default=None,
-                   help="test episodes per scenario (default 300, 30 with --quick)")
-    p.add_argument("--out", default="agv-demo", help="folder for the figures and animations")
-    p.add_argument("--seed", type=int, default=0, help="seed of the test episodes")
+    p = sub.add_parser(
+        "demo", help="evaluate every method on the paper's scenarios and draw it",
+        description="Evaluate every available method on 3v3 and 6v6, print the table beside "
+                    "the paper's numbers, and write figures and animations.")
+    length = p.add_mutually_exclusive_group()
+    length.add_argument("--quick", action="store_true",
+                        help="30 test episodes per scenario (a smoke run)")
+    length.add_argument("--episodes", type=positive_int, default=None,
+                        help="test episodes per scenario (default 300)")
+    p.add_argument("--out", type=output_dir, default="agv-demo",
+                   help="folder for the table, figures and animations (default agv-demo)")
+    p.add_argument("--seed", type=seed, default=0,
+                   help="seed of the test episodes, in [0, 2**63) (default 0)")
     p.set_defaults(func=_run_demo)
 
 
@@ -26,31 +353,53 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
-    try:
-        from learners.cli import add_train_arguments, run_train
-    except ImportError:  # pragma: no cover - learners not built yet
-        return
-    p = sub.add_parser("train", help="train a MADDPG or BiCNet policy")
+    p = sub.add_parser(
+        "train", help="train a MADDPG or BiCNet policy",
+        description="Train a MADDPG or BiCNet policy, evaluating it on seeded validation "
+                    "scenes and writing resumable checkpoints to the run folder.")
     add_train_arguments(p)
     p.set_defaults(func=run_train)
 
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
-    try:
-        from learners.cli import add_evaluate_arguments, run_evaluate
-    except ImportError:  # pragma: no cover
-        return
-    p = sub.add_parser("evaluate", help="print the paper's metrics of a checkpoint")
-    add_evaluate_arguments(p)
-    p.set_defaults(func=run_evaluate)
+    p = sub.add_parser(
+        "evaluate", help="print the paper's metrics of an allocator or a checkpoint",
+        description="Score an allocator of the registry (e.g. hungarian) or a trained "
+                    "checkpoint on seeded test episodes: the paper's metrics.")
+    add_evaluate_arguments(p, registry=sorted(allocator.ALLOCATORS))
+    p.set_defaults(func=_run_evaluate)
+
+
+def _run_evaluate(args: argparse.Namespace) -> int:
+    from allocator.learned import LEARNED
+
+    name = args.checkpoint
+    if name not in allocator.ALLOCATORS:
+        if not (Path(name).exists() or Path(name + ".safetensors").exists()):
+            raise ValueError(f"{name!r} is neither an allocator "
+                             f"({', '.join(sorted(allocator.ALLOCATORS))}) nor an existing "
+                             "checkpoint file or run folder")
+        return run_evaluate(args)
+    scenario = args.scenario or "3v3"
+    solver = allocator.make(name, **({"scenario": scenario} if name in LEARNED else {}))
+    metrics = sim.evaluate(solver, scenario, episodes=args.episodes, seed=args.seed)
+    print_metrics(name, {"method": name, "scenario": scenario}, metrics, args.seed, args.json)
+    return 0
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="quick simulator throughput (full peers: benchmarks/)")
-    p.add_argument("--scenario", default="6v6")
-    p.add_argument("--envs", type=int, nargs="+", default=[1, 32, 1024])
-    p.add_argument("--reward", default="minidist")
-    p.add_argument("--threads", type=int, default=1,
+    rewards = sorted(sim.REWARDS)
+    p = sub.add_parser(
+        "bench", help="quick simulator throughput (full benchmarks: benchmarks/)",
+        description="Measure environment steps per second of the simulator for a few batch "
+                    "sizes (the full comparison is benchmarks/sim_throughput.py).")
+    p.add_argument("--scenario", type=scenario_name, default="6v6",
+                   help=f"scenario: {_SCENARIOS_HELP} (default 6v6)")
+    p.add_argument("--envs", type=positive_int, nargs="+", default=[1, 32, 1024],
+                   metavar="B", help="batch sizes, parallel environments (default 1 32 1024)")
+    p.add_argument("--reward", choices=rewards, default="minidist",
+                   help=f"reward: {', '.join(rewards)} (default minidist)")
+    p.add_argument("--threads", type=positive_int, default=1,
                    help="torch threads (default 1: steadier, and what the benchmarks use)")
     p.set_defaults(func=_run_bench)
 
@@ -75,54 +424,108 @@ def _run_bench(args: argparse.Namespace) -> int:
 
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("render", help="draw a scene, an episode (GIF) or an IPF field")
-    p.add_argument("--scenario", default="3v3")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--field", action="store_true", help="draw AGV --agent's IPF heatmap")
-    p.add_argument("--agent", type=int, default=0, help="whose field (with --field)")
-    p.add_argument("--gif", action="store_true",
-                   help="animate an episode of the scripted nearest-task controller")
-    p.add_argument("--out", default=None, help="output file (PNG or GIF)")
+    p = sub.add_parser(
+        "render", help="draw a scene, an episode (GIF) or an IPF field",
+        description="Draw a scenario's start scene (PNG), an episode of the scripted "
+                    "nearest-task controller (--gif) or one AGV's IPF field (--field).")
+    p.add_argument("--scenario", type=scenario_name, default="3v3",
+                   help=f"scenario: {_SCENARIOS_HELP} (default 3v3)")
+    p.add_argument("--seed", type=seed, default=0,
+                   help="seed of the scene, in [0, 2**63) (default 0)")
+    what = p.add_mutually_exclusive_group()
+    what.add_argument("--field", action="store_true", help="draw AGV --agent's IPF heatmap")
+    what.add_argument("--gif", action="store_true",
+                      help="animate an episode of the scripted nearest-task controller")
+    p.add_argument("--agent", type=non_negative_int, default=None,
+                   help="whose field, an AGV index (with --field; default 0)")
+    p.add_argument("--out", type=output_file, default=None,
+                   help="output file: .gif with --gif, .png for a scene, an image file for "
+                        "--field (default <kind>_<scenario>...; missing folders are made)")
     p.set_defaults(func=_run_render)
 
 
+def _image_suffixes() -> set[str]:
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    return {f".{ext}" for ext in FigureCanvasBase.get_supported_filetypes()}
+
+
+def _check_suffix(out: str, allowed: set[str], what: str) -> None:
+    if Path(out).suffix.lower() not in allowed:
+        raise ValueError(f"--out {out!r}: {what} is written as {' or '.join(sorted(allowed))}, "
+                         f"so the file name must end in it")
+
+
 def _run_render(args: argparse.Namespace) -> int:
-    import sim
     from sim.controllers import NearestTaskController
 
+    if args.agent is not None and not args.field:
+        raise ValueError("--agent chooses whose IPF field to draw: use it with --field")
     env = sim.make_env(args.scenario, num_envs=1, seed=args.seed)
     if args.field:
-        from sim.ipf import ipf_field, plot_field
+        import matplotlib.pyplot as plt
 
-        agents = env.agent_pos[0].numpy()
-        tasks = env.task_pos[0].numpy()
-        field = ipf_field(agents, tasks, agent=args.agent, world=env.world)
-        out = args.out or f"ipf_{args.scenario}_agent{args.agent}.png"
-        plot_field(field, agents, tasks, agent=args.agent, path=out)
+        agent = args.agent or 0
+        if agent >= env.num_agents:
+            raise ValueError(f"--agent must be an AGV index in [0, {env.num_agents - 1}] for "
+                             f"{args.scenario}, got {agent}")
+        out = args.out or f"ipf_{args.scenario}_agent{agent}.png"
+        _check_suffix(out, _image_suffixes(), "the field")
+        fig = sim.render_field(env.agent_pos[0].numpy(), env.task_pos[0].numpy(), agent=agent,
+                               world=env.world, out=out)
+        plt.close(fig)
     elif args.gif:
         out = args.out or f"episode_{args.scenario}.gif"
+        _check_suffix(out, {".gif"}, "an episode")
         sim.render_episode(NearestTaskController(env.world.physics), args.scenario,
                            seed=args.seed, path=out)
     else:
         out = args.out or f"scene_{args.scenario}.png"
+        _check_suffix(out, {".png"}, "a scene")
         sim.render_scene(env, path=out)
     print(f"wrote {out}")
     return 0
 
 
+def _version() -> str:
+    try:
+        return importlib.metadata.version("agv-allocation")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (agv-allocation is not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``agv`` argument parser with every available subcommand."""
+    """The ``agv`` argument parser with every subcommand.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        Parsing sets ``command`` and ``func``, the subcommand's entry point (``func(args)``
+        returns the exit status).
+    """
     parser = argparse.ArgumentParser(
-        prog="agv", description="Multi-AGV task allocation: simulator, learners and solvers."
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_demo, _add_train, _add_evaluate, _add_bench, _add_render):
+        prog="agv", description="Multi-AGV task allocation: simulator, learners and solvers.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_assign, _add_demo, _add_train, _add_evaluate, _add_bench, _add_render):
         add(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``agv`` console script."""
+    """Entry point of the ``agv`` console script.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        The arguments (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit status: 0 done, 2 bad input (with a one-line message on standard error), 130
+        a training run interrupted. Argument errors exit through argparse with status 2.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

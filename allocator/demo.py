@@ -24,12 +24,10 @@ def available_methods(scenario: str) -> Iterator[tuple[str, Callable[[], Any]]]:
     """Yield ``(name, factory)`` for every method that can run on ``scenario`` here: the
     scripted nearest-task baseline, the classical allocators, and each learned allocator whose
     weights ship for the scenario (the others are reported as missing)."""
+    import allocator
+
     yield "nearest-task", NearestTaskController
-    try:
-        import allocator
-    except ImportError:  # pragma: no cover
-        return
-    registry = getattr(allocator, "ALLOCATORS", {})
+    registry = allocator.ALLOCATORS
     for name in ("hungarian", "greedy"):
         if name in registry:
             yield name, (lambda n=name: allocator.make(n))
@@ -79,8 +77,29 @@ def _claims_figure(results: dict[tuple[str, str], sim.Metrics], scenario: str, p
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    """Evaluate, print the table, write figures under ``args.out``."""
-    episodes = args.episodes or (30 if args.quick else 300)
+    """Evaluate, print the table, write figures under ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``episodes`` (a positive int, or None: 30 with ``quick``, else 300), ``quick``,
+        ``out`` (the folder) and ``seed``.
+
+    Returns
+    -------
+    int
+        The exit status, 0.
+
+    Raises
+    ------
+    ValueError
+        If ``args.episodes`` is not None and not a positive integer.
+    """
+    episodes = args.episodes
+    if episodes is None:
+        episodes = 30 if args.quick else 300
+    elif isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows, results = [], {}

@@ -1,4 +1,5 @@
-"""``agv train`` and ``agv evaluate``: the argument parsers and their entry points.
+"""``agv train`` and ``agv evaluate``: the argument parsers, their entry points, and the
+argument types that check a user's values before any work starts.
 
 ``allocator/cli.py`` wires these into the ``agv`` console script; they can also be used alone::
 
@@ -11,45 +12,172 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import os
 import sys
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
-__all__ = ["add_train_arguments", "run_train", "add_evaluate_arguments", "run_evaluate"]
+__all__ = [
+    "add_train_arguments",
+    "run_train",
+    "add_evaluate_arguments",
+    "run_evaluate",
+    "print_metrics",
+    "positive_int",
+    "non_negative_int",
+    "seed",
+    "rate",
+    "scenario_name",
+    "output_dir",
+    "output_file",
+    "SEED_LIMIT",
+]
 
-_ALGOS = ("maddpg", "bicnet")
-_REWARDS = ("minidist", "greedy", "ipf")
+SEED_LIMIT = 2**63
+"""Seeds lie in [0, 2**63), as in :func:`sim.evaluate`."""
+
+
+def positive_int(value: str) -> int:
+    """An argparse type: an integer >= 1."""
+    try:
+        number = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value!r}") from None
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value!r}")
+    return number
+
+
+def non_negative_int(value: str) -> int:
+    """An argparse type: an integer >= 0."""
+    try:
+        number = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected an integer >= 0, got {value!r}") from None
+    if number < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value!r}")
+    return number
+
+
+def seed(value: str) -> int:
+    """An argparse type: a seed, an integer in [0, 2**63)."""
+    try:
+        number = int(value)
+    except ValueError:
+        number = -1
+    if not 0 <= number < SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f"expected a seed, an integer in [0, 2**63), "
+                                         f"got {value!r}")
+    return number
+
+
+def rate(value: str) -> float:
+    """An argparse type: a finite number in [0, 1] (a task response rate)."""
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not 0.0 <= number <= 1.0:  # also rejects NaN
+        raise argparse.ArgumentTypeError(f"expected a task response rate, a number in [0, 1], "
+                                         f"got {value!r}")
+    return number
+
+
+def scenario_name(value: str) -> str:
+    """An argparse type: a scenario name that :func:`sim.get_scenario` accepts (a registered
+    name or ``NvM``)."""
+    import sim
+
+    try:
+        sim.get_scenario(value)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return value
+
+
+def _writable_below(path: Path, value: str) -> None:
+    """Raise unless a folder ``path`` exists or can be created (its nearest existing ancestor
+    is a writable folder)."""
+    ancestor = path
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise argparse.ArgumentTypeError(f"cannot use {value!r}: {str(ancestor)!r} is a file, "
+                                         "not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"cannot use {value!r}: no permission to write in "
+                                         f"{str(ancestor)!r}")
+
+
+def output_dir(value: str) -> str:
+    """An argparse type: a folder that exists or can be created (missing parents are made)."""
+    if not value:
+        raise argparse.ArgumentTypeError("expected a folder, got an empty path")
+    _writable_below(Path(value).absolute(), value)
+    return value
+
+
+def output_file(value: str) -> str:
+    """An argparse type: a file that can be written (missing parent folders are made)."""
+    path = Path(value).absolute()
+    if not value or value.endswith(("/", os.sep)) or path.is_dir():
+        raise argparse.ArgumentTypeError(f"expected a file name, got the folder {value!r}")
+    _writable_below(path.parent, value)
+    return value
+
+
+def _names(items: Sequence[str]) -> str:
+    return ", ".join(items)
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``agv train`` options to ``parser``."""
-    parser.add_argument("--algo", choices=_ALGOS, default=None,
-                        help="learning algorithm (default maddpg)")
-    parser.add_argument("--reward", choices=_REWARDS, default=None,
-                        help="reward: minidist, greedy or ipf (default ipf)")
-    parser.add_argument("--scenario", default=None, help="scenario, e.g. 3v3, 6v6 (default 3v3)")
-    parser.add_argument("--episodes", type=int, default=None,
+    import sim
+    from learners.algorithms import ALGORITHMS, REWARD_NAMES
+
+    algos = sorted(ALGORITHMS)
+    parser.add_argument("--algo", choices=algos, default=None,
+                        help=f"learning algorithm: {_names(algos)} (default maddpg)")
+    parser.add_argument("--reward", choices=list(REWARD_NAMES), default=None,
+                        help=f"reward: {_names(REWARD_NAMES)} (default ipf)")
+    parser.add_argument("--scenario", type=scenario_name, default=None,
+                        help=f"scenario: {_names(sim.scenario_names())} or NvM (N AGVs, M tasks)"
+                             " (default 3v3)")
+    parser.add_argument("--episodes", type=positive_int, default=None,
                         help="training episodes (default 5000; with --resume: the new total)")
-    parser.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
-    parser.add_argument("--run-dir", default=None,
-                        help="folder for progress.csv and checkpoints "
-                             "(default runs/<algo>-<reward>-<scenario>-s<seed>)")
-    parser.add_argument("--resume", metavar="RUN_DIR", default=None,
-                        help="continue the run in RUN_DIR from its last checkpoint")
-    parser.add_argument("--eval-every", type=int, default=None,
-                        help="evaluate every this many episodes (default 500)")
-    parser.add_argument("--eval-episodes", type=int, default=None,
+    parser.add_argument("--seed", type=seed, default=None,
+                        help="random seed of the networks, environments and noise, in "
+                             "[0, 2**63) (default 0)")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--run-dir", type=output_dir, default=None,
+                       help="folder for progress.csv and checkpoints "
+                            "(default runs/<algo>-<reward>-<scenario>-s<seed>)")
+    where.add_argument("--resume", metavar="RUN_DIR", default=None,
+                       help="continue the run in RUN_DIR from its last checkpoint")
+    parser.add_argument("--eval-every", type=non_negative_int, default=None,
+                        help="evaluate every this many episodes (0: only at the end; "
+                             "default 500)")
+    parser.add_argument("--eval-episodes", type=positive_int, default=None,
                         help="test episodes per evaluation (default 300)")
-    parser.add_argument("--checkpoint-every", type=int, default=None,
+    parser.add_argument("--eval-seed", type=seed, default=None,
+                        help="seed of the evaluation scenes, the same at every evaluation "
+                             "(default 12345)")
+    parser.add_argument("--checkpoint-every", type=positive_int, default=None,
                         help="write a resumable checkpoint every this many episodes "
                              "(default 1000)")
-    parser.add_argument("--stop-response", type=float, default=None,
-                        help="stop once an evaluation reaches this task response rate")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default 1)")
+    parser.add_argument("--stop-response", type=rate, default=None,
+                        help="stop once an evaluation reaches this task response rate, in "
+                             "[0, 1] (default: never)")
+    parser.add_argument("--threads", type=positive_int, default=None,
+                        help="torch threads (default 1)")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE",
                         help="override a learner hyperparameter, e.g. --set batch_size=512 "
                              "(see MADDPGConfig / BiCNetConfig); repeatable")
-    parser.add_argument("--export", metavar="PATH", default=None,
+    parser.add_argument("--export", metavar="PATH", type=output_file, default=None,
                         help="after training, copy the best evaluated policy to PATH (e.g. "
                              "allocator/weights/3v3/bicnet-ipf.safetensors)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -76,7 +204,7 @@ def _parse_overrides(algo: str, items: list[str]) -> dict[str, Any]:
                 out[key] = int(float(value)) if float(value).is_integer() else int(value)
             else:
                 out[key] = type(default)(value)
-        except ValueError:
+        except (ValueError, OverflowError):
             raise ValueError(f"--set {key}: cannot read {value!r} as "
                              f"{type(default).__name__}") from None
     return out
@@ -104,7 +232,7 @@ def run_train(args: argparse.Namespace) -> int:
                     setattr(config, key, getattr(args, key))
             config.run_dir = args.run_dir
             learner_config = _parse_overrides(config.algo, args.overrides)
-        for key in ("episodes", "eval_every", "eval_episodes", "checkpoint_every",
+        for key in ("episodes", "eval_every", "eval_episodes", "eval_seed", "checkpoint_every",
                     "stop_response", "threads"):
             if getattr(args, key) is not None:
                 setattr(config, key, getattr(args, key))
@@ -128,16 +256,69 @@ def run_train(args: argparse.Namespace) -> int:
     return 130 if result.interrupted else 0
 
 
-def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``agv evaluate`` options to ``parser``."""
-    parser.add_argument("checkpoint",
-                        help="a policy/training .safetensors file, its .json, or a run folder")
-    parser.add_argument("--scenario", default=None,
-                        help="scenario to test on (default: the one it was trained for)")
-    parser.add_argument("--episodes", type=int, default=300,
+def add_evaluate_arguments(parser: argparse.ArgumentParser,
+                           registry: Sequence[str] = ()) -> None:
+    """Add the ``agv evaluate`` options to ``parser``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+    registry : sequence of str
+        Allocator names that the caller also accepts in place of a checkpoint (named in the
+        help only; :func:`run_evaluate` reads checkpoints).
+    """
+    import sim
+
+    what = "a policy/training .safetensors file, its .json, or a run folder"
+    if registry:
+        what = (f"an allocator name ({_names(registry)}) or {what} (write ./NAME for a file "
+                "named like an allocator)")
+    parser.add_argument("checkpoint", metavar="CHECKPOINT" if not registry else "NAME_OR_FILE",
+                        help=what)
+    parser.add_argument("--scenario", type=scenario_name, default=None,
+                        help=f"scenario to test on: {_names(sim.scenario_names())} or NvM "
+                             "(default: the one a checkpoint was trained for, 3v3 for a name)")
+    parser.add_argument("--episodes", type=positive_int, default=300,
                         help="test episodes (default 300, as in the paper)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the test scenes")
+    parser.add_argument("--seed", type=seed, default=0,
+                        help="seed of the test scenes, in [0, 2**63) (default 0)")
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
+
+
+def _finite_or_none(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def print_metrics(title: str, info: dict[str, Any], metrics: Any, seed: int,
+                  as_json: bool) -> None:
+    """Print :class:`sim.Metrics` as the paper's table rows, or as JSON.
+
+    Parameters
+    ----------
+    title : str
+        What was evaluated, e.g. ``"maddpg-ipf (trained on 3v3, 5000 episodes)"``.
+    info : dict
+        Fields put before the metrics in the JSON output (``algo``, ``scenario``, ...).
+    metrics : sim.Metrics
+    seed : int
+        Seed of the test scenes.
+    as_json : bool
+        JSON (NaN, e.g. the average time when no episode finished, is written as null).
+    """
+    if as_json:
+        record = {**info, **metrics.as_dict()}
+        print(json.dumps({k: _finite_or_none(v) for k, v in record.items()}, indent=2,
+                         allow_nan=False))
+        return
+    print(f"{title} on {info['scenario']}, {metrics.episodes} episodes, seed {seed}:")
+    print(f"  task response rate  {100 * metrics.response_rate:6.2f} %")
+    print(f"  average reward      {metrics.avg_reward:8.2f}")
+    print(f"  average time        {metrics.avg_time:8.2f} steps "
+          f"({metrics.avg_time_finished:.2f} over finished episodes)")
+    print(f"  collisions          {metrics.collisions:8.2f} per episode")
+    print(f"  all tasks served    {100 * metrics.finished_rate:6.2f} % of episodes")
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
@@ -152,17 +333,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"agv evaluate: error: {err}", file=sys.stderr)
         return 2
-    if args.json:
-        print(json.dumps({"algo": policy.algo, "reward": policy.reward, "scenario": scenario,
-                          **metrics.as_dict()}, indent=2))
-        return 0
-    print(f"{policy.algo}-{policy.reward} (trained on {policy.scenario}, "
-          f"{policy.metadata.get('episodes')} episodes) on {scenario}, {metrics.episodes} "
-          f"episodes, seed {args.seed}:")
-    print(f"  task response rate  {100 * metrics.response_rate:6.2f} %")
-    print(f"  average reward      {metrics.avg_reward:8.2f}")
-    print(f"  average time        {metrics.avg_time:8.2f} steps "
-          f"({metrics.avg_time_finished:.2f} over finished episodes)")
-    print(f"  collisions          {metrics.collisions:8.2f} per episode")
-    print(f"  all tasks served    {100 * metrics.finished_rate:6.2f} % of episodes")
+    title = (f"{policy.algo}-{policy.reward} (trained on {policy.scenario}, "
+             f"{policy.metadata.get('episodes')} episodes)")
+    print_metrics(title, {"algo": policy.algo, "reward": policy.reward, "scenario": scenario},
+                  metrics, args.seed, args.json)
     return 0
