@@ -254,3 +254,22 @@ def test_rewards_without_the_promise_are_masked_in_finished_environments() -> No
     assert done.tolist() == [True, False] and (reward == 2).all()
     _, reward, _, _ = env.step(torch.zeros(2, 3, 2))
     assert reward[0].tolist() == [0, 0, 0] and reward[1].tolist() == [2, 2, 2]
+
+
+def test_nearest_task_controller_reads_the_task_slot_by_name_when_there_is_none() -> None:
+    # With no task slots (k_tasks=0) the features after the own state are the other AGVs':
+    # a controller reading obs[..., 4:7] chased an AGV as if it were a task.
+    env = sim.make_env("3v3", num_envs=4, seed=0, k_tasks=0)
+    ctrl = NearestTaskController(env.world.physics)
+    ctrl.reset(env)
+    obs = env.reset()
+    assert obs[..., env.obs_layout.agents].abs().sum() > 0  # AGVs are visible
+    assert torch.equal(ctrl.act(obs), torch.zeros(4, 3, 2))  # at rest, no task: no command
+    # With task slots it drives at the nearest task, read through the layout.
+    env = sim.make_env("3v3", num_envs=4, seed=0)
+    ctrl.reset(env)
+    obs = env.reset()
+    lay = env.obs_layout
+    action = ctrl.act(obs)
+    toward = (action * obs[..., lay.task_rel(0)]).sum(-1)
+    assert bool((toward[obs[..., lay.task_mask(0)][..., 0] > 0] > 0).all())
