@@ -198,8 +198,7 @@ class IPFGrid:
         self.free_index[free] = np.arange(self.num_free)
         self._green: Tensor | None = None
         self._torch: dict[torch.device, tuple[Tensor, Tensor]] = {}
-        self._free_index_t: Tensor | None = None
-        self._green_diag: Tensor | None = None
+        self._native_tables: tuple[Tensor, Tensor, int, int, int] | None = None
 
     # ------------------------------------------------------------------ the graph
     @functools.cached_property
@@ -492,14 +491,11 @@ class IPFGrid:
     ) -> Tensor:
         """The fused kernel ``agv_ipf`` of ``kernels``, (B, N) of ``dtype``; shapes already
         checked. ``mask`` (B, M) marks the claimed tasks if ``is_claimed``, else the open ones.
-        Every buffer reaches C through :func:`sim.native.pointer`."""
-        green, _ = self._tables(torch.device("cpu"))
-        if self._free_index_t is None:
-            self._free_index_t = torch.from_numpy(self.free_index)
-            self._green_diag = green.diagonal().contiguous()
+        Every buffer reaches C through :func:`sim.native.pointer`: the inputs at every call,
+        the grid's tables and the cache's buffers once, when they are made."""
+        green_ptr, diag_ptr, index_ptr = self._native_pointers()
         B, N = agent_pos.shape[:2]
         M = task_pos.shape[1]
-        F1 = self.num_free + 1
         H, W = self.shape
         # Converted inputs are kept in `keep` so that they outlive the call (a pointer to a
         # temporary would dangle).
@@ -511,8 +507,9 @@ class IPFGrid:
             "active": None if active is None
             else active.to(device="cpu", dtype=torch.bool).contiguous(),
         }
-        out = torch.empty(B, N, dtype=dtype)
-        tcache, dcache = (cache or TaskBlockCache()).native_buffers(self, B, M, task_value)
+        out = torch.empty(B, N, dtype=dtype)  # contiguous, CPU, (B, N) of dtype by construction
+        cache = TaskBlockCache() if cache is None else cache  # holds the buffers: keep it
+        cells_ptr, factors_ptr = cache.native_buffers(self, B, M, task_value)
         ptr = sim_native.pointer
         wide = dtype == torch.float64
         xmin, ymin, _, _ = self.world.bounds
@@ -520,18 +517,14 @@ class IPFGrid:
             B, N, M, ptr(keep["agent_pos"], torch.float32, (B, N, 2), "agent_pos"),
             ptr(keep["task_pos"], torch.float32, (B, M, 2), "task_pos"),
             None if mask is None else ptr(keep["mask"], torch.bool, (B, M), "task mask"),
-            int(is_claimed), ptr(green, torch.float64, (F1, F1), "Green's function"),
-            ptr(self._green_diag, torch.float64, (F1,), "Green's diagonal"), self.num_free,
-            ptr(self._free_index_t, torch.int64, (H * W,), "free_index"), H, W,
+            int(is_claimed), green_ptr, diag_ptr, self.num_free, index_ptr, H, W,
             float(xmin), float(ymin), float(self.dx), float(self.dy), float(agent_value),
             float(task_value),
             None if agent_task is None
             else ptr(keep["agent_task"], torch.int64, (B, N), "agent_task"),
             None if active is None else ptr(keep["active"], torch.bool, (B,), "active"),
-            ptr(tcache, torch.int64, (B, 1 + M), "task cells cache"),
-            ptr(dcache, torch.float64, (B, M * M + M), "task factors cache"),
-            ptr(out, torch.float64, (B, N), "out") if wide else None,
-            None if wide else ptr(out, torch.float32, (B, N), "out"),
+            cells_ptr, factors_ptr, out.data_ptr() if wide else None,
+            None if wide else out.data_ptr(),
         )
         del keep
         if status < 0:
@@ -539,6 +532,23 @@ class IPFGrid:
         if status:
             raise RuntimeError("IPF kernel: a source block was not positive definite")
         return out
+
+    def _native_pointers(self) -> tuple[int, int, int]:
+        """Checked addresses of the padded ``G`` (F + 1, F + 1), its diagonal (F + 1,) and the
+        free-index table (H * W,) for the kernel; the tensors are made and checked once and
+        kept with the grid."""
+        if self._native_tables is None:
+            green, _ = self._tables(torch.device("cpu"))
+            diag = green.diagonal().contiguous()
+            index = torch.from_numpy(self.free_index)
+            F1 = self.num_free + 1
+            ptr = sim_native.pointer
+            self._native_tables = (
+                diag, index, ptr(green, torch.float64, (F1, F1), "Green's function"),
+                ptr(diag, torch.float64, (F1,), "Green's diagonal"),
+                ptr(index, torch.int64, (self.shape[0] * self.shape[1],), "free_index"),
+            )
+        return self._native_tables[2], self._native_tables[3], self._native_tables[4]
 
     def _gather(self, rows: Tensor, cols: Tensor) -> Tensor:
         """``G[rows[b, j], cols[b, k]]`` as (B, J, K) from the padded G (index F reads 0)."""
@@ -653,20 +663,23 @@ class TaskBlockCache:
         self.f_tasks: Tensor | None = None  # (B, M) int64
         self.inv_chol: Tensor | None = None  # (B, M, M) float64
         self.u: Tensor | None = None  # (B, M) float64
-        self._native: tuple[Any, ...] | None = None  # (grid, key, cells, factors)
+        self._native: tuple[Any, ...] | None = None  # (grid, key, cells, factors, pointers)
 
-    def native_buffers(self, grid: IPFGrid, B: int, M: int,
-                       task_value: float) -> tuple[Tensor, Tensor]:
-        """The fused kernel's per-environment task factors (see ``agv_ipf`` in
-        ``sim/_native/kernels.c``): cells (B, 1 + M) int64 (count, then free indices; count
-        -1 = empty) and factors (B, M * M + M) float64, kept while grid, B, M and the task
-        value stay the same. The kernel checks the cells and refreshes stale entries itself."""
+    def native_buffers(self, grid: IPFGrid, B: int, M: int, task_value: float) -> tuple[int, int]:
+        """Checked addresses of the fused kernel's per-environment task factors (see
+        ``agv_ipf`` in ``sim/_native/ipf.c``): cells (B, 1 + M) int64 (count, then free
+        indices; count -1 = empty) and factors (B, M * M + M) float64, kept (and checked by
+        :func:`sim.native.pointer`) once, while grid, B, M and the task value stay the same.
+        The kernel checks the cells and refreshes stale entries itself."""
         key = (B, M, float(task_value))
         if self._native is None or self._native[0] is not grid or self._native[1] != key:
             cells = torch.full((B, 1 + M), -1, dtype=torch.int64)
             factors = torch.zeros(B, M * M + M, dtype=torch.float64)
-            self._native = (grid, key, cells, factors)
-        return self._native[2], self._native[3]
+            pointers = (sim_native.pointer(cells, torch.int64, (B, 1 + M), "task cells cache"),
+                        sim_native.pointer(factors, torch.float64, (B, M * M + M),
+                                           "task factors cache"))
+            self._native = (grid, key, cells, factors, pointers)
+        return self._native[4]
 
     def update(self, grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
         """Factors for the open tasks ``f_tasks`` (B, M), recomputed only where they changed.
