@@ -126,22 +126,13 @@ def test_the_graph_sees_deferred_and_type_checking_imports(tmp_path: Path) -> No
     assert _imported("sim.probe", path, modules) == {"sim.env", "sim.tasks"}
 
 
-# allocator.paths imports MAX_COORDINATE from allocator.base, which builds the controller,
-# which plans with allocator.paths.
-ALLOCATOR_CYCLE = pytest.mark.xfail(
-    strict=True, reason="allocator.base -> allocator.controller -> allocator.paths -> "
-                        "allocator.base")
-
-
-@pytest.mark.parametrize("package", ["sim", pytest.param("allocator", marks=ALLOCATOR_CYCLE),
-                                     "learners"])
+@pytest.mark.parametrize("package", PACKAGES)
 def test_no_import_cycle(package: str) -> None:
     graph = _graph()
     cycles = [c for c in _cycles(graph) if c[0].split(".")[0] == package]
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
 
 
-@ALLOCATOR_CYCLE
 def test_no_import_cycle_across_packages() -> None:
     graph = _graph()
     cycles = _cycles(graph)
