@@ -276,8 +276,22 @@ class IPFGrid:
         Returns
         -------
         Tensor of int64, shape (...)
+
+        Raises
+        ------
+        ValueError
+            For points whose last dimension is not 2, or NaN coordinates (no cell holds them).
         """
         p = torch.as_tensor(points)
+        if p.dim() == 0 or p.shape[-1] != 2:
+            raise ValueError(f"points must have shape (..., 2), got {tuple(p.shape)}")
+        if p.is_floating_point() and bool(torch.isnan(p).any()):
+            raise ValueError("points contain NaN coordinates, which no cell holds")
+        return self._cells(p)
+
+    def _cells(self, p: Tensor) -> Tensor:
+        """:meth:`cell_of` without its checks, for the batched paths (positions the caller
+        made)."""
         H, W = self.shape
         xmin, ymin, _, _ = self.world.bounds
         col = torch.floor((p[..., 0].double() - xmin) / self.dx).long().clamp(0, W - 1)
@@ -309,6 +323,7 @@ class IPFGrid:
         values = torch.as_tensor(source_values, device=device).double()
         mask = (torch.ones_like(cells, dtype=torch.bool) if source_mask is None
                 else torch.as_tensor(source_mask, device=device).bool())
+        _check_sources(self, cells, values, mask)
         green, index = self._tables(device)
         F = self.num_free
         fidx = index[cells]  # (K, S)
@@ -396,7 +411,7 @@ class IPFGrid:
         T = N + task_pos.shape[1]
         device = agent_pos.device
         _, index = self._tables(device)
-        cells = self.cell_of(torch.cat([agent_pos, task_pos], dim=1))  # (B, T), AGVs first
+        cells = self._cells(torch.cat([agent_pos, task_pos], dim=1))  # (B, T), AGVs first
         fidx = index[cells]
         candidate = fidx < self.num_free
         if task_open is not None:
@@ -635,6 +650,25 @@ class IPFGrid:
         return torch.eye(n, dtype=dtype, device=device)
 
 
+def _check_sources(grid: IPFGrid, cells: Tensor, values: Tensor,
+                   mask: Tensor | None = None) -> None:
+    """Refuse source sets that are not (K, S) cells in the grid with finite values."""
+    if cells.dim() != 2:
+        raise ValueError(f"source_cells must have shape (K, S), got {tuple(cells.shape)}")
+    if values.shape != cells.shape or (mask is not None and mask.shape != cells.shape):
+        what = "source_values" if values.shape != cells.shape else "source_mask"
+        got = values.shape if values.shape != cells.shape else mask.shape
+        raise ValueError(f"{what} must have the shape of source_cells {tuple(cells.shape)}, "
+                         f"got {tuple(got)}")
+    H, W = grid.shape
+    if cells.numel() and (int(cells.min()) < 0 or int(cells.max()) >= H * W):
+        raise ValueError(f"source_cells must be flat cell indices in [0, {H * W}) (see "
+                         f"IPFGrid.cell_of), got values in [{int(cells.min())}, "
+                         f"{int(cells.max())}]")
+    if not bool(torch.isfinite(values).all()):
+        raise ValueError("source_values must be finite")
+
+
 def _check_batch_shapes(agent_pos: Tensor, task_pos: Tensor, task_mask: Tensor | None) -> None:
     """Refuse positions that are not (B, N, 2) and (B, M, 2), or a task mask not (B, M)."""
     if agent_pos.dim() != 3 or agent_pos.shape[-1] != 2:
@@ -846,8 +880,7 @@ def jacobi_field(
     """
     cells = np.asarray(source_cells, dtype=np.int64).ravel()
     values = np.asarray(source_values, dtype=np.float64).ravel()
-    if cells.shape != values.shape:
-        raise ValueError(f"source_cells {cells.shape} and source_values {values.shape} differ")
+    _check_sources(grid, torch.from_numpy(cells)[None], torch.from_numpy(values)[None])
     if np.any(grid.free_index[cells] < 0):
         raise ValueError("a source lies on a cell fixed at 0 (boundary ring or shelf)")
     if len(np.unique(cells)) != len(cells):

@@ -278,6 +278,30 @@ def test_ipf_grid_names_a_resolution_that_is_not_a_usable_number(resolution) -> 
         ipf_grid(sim.World(), resolution)
 
 
+def test_cell_of_refuses_nan_instead_of_returning_cell_zero() -> None:
+    grid = ipf_grid(sim.World(), COARSE)
+    with pytest.raises(ValueError, match="points contain NaN"):
+        grid.cell_of(np.array([[np.nan, 0.0]]))
+    with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., 2\), got \(3,\)"):
+        grid.cell_of(np.zeros(3))
+
+
+def test_fields_refuse_cells_outside_the_grid_instead_of_an_index_error() -> None:
+    grid = ipf_grid(sim.World(), COARSE)
+    with pytest.raises(ValueError, match=r"source_cells must be flat cell indices in \[0, 400\)"):
+        grid.fields(torch.tensor([[400]]), torch.tensor([[5.0]]))
+    with pytest.raises(ValueError, match="source_values must have the shape of source_cells"):
+        grid.fields(torch.tensor([[45, 46]]), torch.tensor([[5.0]]))
+    with pytest.raises(ValueError, match="source_values must be finite"):
+        grid.fields(torch.tensor([[45]]), torch.tensor([[float("nan")]]))
+
+
+def test_jacobi_field_refuses_cells_outside_the_grid_instead_of_an_index_error() -> None:
+    grid = ipf_grid(sim.World(), COARSE)
+    with pytest.raises(ValueError, match=r"source_cells must be flat cell indices in \[0, 400\)"):
+        jacobi_field(grid, np.array([-1]), np.array([5.0]))
+
+
 def test_ipf_grid_refuses_a_world_that_is_not_a_world() -> None:
     with pytest.raises(ValueError, match="world must be a sim.World or None, got str"):
         ipf_grid("warehouse")
