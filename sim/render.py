@@ -30,7 +30,9 @@ if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-__all__ = ["draw_scene", "render_scene", "render_episode", "plot_field", "render_field"]
+__all__ = [
+    "SceneSource", "draw_scene", "render_scene", "render_episode", "plot_field", "render_field",
+]
 
 
 class SceneSource(Protocol):
