@@ -426,9 +426,11 @@ class AGVEnv:
         """Checked actions clipped to [-1, 1] (B, N, 2), the AGVs that move (B, N) bool and the
         running environments (B,) bool."""
         a = actions
-        if not (type(a) is Tensor and a.dtype == self.dtype and a.device == self.device):
+        if not (type(a) is Tensor and a.dtype == self.dtype and a.device == self.device
+                and not a.requires_grad):
+            # The simulator is not differentiable: a policy's output is taken as numbers.
             a = torch.as_tensor(_real_array(actions, "actions"), device=self.device,
-                                dtype=self.dtype)
+                                dtype=self.dtype).detach()
         B, N = self.num_envs, self.num_agents
         if tuple(a.shape) != (B, N, 2):
             raise ValueError(

@@ -297,3 +297,20 @@ def test_obs_layout_names_every_feature() -> None:
         lay.task_rel(lay.k_tasks)
     with pytest.raises(ValueError, match="k_tasks"):
         sim.observations.ObsLayout(-1, 2)
+
+
+@pytest.mark.parametrize("native", [False, pytest.param(True, marks=needs_kernels)])
+def test_step_with_actions_that_require_grad_builds_no_graph_across_steps(native: bool) -> None:
+    # A policy's output passed without detach() made the velocities part of an autograd graph
+    # that grew with every step (and the C path wrote into such a tensor behind autograd).
+    env = sim.make_env("3v3", num_envs=2, seed=0, native=native)
+    ref = sim.make_env("3v3", num_envs=2, seed=0, native=native)
+    weight = torch.ones((), requires_grad=True)
+    for _ in range(3):
+        actions = torch.full((2, 3, 2), 0.5) * weight
+        out = env.step(actions)
+        expected = ref.step(actions.detach())
+        assert torch.equal(out[0], expected[0]) and torch.equal(out[1], expected[1])
+    for name in ("agent_pos", "agent_vel"):
+        assert not getattr(env, name).requires_grad, name
+    assert not out[0].requires_grad and not out[1].requires_grad
