@@ -278,7 +278,7 @@ def _add_assign(sub: argparse._SubParsersAction) -> None:
                    help="JSON or CSV file of AGV and task positions, or - for standard input")
     p.add_argument("--floor", metavar="FLOOR.json", default=None,
                    help="floor plan (bounds and shelves); default an open floor")
-    p.add_argument("--method", choices=names, default="hungarian",
+    p.add_argument("--method", choices=names, default="hungarian", metavar="NAME",
                    help=f"allocator: {', '.join(names)} (default hungarian)")
     p.add_argument("--scenario", type=scenario_name, default=None,
                    help="for a learned --method: the scenario whose shipped weights it uses "
@@ -439,8 +439,9 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--agent", type=non_negative_int, default=None,
                    help="whose field, an AGV index (with --field; default 0)")
     p.add_argument("--out", type=output_file, default=None,
-                   help="output file: .gif with --gif, .png for a scene, an image file for "
-                        "--field (default <kind>_<scenario>...; missing folders are made)")
+                   help="output file, missing folders made: .png for a scene (default "
+                        "scene_<scenario>.png), .gif with --gif (episode_<scenario>.gif), an "
+                        "image file with --field (ipf_<scenario>_agent<i>.png)")
     p.set_defaults(func=_run_render)
 
 

@@ -204,7 +204,7 @@ def _parse_overrides(algo: str, items: list[str]) -> dict[str, Any]:
                 out[key] = int(float(value)) if float(value).is_integer() else int(value)
             else:
                 out[key] = type(default)(value)
-        except (ValueError, OverflowError):
+        except ValueError:
             raise ValueError(f"--set {key}: cannot read {value!r} as "
                              f"{type(default).__name__}") from None
     return out
