@@ -134,6 +134,7 @@ TAMPERED = {
     "seed='0'": (_set("seed", "0"), "'seed'"),
     "episodes=-1": (_set("episodes", -1), "'episodes'"),
     "updates=1.5": (_set("updates", 1.5), "'updates'"),
+    "env_steps=-5": (_set("env_steps", -5), "'env_steps'"),
     "seconds=NaN": (_set("seconds", math.nan), "'seconds'"),
     "best_response_rate=2": (_set("best_response_rate", 2), "'best_response_rate'"),
     "last_eval a string": (_set("last_eval", "good"), "'last_eval'"),
@@ -147,6 +148,15 @@ TAMPERED = {
     "seed edited (schema-valid)": (_set("seed", 7), "'header_sha256' does not match"),
     "episodes edited (schema-valid)": (_set("episodes", 99), "'header_sha256' does not match"),
 }
+
+
+
+def test_every_header_field_is_tampered_in_some_case(tmp_path):
+    fields = set(_header(_policy_file(tmp_path))) | {"train_config"}
+    tampered = {case.split("=")[0].split(" ")[0].split(".")[0] for case in TAMPERED}
+    tampered.add("header_sha256")  # the schema-valid edits are caught by it
+    assert fields <= tampered, sorted(fields - tampered)
+
 
 LOADERS = {
     "read_metadata": read_metadata,
