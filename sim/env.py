@@ -316,6 +316,8 @@ class AGVEnv:
         idx = idx.long().flatten()
         if idx.numel() and (idx.min() < 0 or idx.max() >= self.num_envs):
             raise ValueError(f"env ids must lie in [0, {self.num_envs}), got {idx.tolist()}")
+        if idx.numel() > 1 and torch.unique(idx).numel() != idx.numel():
+            raise ValueError(f"env_ids must not repeat an environment, got {idx.tolist()}")
         return idx
 
     def reset(self, env_ids: Any = None, seed: int | None = None) -> Tensor:
@@ -367,11 +369,11 @@ class AGVEnv:
         idx = self._env_index(env_ids)
         K, N, M = len(idx), self.num_agents, self.num_tasks
         z = dict(device=self.device, dtype=self.dtype)
-        a = torch.as_tensor(_real_array(agent_pos, "agent_pos"), **z).clone()
-        t = torch.as_tensor(_real_array(task_pos, "task_pos"), **z).clone()
+        a = torch.as_tensor(_real_array(agent_pos, "agent_pos"), **z).detach().clone()
+        t = torch.as_tensor(_real_array(task_pos, "task_pos"), **z).detach().clone()
         v = (torch.zeros(K, N, 2, **z) if agent_vel is None
              else torch.as_tensor(_real_array(agent_vel, "agent_vel"), **z))
-        v = v.clone()
+        v = v.detach().clone()
         for name, x, shape in (("agent_pos", a, (K, N, 2)), ("task_pos", t, (K, M, 2)),
                                ("agent_vel", v, (K, N, 2))):
             if tuple(x.shape) != shape:

@@ -314,3 +314,20 @@ def test_step_with_actions_that_require_grad_builds_no_graph_across_steps(native
     for name in ("agent_pos", "agent_vel"):
         assert not getattr(env, name).requires_grad, name
     assert not out[0].requires_grad and not out[1].requires_grad
+
+
+def test_reset_and_set_state_reject_repeated_env_ids(env: sim.AGVEnv) -> None:
+    # A repeated id placed two scenes in one environment, and which one stayed was undefined.
+    with pytest.raises(ValueError, match="env_ids must not repeat"):
+        env.reset(env_ids=[1, 1])
+    with pytest.raises(ValueError, match="env_ids must not repeat"):
+        env.set_state(torch.cat([env.agent_pos[:1], env.agent_pos[1:]]),
+                      torch.cat([env.task_pos[:1], env.task_pos[1:]]), env_ids=[0, 0])
+
+
+def test_set_state_with_tensors_that_require_grad_keeps_no_graph(env: sim.AGVEnv) -> None:
+    a = env.agent_pos.clone().requires_grad_()
+    env.set_state(a, env.task_pos)
+    assert not env.agent_pos.requires_grad
+    env.step(torch.zeros(2, 3, 2))
+    assert not env.agent_pos.requires_grad and not env.agent_vel.requires_grad
