@@ -164,14 +164,13 @@ class Scenario:
                     b = len(todo)
                     cand, ok = cand.contiguous(), ok.contiguous()
                     found = torch.empty(b, dtype=torch.bool)
+                    # todo, placed and found are made here with the kernel's dtypes and shapes.
                     lib.agv_spawn_pick(
                         b, _CANDIDATES, n + m, k,
                         pointer(cand, torch.float32, (b, _CANDIDATES, 2), "candidates"),
                         pointer(ok, torch.bool, (b, _CANDIDATES), "candidate mask"),
-                        pointer(todo, torch.int64, (b,), "todo"),
-                        pointer(gap_k, torch.float32, (k,), "gap"),
-                        pointer(placed, torch.float32, (B, n + m, 2), "placed"),
-                        pointer(found, torch.bool, (b,), "found"),
+                        todo.data_ptr(), pointer(gap_k, torch.float32, (k,), "gap"),
+                        placed.data_ptr(), found.data_ptr(),
                     )
                 else:
                     if k:
