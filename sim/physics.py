@@ -151,7 +151,7 @@ def mpe_step(agent_pos: Tensor, agent_vel: Tensor, actions: Tensor, movable: Ten
             pair = torch.cdist(agent_pos, agent_pos, compute_mode="donot_use_mm_for_euclid_dist")
         force = force + contact_forces(agent_pos, pair, world, eye)
     m = movable.unsqueeze(-1)
-    pos = agent_pos + agent_vel * (ph.dt * m)
+    pos = agent_pos + agent_vel * (ph.dt * m.to(agent_vel.dtype))
     vel = agent_vel * (1.0 - ph.damping) + force * (ph.dt / ph.mass)
     if ph.max_speed is not None:
         speed = torch.linalg.vector_norm(vel, dim=-1, keepdim=True)

@@ -33,11 +33,11 @@ _ROUNDS = 100
 
 def _uniform_sampler(world: World, margin: float) -> Sampler:
     xmin, ymin, xmax, ymax = world.bounds
-    lo = torch.tensor([xmin + margin, ymin + margin])
-    span = torch.tensor([xmax - xmin - 2 * margin, ymax - ymin - 2 * margin])
+    lo = torch.tensor([xmin + margin, ymin + margin], dtype=torch.float32)
+    span = torch.tensor([xmax - xmin - 2 * margin, ymax - ymin - 2 * margin], dtype=torch.float32)
 
     def sample(B: int, C: int, gen: torch.Generator, device: torch.device) -> Tensor:
-        u = torch.rand(B, C, 2, generator=gen, device=device)
+        u = torch.rand(B, C, 2, generator=gen, device=device, dtype=torch.float32)
         return lo.to(device) + u * span.to(device)
 
     return sample
@@ -149,8 +149,10 @@ class Scenario:
         # gap[k, j]: minimum distance between entity k and an earlier entity j.
         kinds = torch.tensor([True] * n + [False] * m, device=device)
         same = kinds.unsqueeze(1) == kinds.unsqueeze(0)
-        own_gap = torch.where(kinds, 2 * r, w.task_spacing).unsqueeze(1)
-        gap = torch.where(same, own_gap, torch.tensor(cap + 1e-3, device=device)) ** 2
+        f32 = dict(dtype=torch.float32, device=device)  # whatever torch's default dtype
+        own_gap = torch.where(kinds, torch.tensor(2 * r, **f32),
+                              torch.tensor(w.task_spacing, **f32)).unsqueeze(1)
+        gap = torch.where(same, own_gap, torch.tensor(cap + 1e-3, **f32)) ** 2
         placed = torch.zeros(B, n + m, 2, dtype=torch.float32, device=device)
         rows = torch.arange(B, device=device)
         for k in range(n + m):
@@ -266,7 +268,7 @@ def _shelf_face_sampler(world: World, offset: float) -> Sampler:
         s = shelves.to(device)
         pick = torch.randint(len(s), (B, C), generator=gen, device=device)
         side = torch.randint(2, (B, C), generator=gen, device=device)
-        u = torch.rand(B, C, generator=gen, device=device)
+        u = torch.rand(B, C, generator=gen, device=device, dtype=torch.float32)
         rect = s[pick]  # (B, C, 4)
         x = rect[..., 0] + u * (rect[..., 2] - rect[..., 0])
         y = torch.where(side == 0, rect[..., 1] - offset, rect[..., 3] + offset)
@@ -278,11 +280,11 @@ def _shelf_face_sampler(world: World, offset: float) -> Sampler:
 def _depot_sampler(world: World, depot: float) -> Sampler:
     r = world.agent_radius
     xmin, ymin, xmax, _ = world.bounds
-    lo = torch.tensor([xmin + r, ymin + r])
-    span = torch.tensor([xmax - xmin - 2 * r, depot - 2 * r])
+    lo = torch.tensor([xmin + r, ymin + r], dtype=torch.float32)
+    span = torch.tensor([xmax - xmin - 2 * r, depot - 2 * r], dtype=torch.float32)
 
     def sample(B: int, C: int, gen: torch.Generator, device: torch.device) -> Tensor:
-        u = torch.rand(B, C, 2, generator=gen, device=device)
+        u = torch.rand(B, C, 2, generator=gen, device=device, dtype=torch.float32)
         return lo.to(device) + u * span.to(device)
 
     return sample

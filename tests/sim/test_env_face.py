@@ -331,3 +331,28 @@ def test_set_state_with_tensors_that_require_grad_keeps_no_graph(env: sim.AGVEnv
     assert not env.agent_pos.requires_grad
     env.step(torch.zeros(2, 3, 2))
     assert not env.agent_pos.requires_grad and not env.agent_vel.requires_grad
+
+
+@pytest.mark.parametrize("reward", ["minidist", "greedy"])
+@pytest.mark.parametrize("native", [False, pytest.param(True, marks=needs_kernels)])
+def test_env_works_the_same_under_a_float64_default_dtype(native: bool, reward: str) -> None:
+    # torch.set_default_dtype(torch.float64), common in scientific code, made the physics
+    # promote the positions to float64 (the next step then failed inside torch.bmm) and the
+    # spawn draw other scenes.
+    def run() -> list[torch.Tensor]:
+        env = sim.make_env("warehouse", num_envs=4, seed=2, native=native, reward=reward)
+        out = [env.reset()]
+        for _ in range(4):
+            obs, r, done, _ = env.step(torch.full((4, 6, 2), 0.3, dtype=torch.float32))
+            out += [obs, r, env.agent_pos, env.agent_vel]
+        return out
+
+    expected = run()
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        got = run()
+    finally:
+        torch.set_default_dtype(old)
+    for a, b in zip(expected, got, strict=True):
+        assert a.dtype == b.dtype == torch.float32 and torch.equal(a, b)
