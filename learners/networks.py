@@ -13,7 +13,7 @@
   see :meth:`learners.maddpg.MADDPG.update` for why).
 * :class:`TorchOps` and :func:`select_torch_ops`: the few kernels for which a private torch op
   is faster than the public API (fused add + ReLU, in-place ReLU backward, multi-tensor lerp)
-  and whether Adam can be fused on the CPU, chosen once at import. Every private op has a
+  and whether Adam can be fused on the CPU, chosen once, on first use. Every private op has a
   public fallback that computes the same numbers; it is used when the op is missing, raises or
   disagrees with the fallback on a probe, or when ``AGV_PRIVATE_TORCH_OPS=0`` is set.
 """
@@ -133,7 +133,7 @@ def _fused_adam_works() -> bool:
 
 
 def select_torch_ops(private_ops: bool = True, fused_adam: bool = True) -> TorchOps:
-    """Choose the learners' kernels (once; called at import) and make them current.
+    """Choose the learners' kernels (once; called on first use) and make them current.
 
     Parameters
     ----------
@@ -172,11 +172,17 @@ def select_torch_ops(private_ops: bool = True, fused_adam: bool = True) -> Torch
 
 
 def torch_ops() -> TorchOps:
-    """The current :class:`TorchOps` selection."""
+    """The current :class:`TorchOps` selection, made on first use.
+
+    Not at import: the fused-Adam probe runs an optimizer step, which imports
+    ``torch._dynamo`` (about 2 s), and commands that train nothing should not pay for it.
+    """
+    if _OPS is None:
+        return select_torch_ops(private_ops=os.environ.get("AGV_PRIVATE_TORCH_OPS", "1") != "0")
     return _OPS
 
 
-_OPS = select_torch_ops(private_ops=os.environ.get("AGV_PRIVATE_TORCH_OPS", "1") != "0")
+_OPS: TorchOps | None = None
 
 
 class StackedLinear(nn.Module):
@@ -479,7 +485,7 @@ def add_relu_(z: Tensor, bias: Tensor) -> Tensor:
         ``z``.
     """
     if z.device.type == "cpu":
-        return _OPS.add_relu_(z, bias)
+        return torch_ops().add_relu_(z, bias)
     return _add_relu_public(z, bias)
 
 
@@ -499,7 +505,7 @@ def relu_backward_(grad: Tensor, act: Tensor) -> Tensor:
     Tensor
         ``grad``.
     """
-    return _OPS.relu_backward_(grad, act)
+    return torch_ops().relu_backward_(grad, act)
 
 
 def linear_out_(x: Tensor, layer: StackedLinear, out: Tensor) -> Tensor:
