@@ -167,6 +167,8 @@ class AGVEnv:
         self._eye = torch.eye(N, dtype=torch.bool, device=self.device)
         self._triu = torch.triu(torch.ones(N, N, dtype=torch.bool, device=self.device), 1)
         self._obstacles = torch.tensor(np.array(self.world.obstacles), **z)
+        # Whether the physics needs the pairwise distances (soft contacts between AGVs).
+        self._contacts = self.world.physics.contact_force > 0 and N > 1
         self._native = native_kernels.library_for(self.device, None if native is None
                                                   else bool(native))
         if self._native is not None:
@@ -608,10 +610,9 @@ class AGVEnv:
         movable : Tensor of bool, shape (B, N)
             AGVs that move (idle AGVs of running environments); the others keep their state.
         """
-        need_pair = self.world.physics.contact_force > 0 and self.num_agents > 1
         self._agent_pos, self._agent_vel = physics.mpe_step(
             self._agent_pos, self._agent_vel, actions, movable, self.world, self._obstacles,
-            self._pairwise() if need_pair else None, self._eye,
+            self._pairwise() if self._contacts else None, self._eye,
         )
         self._pair = None
         self._task_rel = None
