@@ -40,12 +40,12 @@ def _check_seed(seed: Any, name: str = "seed") -> int:
 
 
 def _check_device(device: Any) -> torch.device:
-    """``device`` as a torch.device on which tensors can be made here."""
+    """``device`` as a torch.device on which tensors can be made here, in the form that tensors
+    made there report (``"cpu:0"`` is ``cpu``, ``"cuda"`` is ``cuda:0``)."""
     if not isinstance(device, (str, torch.device)):
         raise ValueError(f"device must be a str or torch.device, got {device!r}")
     try:
-        dev = torch.device(device)
-        torch.empty(0, device=dev)
+        dev = torch.empty(0, device=torch.device(device)).device
     except (RuntimeError, AssertionError, ValueError) as err:
         raise ValueError(
             f"device {str(device)!r} cannot be used here ({err}); "

@@ -356,3 +356,12 @@ def test_env_works_the_same_under_a_float64_default_dtype(native: bool, reward: 
         torch.set_default_dtype(old)
     for a, b in zip(expected, got, strict=True):
         assert a.dtype == b.dtype == torch.float32 and torch.equal(a, b)
+
+
+def test_device_cpu_0_is_the_cpu_tensors_report() -> None:
+    # "cpu:0" compared unequal to the "cpu" of every tensor: the setters refused the env's own
+    # tensors and every action took the slow conversion path.
+    env = sim.make_env("3v3", num_envs=2, seed=0, device="cpu:0")
+    assert env.device == env.agent_pos.device == torch.device("cpu")
+    env.task_pos = env.task_pos.clone()
+    env.step(torch.zeros(2, 3, 2))
