@@ -9,6 +9,7 @@ from typing import Any
 
 from sim.env import AGVEnv, make_env
 from sim.evaluate import Metrics, evaluate
+from sim.observations import ObsLayout
 from sim.rewards import REWARDS, make_reward
 from sim.scenarios import SCENARIOS, Scenario, get_scenario, scenario_names
 from sim.state import SimState, StepContext
@@ -16,8 +17,9 @@ from sim.world import Physics, World
 
 __all__ = [
     "AGVEnv", "SimState", "StepContext", "make_env", "REWARDS", "make_reward", "SCENARIOS",
-    "Scenario", "get_scenario", "scenario_names", "Physics", "World",
+    "Scenario", "get_scenario", "scenario_names", "Physics", "World", "ObsLayout",
     "evaluate", "Metrics", "pettingzoo_env", "ipf_field", "render_scene", "render_episode",
+    "render_field",
 ]
 
 _LAZY = {
