@@ -176,7 +176,7 @@ class LearnedAllocator:
         """
         import torch
 
-        from sim.core import AGVEnv
+        from sim.env import AGVEnv
 
         agents, tasks = check_inputs(agents, tasks, world)
         n, m = len(agents), len(tasks)

@@ -129,9 +129,6 @@ class AGVEnv:
         if (isinstance(num_envs, (bool, np.bool_)) or not isinstance(num_envs, (int, np.integer))
                 or num_envs < 1):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if not (isinstance(reward, str) or callable(reward)):
-            raise ValueError(f"reward must be a reward name (str) or a callable (state, ctx) -> "
-                             f"{{term: (B, N) tensor}}, got {reward!r}")
         if native is not None and not isinstance(native, (bool, np.bool_)):
             raise ValueError(f"native must be True, False or None, got {native!r}")
         seed = 0 if seed is None else _check_seed(seed)

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sim import native
 from sim.env import AGVEnv
 from sim.scenarios import Scenario, get_scenario
 
@@ -330,7 +331,7 @@ def evaluation_scenes(
     dev = torch.device(device)
     generator = torch.Generator(device=dev)
     generator.manual_seed(seed * _SEED_MIX % _SEED_LIMIT)
-    return scenario.spawn(episodes, generator, dev)
+    return scenario.spawn(episodes, generator, dev, kernels=native.library_for(dev))
 
 
 def evaluate(

@@ -192,9 +192,18 @@ class World:
         Raises
         ------
         ValueError
-            On a wrong shape, NaN or infinite values, a point outside the walls or inside a shelf.
+            On values that are not real numbers, a wrong shape, NaN or infinite values, a point
+            outside the walls or inside a shelf.
         """
-        arr = np.asarray(points, dtype=np.float64)
+        try:
+            raw = np.asarray(points)
+        except ValueError:  # ragged rows
+            raise ValueError(f"{what} must be an (K, 2) array of real numbers, got ragged "
+                             "rows") from None
+        if raw.dtype.kind not in "iuf":
+            raise ValueError(f"{what} must hold real numbers, got dtype {raw.dtype} "
+                             f"(complex, bool, strings and objects are refused)")
+        arr = raw.astype(np.float64, copy=False)
         if arr.ndim != 2 or arr.shape[1] != 2:
             raise ValueError(f"{what} must have shape (K, 2), got {arr.shape}")
         if not np.all(np.isfinite(arr)):

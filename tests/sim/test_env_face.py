@@ -365,3 +365,12 @@ def test_device_cpu_0_is_the_cpu_tensors_report() -> None:
     assert env.device == env.agent_pos.device == torch.device("cpu")
     env.task_pos = env.task_pos.clone()
     env.step(torch.zeros(2, 3, 2))
+
+
+@pytest.mark.parametrize("points", [[["a", "b"]], [[1 + 2j, 0.0]], [[True, False]],
+                                    [[0.0, 0.0], [1.0]]],
+                         ids=["strings", "complex", "bool", "ragged"])
+def test_world_check_positions_refuses_what_is_not_real_numbers(points) -> None:
+    """numpy raised its own error for strings and kept only the real part of complex numbers."""
+    with pytest.raises(ValueError, match="agent_pos"):
+        sim.World().check_positions(points, "agent_pos")
