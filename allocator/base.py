@@ -9,6 +9,7 @@ scores any registry entry on the same episodes.
 from __future__ import annotations
 
 import inspect
+import math
 import numbers
 import sys
 from collections.abc import Callable
@@ -37,6 +38,7 @@ __all__ = [
     "as_real_array",
     "ClassicalAllocator",
     "CONTROLLER_OPTIONS",
+    "check_controller_options",
     "MAX_COORDINATE",
 ]
 
@@ -46,6 +48,50 @@ CONTROLLER_OPTIONS = (
 )
 """The keyword options of :class:`allocator.controller.AllocatorController` (a test keeps this
 equal to its signature; listed here so that making an allocator does not import torch)."""
+
+
+def _is_int(x: object) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def _is_positive_real(x: object) -> bool:
+    return (isinstance(x, (int, float, np.integer, np.floating))
+            and not isinstance(x, (bool, np.bool_)) and math.isfinite(x) and x > 0)
+
+
+_CONTROLLER_CHECKS: dict[str, tuple[Any, str]] = {
+    "avoidance": (lambda x: isinstance(x, (bool, np.bool_)), "True or False"),
+    "planner": (lambda x: x in ("auto", "ompl", "prm", "grid"),
+                "one of 'auto', 'ompl', 'prm', 'grid'"),
+    "max_speed": (lambda x: x is None or _is_positive_real(x), "None or a positive number"),
+    "brake": (_is_positive_real, "a positive number"),
+    "reassign_every": (lambda x: x is None or (_is_int(x) and x >= 1),
+                       "None or a positive integer"),
+    "avoid_tasks": (lambda x: isinstance(x, (bool, np.bool_)), "True or False"),
+    "avoidance_options": (lambda x: x is None or isinstance(x, dict), "None or a dict"),
+    "waypoint_tolerance": (_is_positive_real, "a positive number"),
+    "stuck_steps": (lambda x: _is_int(x) and x >= 1, "a positive integer"),
+    "seed": (lambda x: _is_int(x) and 0 <= x < 2**32 - 1, "an integer in [0, 2**32 - 1)"),
+}
+
+
+def check_controller_options(options: dict[str, Any]) -> None:
+    """Check the values of :data:`CONTROLLER_OPTIONS` when an allocator is made, without
+    importing torch (the controller is built later, on the first ``reset``).
+
+    Raises
+    ------
+    ValueError
+        Naming the option and its valid values.
+    """
+    for key, value in options.items():
+        ok, valid = _CONTROLLER_CHECKS[key]
+        try:
+            good = bool(ok(value))
+        except TypeError:  # e.g. an unhashable planner
+            good = False
+        if not good:
+            raise ValueError(f"controller option {key} must be {valid}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -393,6 +439,7 @@ class ClassicalAllocator:
                 f"unknown option{'s' if len(unknown) > 1 else ''} {listed} for "
                 f"{type(self).__name__}; valid options: {', '.join(self.option_names())}"
             )
+        check_controller_options(controller_options)
         self.controller_options = controller_options
         self._controller: Any = None
 

@@ -54,8 +54,11 @@ def check_planner_options(planner: object, resolution: object, seed: object) -> 
         np.isfinite(float(resolution)) and float(resolution) > 0
     ):
         raise ValueError(f"resolution must be a positive number (world units), got {resolution!r}")
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
-        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not (
+        0 <= int(seed) < 2**32 - 1
+    ):
+        raise ValueError(f"seed must be an integer in [0, 2**32 - 1) (OMPL's RNG seed), "
+                         f"got {seed!r}")
 
 
 def check_cost_matrix(cost: object) -> np.ndarray:

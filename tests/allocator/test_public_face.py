@@ -367,3 +367,26 @@ def test_import_allocator_registers_the_learned_allocators_without_torch() -> No
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == [str(len(ALLOCATORS)), "False"]
     assert len(ALLOCATORS) > 2
+
+
+@pytest.mark.parametrize("option, value", [
+    ("avoidance", "no"), ("planner", "rrt"), ("planner", ["grid"]), ("max_speed", -1.0),
+    ("max_speed", float("nan")), ("brake", 0), ("reassign_every", 2.5), ("avoid_tasks", 1),
+    ("avoidance_options", "fast"), ("waypoint_tolerance", float("inf")), ("stuck_steps", 0),
+    ("seed", -1), ("seed", True),
+])
+def test_make_rejects_a_bad_controller_option_value_when_the_allocator_is_made(
+        option: str, value: object) -> None:
+    """The controller checked some of its options only when the first episode started, inside
+    ``sim.evaluate``, and others (``avoidance="no"``, ``max_speed=-1``) never."""
+    for name in ("hungarian", "greedy"):
+        # planner and seed are Hungarian's and greedy's own options (checked by them).
+        with pytest.raises(ValueError, match=f"{option} must be"):
+            allocator.make(name, **{option: value})
+
+
+def test_make_accepts_the_controller_options_defaults() -> None:
+    solver = allocator.make("hungarian", avoidance=False, planner="grid", max_speed=1.2, brake=3,
+                            reassign_every=None, avoid_tasks=True, avoidance_options={},
+                            waypoint_tolerance=0.1, stuck_steps=4, seed=3)
+    assert solver.controller_options["max_speed"] == 1.2
