@@ -12,8 +12,6 @@ Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidis
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import numbers
 import os
 from pathlib import Path
@@ -131,11 +129,12 @@ class LearnedAllocator:
     # ------------------------------------------------------------------ allocator
     def _scene_scenario(self, agents: np.ndarray, tasks: np.ndarray,
                         world: World | None) -> Any:
-        """The trained scenario's sensing and step limit on the given scene (see
-        :func:`_given_scene`)."""
+        """The trained scenario's sensing and step limit on the given scene, run as given
+        (:meth:`sim.scenarios.Scenario.given_scene`)."""
         base = self.scenario
-        return _given_scene(base, agents, tasks, world or base.world,
-                            base.max_steps if self.max_steps is None else self.max_steps)
+        return type(base).given_scene(
+            base, agents, tasks, world or base.world,
+            max_steps=base.max_steps if self.max_steps is None else self.max_steps)
 
     def assign(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
@@ -223,52 +222,6 @@ class LearnedAllocator:
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(scenario={self.scenario.name!r}, "
                 f"checkpoint={str(self.checkpoint)!r})")
-
-
-@functools.cache
-def _given_scene_class() -> type:
-    """The :class:`sim.scenarios.Scenario` subclass of :func:`_given_scene` (made once)."""
-    import torch
-
-    from sim.scenarios import Scenario
-
-    @dataclasses.dataclass(frozen=True)
-    class GivenScene(Scenario):
-        """A scenario whose every episode is one given scene (see :func:`_given_scene`)."""
-
-        scene_agents: Any = dataclasses.field(default=None, repr=False, compare=False)
-        scene_tasks: Any = dataclasses.field(default=None, repr=False, compare=False)
-
-        def __post_init__(self) -> None:  # nothing is drawn at random: no room to check
-            pass
-
-        def spawn(self, B: int, *args: Any, **kwargs: Any) -> tuple[torch.Tensor, torch.Tensor]:
-            """The given scene in each of the B environments (CPU tensors, where
-            :meth:`LearnedAllocator.assign` runs; the spawner's other arguments are unused)."""
-            return (self.scene_agents.expand(B, -1, -1).clone(),
-                    self.scene_tasks.expand(B, -1, -1).clone())
-
-    return GivenScene
-
-
-def _given_scene(base: Any, agents: np.ndarray, tasks: np.ndarray, world: World,
-                 max_steps: int) -> Any:
-    """A scenario whose every episode is the given scene, with ``base``'s sensing.
-
-    The scenario's random spawner has rules for drawing scenes (AGVs one diameter apart,
-    tasks apart, room to place N + M of them); a scene given by the caller is run as it is, so
-    the copy spawns exactly it and skips the room check that a :class:`sim.scenarios.Scenario`
-    makes when it is built. Positions are checked by the caller (``World.check_positions``).
-    """
-    import torch
-
-    from sim.scenarios import Scenario
-
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(Scenario)}
-    fields.update(world=world, num_agents=len(agents), num_tasks=len(tasks),
-                  max_steps=max_steps, scene_agents=torch.as_tensor(agents, dtype=torch.float32),
-                  scene_tasks=torch.as_tensor(tasks, dtype=torch.float32))
-    return _given_scene_class()(**fields)
 
 
 def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:

@@ -61,6 +61,9 @@ class Scenario:
         Entities farther than this are masked out of observations.
     agent_sampler, task_sampler : callable, optional
         Candidate generators; default uniform over the free floor.
+    scene : tuple of Tensor, optional
+        ``(agents (N, 2), tasks (M, 2))``: every episode starts from this one scene instead of
+        a random draw (see :meth:`given_scene`); the room check is then skipped.
     """
 
     name: str
@@ -73,6 +76,7 @@ class Scenario:
     sensing_range: float = math.inf
     agent_sampler: Sampler | None = field(default=None, repr=False, compare=False)
     task_sampler: Sampler | None = field(default=None, repr=False, compare=False)
+    scene: tuple[Tensor, Tensor] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for attr in ("num_agents", "num_tasks", "max_steps"):
@@ -85,7 +89,53 @@ class Scenario:
                 raise ValueError(f"{attr} must be a non-negative integer, got {v!r}")
         if not (self.sensing_range > 0):
             raise ValueError(f"sensing_range must be positive, got {self.sensing_range!r}")
-        self._check_room()
+        if self.scene is None:
+            self._check_room()
+            return
+        agents, tasks = self.scene
+        for what, t, n in (("agents", agents, self.num_agents), ("tasks", tasks, self.num_tasks)):
+            if not isinstance(t, Tensor) or t.dtype != torch.float32 or tuple(t.shape) != (n, 2):
+                raise ValueError(f"scene {what} must be a float32 tensor of shape ({n}, 2), got "
+                                 f"{getattr(t, 'dtype', type(t).__name__)} "
+                                 f"{tuple(getattr(t, 'shape', ()))}")
+            self.world.check_positions(t.double().cpu().numpy(), f"scene {what}")
+
+    @classmethod
+    def given_scene(cls, base: Scenario, agents: object, tasks: object,
+                    world: World | None = None, **options: Any) -> Scenario:
+        """A scenario whose every episode is one given scene, with ``base``'s other fields.
+
+        The random spawner's rules (AGVs one diameter apart, tasks apart, room to place
+        N + M of them) are for drawing scenes; a scene given by the caller is run as it is,
+        once its positions are checked against the world (inside the walls, off the shelves).
+
+        Parameters
+        ----------
+        base : Scenario
+            Sensing, observation sizes and step limit come from it.
+        agents : array-like, shape (N, 2)
+        tasks : array-like, shape (M, 2)
+        world : World, optional
+            Default ``base.world``.
+        **options
+            Other fields to replace (e.g. ``max_steps``).
+
+        Raises
+        ------
+        ValueError
+            On positions that are not real numbers of shape (K, 2), outside the world or on a
+            shelf, or an unknown field.
+        """
+        world = base.world if world is None else world
+        a = torch.as_tensor(world.check_positions(agents, "agents"), dtype=torch.float32)
+        t = torch.as_tensor(world.check_positions(tasks, "tasks"), dtype=torch.float32)
+        fields = {f: getattr(base, f) for f in base.__dataclass_fields__}
+        unknown = set(options) - set(fields)
+        if unknown:
+            raise ValueError(f"unknown scenario option(s) {sorted(unknown)}; valid: "
+                             f"{sorted(fields)}")
+        fields.update(world=world, num_agents=len(a), num_tasks=len(t), scene=(a, t), **options)
+        return cls(**fields)
 
     # ------------------------------------------------------------------ spawning
     def _samplers(self) -> tuple[Sampler, Sampler]:
@@ -139,6 +189,10 @@ class Scenario:
         agents : Tensor, shape (B, N, 2)
         tasks : Tensor, shape (B, M, 2)
         """
+        if self.scene is not None:  # every episode is the given scene
+            agents, tasks = self.scene
+            return (agents.to(device).expand(B, -1, -1).clone(),
+                    tasks.to(device).expand(B, -1, -1).clone())
         w = self.world
         agent_sampler, task_sampler = self._samplers()
         obstacles = torch.tensor(np.array(w.obstacles), dtype=torch.float32, device=device)

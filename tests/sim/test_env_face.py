@@ -374,3 +374,29 @@ def test_world_check_positions_refuses_what_is_not_real_numbers(points) -> None:
     """numpy raised its own error for strings and kept only the real part of complex numbers."""
     with pytest.raises(ValueError, match="agent_pos"):
         sim.World().check_positions(points, "agent_pos")
+
+
+def test_given_scene_scenario_starts_every_episode_from_the_scene() -> None:
+    """A scene the random spawner could not draw (20 AGVs on the 3v3 box, close together) runs
+    as given; before, callers had to subclass Scenario and override its private checks."""
+    base = sim.get_scenario("3v3")
+    agents = np.stack([np.linspace(-0.8, 0.8, 20), np.zeros(20)], axis=1)
+    tasks = np.array([[0.0, 0.7], [0.5, -0.6]])
+    scn = sim.Scenario.given_scene(base, agents, tasks, max_steps=7)
+    assert (scn.num_agents, scn.num_tasks, scn.max_steps) == (20, 2, 7)
+    env = sim.make_env(scn, num_envs=3, seed=0)
+    for _ in range(2):
+        assert torch.equal(env.agent_pos, torch.as_tensor(agents, dtype=torch.float32)
+                           .expand(3, -1, -1))
+        assert torch.equal(env.task_pos[1], torch.as_tensor(tasks, dtype=torch.float32))
+        env.reset()
+
+
+@pytest.mark.parametrize("agents, match", [([[5.0, 0.0]], "outside the world"),
+                                           ([[0.0, 0.0, 0.0]], "shape"),
+                                           ([["a", "b"]], "real numbers")])
+def test_given_scene_refuses_positions_it_cannot_run(agents, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        sim.Scenario.given_scene(sim.get_scenario("3v3"), agents, [[0.0, 0.5]])
+    with pytest.raises(ValueError, match="unknown scenario option"):
+        sim.Scenario.given_scene(sim.get_scenario("3v3"), [[0.0, 0.0]], [[0.0, 0.5]], steps=3)
