@@ -19,6 +19,7 @@ from torch import Tensor
 
 from sim import native as native_kernels
 from sim import physics, tasks
+from sim.checks import check_count, check_device, check_seed, real_array
 from sim.observations import ObsLayout, global_state, observe
 from sim.rewards import RewardFn, make_reward
 from sim.scenarios import Scenario, get_scenario
@@ -26,50 +27,6 @@ from sim.state import SimState, StepContext
 from sim.world import World
 
 __all__ = ["AGVEnv", "make_env"]
-
-_SEED_LIMIT = 2**64
-
-
-def _check_seed(seed: Any, name: str = "seed") -> int:
-    """``seed`` as an int in [0, 2**64), the range of ``torch.Generator.manual_seed``."""
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"{name} must be an integer in [0, 2**64), got {seed!r}")
-    if not 0 <= int(seed) < _SEED_LIMIT:
-        raise ValueError(f"{name} must be an integer in [0, 2**64), got {seed!r}")
-    return int(seed)
-
-
-def _check_device(device: Any) -> torch.device:
-    """``device`` as a torch.device on which tensors can be made here, in the form that tensors
-    made there report (``"cpu:0"`` is ``cpu``, ``"cuda"`` is ``cuda:0``)."""
-    if not isinstance(device, (str, torch.device)):
-        raise ValueError(f"device must be a str or torch.device, got {device!r}")
-    try:
-        dev = torch.empty(0, device=torch.device(device)).device
-    except (RuntimeError, AssertionError, ValueError) as err:
-        raise ValueError(
-            f"device {str(device)!r} cannot be used here ({err}); "
-            f"CUDA available: {torch.cuda.is_available()}"
-        ) from None
-    return dev
-
-
-def _real_array(value: Any, name: str) -> Any:
-    """``value`` if it holds real numbers (a tensor or anything numpy reads), else ValueError."""
-    if isinstance(value, Tensor):
-        if value.dtype.is_complex or value.dtype == torch.bool:
-            raise ValueError(f"{name} must hold real numbers, got a {value.dtype} tensor")
-        return value
-    if value is None or isinstance(value, (str, bytes)):
-        raise ValueError(f"{name} must be an array of real numbers, got {value!r}")
-    try:
-        arr = np.asarray(value)
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"{name} must be an array of real numbers ({err})") from None
-    if arr.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must hold real numbers, got an array of dtype {arr.dtype}")
-    return arr
-
 
 class AGVEnv:
     """B parallel AGV task-allocation environments.
@@ -126,19 +83,17 @@ class AGVEnv:
         if not isinstance(scenario, Scenario):
             raise ValueError(f"scenario must be a registry name (str) or a Scenario, got "
                              f"{type(scenario).__name__} {scenario!r}")
-        if (isinstance(num_envs, (bool, np.bool_)) or not isinstance(num_envs, (int, np.integer))
-                or num_envs < 1):
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        num_envs = check_count("num_envs", num_envs)
         if native is not None and not isinstance(native, (bool, np.bool_)):
             raise ValueError(f"native must be True, False or None, got {native!r}")
-        seed = 0 if seed is None else _check_seed(seed)
+        seed = 0 if seed is None else check_seed(seed)
         self.scenario = scenario
         self.world: World = scenario.world
         self.num_envs = int(num_envs)
         self.num_agents = scenario.num_agents
         self.num_tasks = scenario.num_tasks
         self.max_steps = scenario.max_steps
-        self.device = _check_device(device)
+        self.device = check_device(device)
         self.dtype = torch.float32
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(seed)
@@ -335,7 +290,7 @@ class AGVEnv:
             Observations of all environments.
         """
         if seed is not None:
-            self.generator.manual_seed(_check_seed(seed))
+            self.generator.manual_seed(check_seed(seed))
         idx = self._env_index(env_ids)
         if idx.numel():
             agents, tasks_ = self.scenario.spawn(len(idx), self.generator, self.device,
@@ -368,10 +323,10 @@ class AGVEnv:
         idx = self._env_index(env_ids)
         K, N, M = len(idx), self.num_agents, self.num_tasks
         z = dict(device=self.device, dtype=self.dtype)
-        a = torch.as_tensor(_real_array(agent_pos, "agent_pos"), **z).detach().clone()
-        t = torch.as_tensor(_real_array(task_pos, "task_pos"), **z).detach().clone()
+        a = torch.as_tensor(real_array(agent_pos, "agent_pos"), **z).detach().clone()
+        t = torch.as_tensor(real_array(task_pos, "task_pos"), **z).detach().clone()
         v = (torch.zeros(K, N, 2, **z) if agent_vel is None
-             else torch.as_tensor(_real_array(agent_vel, "agent_vel"), **z))
+             else torch.as_tensor(real_array(agent_vel, "agent_vel"), **z))
         v = v.detach().clone()
         for name, x, shape in (("agent_pos", a, (K, N, 2)), ("task_pos", t, (K, M, 2)),
                                ("agent_vel", v, (K, N, 2))):
@@ -430,7 +385,7 @@ class AGVEnv:
         if not (type(a) is Tensor and a.dtype == self.dtype and a.device == self.device
                 and not a.requires_grad):
             # The simulator is not differentiable: a policy's output is taken as numbers.
-            a = torch.as_tensor(_real_array(actions, "actions"), device=self.device,
+            a = torch.as_tensor(real_array(actions, "actions"), device=self.device,
                                 dtype=self.dtype).detach()
         B, N = self.num_envs, self.num_agents
         if tuple(a.shape) != (B, N, 2):

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from sim import native
+from sim.checks import check_count, check_device, check_seed
 from sim.env import AGVEnv
 from sim.scenarios import Scenario, get_scenario
 
@@ -268,32 +269,6 @@ def run_episodes(
     return _play(env, env.reset(seed=seed), controller, record)
 
 
-def _count(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
-
-
-def _seed(seed: Any) -> int:
-    if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
-            or not 0 <= seed < _SEED_LIMIT):
-        raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
-    return int(seed)
-
-
-def _device(device: Any) -> torch.device:
-    if not isinstance(device, (str, torch.device)):
-        raise ValueError(
-            f"device must be a str or torch.device such as 'cpu', got {type(device).__name__}"
-        )
-    try:
-        dev = torch.device(device)
-        torch.empty(0, device=dev)
-    except (RuntimeError, AssertionError, ValueError) as err:
-        raise ValueError(f"device {device!r} is not usable here ({err}); try 'cpu'") from None
-    return dev
-
-
 def _scenario(scenario: Any) -> Scenario:
     if not isinstance(scenario, (str, Scenario)):
         raise ValueError(
@@ -304,7 +279,7 @@ def _scenario(scenario: Any) -> Scenario:
 
 
 def evaluation_scenes(
-    scenario: Scenario, episodes: int, seed: int, device: str | torch.device = "cpu"
+    scenario: str | Scenario, episodes: int, seed: int, device: str | torch.device = "cpu"
 ) -> tuple[Tensor, Tensor]:
     """The start scenes of :func:`evaluate`'s ``episodes`` test episodes for ``seed``.
 
@@ -316,7 +291,7 @@ def evaluation_scenes(
 
     Parameters
     ----------
-    scenario : Scenario
+    scenario : str or Scenario
     episodes : int
         Number of scenes E.
     seed : int
@@ -327,8 +302,16 @@ def evaluation_scenes(
     -------
     agents : Tensor, shape (E, N, 2)
     tasks : Tensor, shape (E, M, 2)
+
+    Raises
+    ------
+    ValueError
+        Naming a scenario, episode count, seed or device that is not valid.
     """
-    dev = torch.device(device)
+    scenario = _scenario(scenario)
+    episodes = check_count("episodes", episodes)
+    seed = check_seed(seed, bits=63)
+    dev = check_device(device)
     generator = torch.Generator(device=dev)
     generator.manual_seed(seed * _SEED_MIX % _SEED_LIMIT)
     return scenario.spawn(episodes, generator, dev, kernels=native.library_for(dev))
@@ -384,10 +367,10 @@ def evaluate(
     """
     _as_policy(controller)
     scn = _scenario(scenario)
-    episodes = _count("episodes", episodes)
-    seed = _seed(seed)
-    batch_size = _count("batch_size", batch_size)
-    dev = _device(device)
+    episodes = check_count("episodes", episodes)
+    seed = check_seed(seed, bits=63)
+    batch_size = check_count("batch_size", batch_size)
+    dev = check_device(device)
     start = time.perf_counter()
     agents, tasks = evaluation_scenes(scn, episodes, seed, dev)
     parts: list[dict[str, Any]] = []

@@ -8,6 +8,7 @@ import torch
 
 import sim
 from sim.controllers import NearestTaskController
+from sim.evaluate import evaluation_scenes
 
 
 def _zero(obs: torch.Tensor) -> torch.Tensor:
@@ -186,3 +187,20 @@ def test_evaluate_accepts_actions_that_numpy_reads_as_real_numbers() -> None:
     from_list = sim.evaluate(lambda obs: [[[0, 0]] * 3] * len(obs), "3v3", 2)
     from_tensor = sim.evaluate(_zero, "3v3", 2)
     assert _records(from_list) == _records(from_tensor)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"scenario": 3}, "scenario"), ({"episodes": 0}, "episodes"), ({"episodes": 2.0}, "episodes"),
+    ({"seed": -1}, "seed"), ({"seed": 2**63}, "seed"), ({"device": "gpu"}, "device"),
+])
+def test_evaluation_scenes_names_a_bad_argument(kwargs: dict, match: str) -> None:
+    """The public scene draw passed its arguments straight to the spawner and the generator."""
+    args = {"scenario": "3v3", "episodes": 4, "seed": 0, "device": "cpu", **kwargs}
+    with pytest.raises(ValueError, match=match):
+        evaluation_scenes(**args)
+
+
+def test_evaluation_scenes_are_the_scenes_evaluate_runs() -> None:
+    agents, tasks = evaluation_scenes("3v3", 5, seed=2)
+    again, _ = evaluation_scenes(sim.get_scenario("3v3"), 5, seed=2)
+    assert agents.shape == (5, 3, 2) and tasks.shape == (5, 3, 2) and torch.equal(agents, again)

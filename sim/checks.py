@@ -1,0 +1,59 @@
+"""Argument checks shared by the simulator's public functions: each returns the value in the
+form the simulator uses, or raises a ValueError that names the argument."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["check_count", "check_device", "check_seed", "real_array"]
+
+
+def check_count(name: str, value: Any) -> int:
+    """``value`` as a positive int (bool, float and str refused)."""
+    if (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))
+            or value < 1):
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def check_seed(seed: Any, name: str = "seed", bits: int = 64) -> int:
+    """``seed`` as an int in [0, 2**bits) (64: the range of ``torch.Generator.manual_seed``)."""
+    if (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))
+            or not 0 <= int(seed) < 2**bits):
+        raise ValueError(f"{name} must be an integer in [0, 2**{bits}), got {seed!r}")
+    return int(seed)
+
+
+def check_device(device: Any) -> torch.device:
+    """``device`` as a torch.device on which tensors can be made here, in the form that tensors
+    made there report (``"cpu:0"`` is ``cpu``, ``"cuda"`` is ``cuda:0``)."""
+    if not isinstance(device, (str, torch.device)):
+        raise ValueError(f"device must be a str or torch.device such as 'cpu', got {device!r}")
+    try:
+        return torch.empty(0, device=torch.device(device)).device
+    except (RuntimeError, AssertionError, ValueError) as err:
+        raise ValueError(
+            f"device {str(device)!r} is not usable here ({err}); "
+            f"CUDA available: {torch.cuda.is_available()}; try 'cpu'"
+        ) from None
+
+
+def real_array(value: Any, name: str) -> Any:
+    """``value`` if it holds real numbers (a tensor or anything numpy reads), else ValueError."""
+    if isinstance(value, Tensor):
+        if value.dtype.is_complex or value.dtype == torch.bool:
+            raise ValueError(f"{name} must hold real numbers, got a {value.dtype} tensor")
+        return value
+    if value is None or isinstance(value, (str, bytes)):
+        raise ValueError(f"{name} must be an array of real numbers, got {value!r}")
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{name} must be an array of real numbers ({err})") from None
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must hold real numbers, got an array of dtype {arr.dtype}")
+    return arr
