@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["check_count", "check_device", "check_seed", "real_array"]
+__all__ = ["check_count", "check_device", "check_env_ids", "check_seed", "real_array"]
 
 
 def check_count(name: str, value: Any) -> int:
@@ -57,3 +57,36 @@ def real_array(value: Any, name: str) -> Any:
     if arr.dtype.kind not in "iuf":
         raise ValueError(f"{name} must hold real numbers, got an array of dtype {arr.dtype}")
     return arr
+
+
+def check_env_ids(env_ids: Any, num_envs: int, device: torch.device) -> Tensor:
+    """Environment indices (K,) int64 from ids or a boolean mask (B,); all when None.
+
+    Raises
+    ------
+    ValueError
+        For strings, floats, ids outside [0, num_envs), repeated ids or a mask of another shape.
+    """
+    if env_ids is None:
+        return torch.arange(num_envs, device=device)
+    if isinstance(env_ids, (str, bytes)):
+        raise ValueError(f"env_ids must be integers or a boolean mask, got {env_ids!r}")
+    try:
+        idx = torch.as_tensor(env_ids, device=device)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise ValueError(f"env_ids must be integers or a boolean mask ({err})") from None
+    if idx.dtype == torch.bool:
+        if idx.shape != (num_envs,):
+            raise ValueError(
+                f"a boolean env mask must have shape ({num_envs},), got {tuple(idx.shape)}"
+            )
+        return idx.nonzero().flatten()
+    if idx.dtype.is_floating_point or idx.dtype.is_complex:
+        raise ValueError(f"env_ids must be integers or a boolean mask, got {idx.dtype} "
+                         f"values {idx.flatten().tolist()[:8]}")
+    idx = idx.long().flatten()
+    if idx.numel() and (idx.min() < 0 or idx.max() >= num_envs):
+        raise ValueError(f"env ids must lie in [0, {num_envs}), got {idx.tolist()}")
+    if idx.numel() > 1 and torch.unique(idx).numel() != idx.numel():
+        raise ValueError(f"env_ids must not repeat an environment, got {idx.tolist()}")
+    return idx

@@ -11,7 +11,7 @@ leading batch dimension and no Python loop runs over agents or environments on t
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -19,12 +19,15 @@ from torch import Tensor
 
 from sim import native as native_kernels
 from sim import physics, tasks
-from sim.checks import check_count, check_device, check_seed, real_array
+from sim.checks import check_count, check_device, check_env_ids, check_seed, real_array
 from sim.observations import ObsLayout, global_state, observe
 from sim.rewards import RewardFn, make_reward
 from sim.scenarios import Scenario, get_scenario
 from sim.state import SimState, StepContext
 from sim.world import World
+
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.lifelong import LifelongEnv, LifelongScenario
 
 __all__ = ["AGVEnv", "make_env"]
 
@@ -250,29 +253,7 @@ class AGVEnv:
         )
 
     def _env_index(self, env_ids: Any) -> Tensor:
-        if env_ids is None:
-            return torch.arange(self.num_envs, device=self.device)
-        if isinstance(env_ids, (str, bytes)):
-            raise ValueError(f"env_ids must be integers or a boolean mask, got {env_ids!r}")
-        try:
-            idx = torch.as_tensor(env_ids, device=self.device)
-        except (TypeError, ValueError, RuntimeError) as err:
-            raise ValueError(f"env_ids must be integers or a boolean mask ({err})") from None
-        if idx.dtype == torch.bool:
-            if idx.shape != (self.num_envs,):
-                raise ValueError(
-                    f"a boolean env mask must have shape ({self.num_envs},), got {tuple(idx.shape)}"
-                )
-            return idx.nonzero().flatten()
-        if idx.dtype.is_floating_point or idx.dtype.is_complex:
-            raise ValueError(f"env_ids must be integers or a boolean mask, got {idx.dtype} "
-                             f"values {idx.flatten().tolist()[:8]}")
-        idx = idx.long().flatten()
-        if idx.numel() and (idx.min() < 0 or idx.max() >= self.num_envs):
-            raise ValueError(f"env ids must lie in [0, {self.num_envs}), got {idx.tolist()}")
-        if idx.numel() > 1 and torch.unique(idx).numel() != idx.numel():
-            raise ValueError(f"env_ids must not repeat an environment, got {idx.tolist()}")
-        return idx
+        return check_env_ids(env_ids, self.num_envs, self.device)
 
     def reset(self, env_ids: Any = None, seed: int | None = None) -> Tensor:
         """Start new episodes in all environments or in some.
@@ -597,20 +578,23 @@ class AGVEnv:
 
 
 def make_env(
-    scenario: Scenario | str = "3v3",
+    scenario: Scenario | LifelongScenario | World | str = "3v3",
     num_envs: int = 1,
     reward: str | RewardFn = "minidist",
     seed: int | None = None,
     device: str | torch.device = "cpu",
     native: bool | None = None,
     **scenario_options: Any,
-) -> AGVEnv:
-    """Build a batched AGV environment.
+) -> AGVEnv | LifelongEnv:
+    """Build a batched AGV environment: episodic (the paper's) or lifelong.
 
     Parameters
     ----------
-    scenario : str or Scenario
-        A registry name (``"3v3"``, ``"6v6"``, any ``"NvM"``, ``"warehouse"``) or a Scenario.
+    scenario : str, Scenario, LifelongScenario or World
+        A registry name (``"3v3"``, ``"6v6"``, any ``"NvM"``, ``"warehouse"``; lifelong: any
+        ``"warehouse-N"``), a scenario, or a floor with pickups and stations (e.g. from
+        :func:`sim.load_floor`, with ``num_agents=N``), which gives a
+        :class:`sim.lifelong.LifelongEnv`.
     num_envs : int
         Number of parallel environments B.
     reward : str or callable
@@ -623,7 +607,8 @@ def make_env(
     native : bool, optional
         Fused CPU kernels (default: when available) or the torch reference path (``False``).
     **scenario_options
-        Overrides for the scenario (e.g. ``max_steps=50``, ``sensing_range=1.0``).
+        Overrides for the scenario (e.g. ``max_steps=50``, ``sensing_range=1.0``; lifelong:
+        ``arrivals=sim.Poisson(0.4)``, ``faults=sim.Breakdowns(1e-3, 50)``, ...).
 
     Returns
     -------
@@ -645,10 +630,15 @@ def make_env(
     >>> reward.shape, done.shape
     (torch.Size([4, 3]), torch.Size([4]))
     """
-    if not isinstance(scenario, (str, Scenario)):
-        raise ValueError(f"scenario must be a registry name (str) or a Scenario, got "
-                         f"{type(scenario).__name__} {scenario!r}")
-    if isinstance(scenario, str) or scenario_options:
+    from sim.lifelong import LifelongEnv, LifelongScenario
+
+    if not isinstance(scenario, (str, Scenario, LifelongScenario, World)):
+        raise ValueError(f"scenario must be a registry name (str), a Scenario or a floor "
+                         f"(World), got {type(scenario).__name__} {scenario!r:.80}")
+    if isinstance(scenario, (str, World)) or scenario_options:
         scenario = get_scenario(scenario, **scenario_options)
+    if isinstance(scenario, LifelongScenario):
+        return LifelongEnv(scenario, num_envs=num_envs, reward=reward, seed=seed,
+                           device=device, native=native)
     return AGVEnv(scenario, num_envs=num_envs, reward=reward, seed=seed, device=device,
                   native=native)

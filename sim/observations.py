@@ -12,12 +12,13 @@ C step (``sim/_native/observations.h``) writes the same vector; tests check it a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["AGENT_FEATURES", "HOLDING", "ObsLayout", "TASK_FEATURES", "global_state", "nearest",
-           "observe"]
+__all__ = ["AGENT_FEATURES", "HOLDING", "LifelongObsLayout", "ObsLayout", "TASK_FEATURES",
+           "global_state", "lifelong_global_state", "nearest", "observe", "observe_lifelong"]
 
 TASK_FEATURES = ("rel_x", "rel_y", "mask")
 """The features of one task slot, in order."""
@@ -193,3 +194,141 @@ def global_state(agent_pos: Tensor, agent_vel: Tensor, task_pos: Tensor, task_cl
     )
     tasks = torch.cat([task_pos, task_claimed.to(dtype).unsqueeze(-1)], dim=-1)
     return torch.cat([agents.reshape(B, -1), tasks.reshape(B, -1)], dim=-1)
+
+
+# ---------------------------------------------------------------------- lifelong mode
+STATUS_FEATURES = ("idle", "to_pickup", "loaded", "broken")
+"""The one-hot AGV status of a lifelong observation, in the order of
+:data:`sim.orders.AGENT_STATUS`."""
+
+
+@dataclass(frozen=True)
+class LifelongObsLayout:
+    """Named positions of the features of a lifelong observation.
+
+    Per AGV, in order: own velocity (2) and position (2); its status one-hot (4, idle, to
+    pickup, loaded, broken); whether it stands in service (1); its target relative to it and
+    a mask bit (3: a loaded AGV's drop-off, an assigned AGV's pickup, none otherwise); the
+    ``k_pickups`` nearest open pickups (orders released, not given to an AGV, not picked up)
+    within the sensing range, relative position and mask (3 each); the ``k_agents`` nearest
+    other AGVs in range, relative position, velocity and mask (5 each). The size does not
+    depend on the fleet size N.
+    """
+
+    k_pickups: int
+    k_agents: int
+
+    def __post_init__(self) -> None:
+        for name in ("k_pickups", "k_agents"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"LifelongObsLayout.{name} must be an integer >= 0, got "
+                                 f"{value!r}")
+
+    vel = slice(0, 2)
+    """Own velocity."""
+    pos = slice(2, 4)
+    """Own position."""
+    status = slice(4, 8)
+    """Status one-hot (:data:`STATUS_FEATURES`)."""
+    service = slice(8, 9)
+    """1.0 while the AGV stands in service at a pickup or drop-off."""
+    target_rel = slice(9, 11)
+    """The target relative to the AGV (0 when it has none)."""
+    target_mask = slice(11, 12)
+    """1.0 when the AGV has a target."""
+
+    @property
+    def pickups(self) -> slice:
+        """All pickup slots: k_pickups x (rel_x, rel_y, mask)."""
+        return slice(12, 12 + len(TASK_FEATURES) * self.k_pickups)
+
+    @property
+    def agents(self) -> slice:
+        """All AGV slots: k_agents x (rel_x, rel_y, vx, vy, mask)."""
+        start = self.pickups.stop
+        return slice(start, start + len(AGENT_FEATURES) * self.k_agents)
+
+    @property
+    def size(self) -> int:
+        """Length O of an observation vector."""
+        return self.agents.stop
+
+    def pickup_rel(self, k: int) -> slice:
+        """Relative position of the k-th nearest visible open pickup."""
+        return ObsLayout._slot(k, self.k_pickups, self.pickups.start, TASK_FEATURES, "rel_x", 2)
+
+    def pickup_mask(self, k: int) -> slice:
+        """Mask bit of the k-th pickup slot."""
+        return ObsLayout._slot(k, self.k_pickups, self.pickups.start, TASK_FEATURES, "mask", 1)
+
+    def agent_rel(self, k: int) -> slice:
+        """Relative position of the k-th nearest visible other AGV."""
+        return ObsLayout._slot(k, self.k_agents, self.agents.start, AGENT_FEATURES, "rel_x", 2)
+
+    def agent_vel(self, k: int) -> slice:
+        """Velocity of the k-th nearest visible other AGV."""
+        return ObsLayout._slot(k, self.k_agents, self.agents.start, AGENT_FEATURES, "vx", 2)
+
+    def agent_mask(self, k: int) -> slice:
+        """Mask bit of the k-th AGV slot."""
+        return ObsLayout._slot(k, self.k_agents, self.agents.start, AGENT_FEATURES, "mask", 1)
+
+
+def observe_lifelong(
+    agent_pos: Tensor, agent_vel: Tensor, fleet: Any, orders: Any, target: Tensor,
+    has_target: Tensor, layout: LifelongObsLayout, sensing_range: float,
+    pair: Tensor | None, eye: Tensor,
+) -> Tensor:
+    """Lifelong observations, (B, N, layout.size).
+
+    Parameters
+    ----------
+    agent_pos, agent_vel : Tensor, shape (B, N, 2)
+    fleet : sim.orders.Fleet
+    orders : sim.orders.Orders
+    target : Tensor, shape (B, N, 2)
+        Each AGV's target (0 where none).
+    has_target : Tensor of bool, shape (B, N)
+    layout : LifelongObsLayout
+    sensing_range : float
+    pair : Tensor, shape (B, N, N), optional
+        Pairwise AGV distances (needed when ``layout.k_agents``).
+    eye : Tensor of bool, shape (N, N)
+    """
+    from sim.orders import OPEN
+
+    dtype = agent_pos.dtype
+    status = torch.nn.functional.one_hot(fleet.status.long(), 4).to(dtype)
+    service = (fleet.service_left > 0).to(dtype).unsqueeze(-1)
+    rel_target = (target - agent_pos) * has_target.unsqueeze(-1)
+    parts = [agent_vel, agent_pos, status, service, rel_target,
+             has_target.to(dtype).unsqueeze(-1)]
+    if layout.k_pickups:
+        rel = orders.pickup.unsqueeze(1) - agent_pos.unsqueeze(2)  # (B, N, Q, 2)
+        d = torch.linalg.vector_norm(rel, dim=-1)
+        hidden = (orders.status != OPEN).unsqueeze(1) | (d > sensing_range)
+        feats = torch.cat([rel, torch.ones_like(d).unsqueeze(-1)], dim=-1)
+        parts.append(nearest(feats, d.masked_fill(hidden, float("inf")), layout.k_pickups))
+    if layout.k_agents:
+        if pair is None:
+            raise ValueError("observe_lifelong: pair is needed when layout.k_agents > 0")
+        B, N = agent_pos.shape[:2]
+        delta = agent_pos.unsqueeze(2) - agent_pos.unsqueeze(1)
+        vel_j = agent_vel.unsqueeze(1).expand(B, N, N, 2)
+        feats = torch.cat([-delta, vel_j, torch.ones_like(pair).unsqueeze(-1)], dim=-1)
+        d_a = pair.masked_fill(eye | (pair > sensing_range), float("inf"))
+        parts.append(nearest(feats, d_a, layout.k_agents))
+    return torch.cat(parts, dim=-1)
+
+
+def lifelong_global_state(agent_pos: Tensor, agent_vel: Tensor, agent_status: Tensor,
+                          target: Tensor, has_target: Tensor) -> Tensor:
+    """Global state of a lifelong floor for centralized critics, (B, 11 N): every AGV's
+    position, velocity, status one-hot, target and target mask."""
+    B = agent_pos.shape[0]
+    dtype = agent_pos.dtype
+    status = torch.nn.functional.one_hot(agent_status.long(), 4).to(dtype)
+    per = torch.cat([agent_pos, agent_vel, status, target, has_target.to(dtype).unsqueeze(-1)],
+                    dim=-1)
+    return per.reshape(B, -1)

@@ -19,29 +19,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sim.native import pointer
+from sim.lifelong import LifelongScenario
+from sim.spawn import Sampler, place_entities, uniform_sampler
 from sim.world import World
 
-__all__ = ["Scenario", "SCENARIOS", "get_scenario", "warehouse_world", "scenario_names"]
-
-Sampler = Callable[[int, int, torch.Generator, torch.device], Tensor]
-"""``sampler(B, C, generator, device) -> (B, C, 2)`` candidate positions."""
-
-_CANDIDATES = 16
-_ROUNDS = 100
-
-
-def _uniform_sampler(world: World, margin: float) -> Sampler:
-    xmin, ymin, xmax, ymax = world.bounds
-    lo = torch.tensor([xmin + margin, ymin + margin], dtype=torch.float32)
-    span = torch.tensor([xmax - xmin - 2 * margin, ymax - ymin - 2 * margin], dtype=torch.float32)
-
-    def sample(B: int, C: int, gen: torch.Generator, device: torch.device) -> Tensor:
-        u = torch.rand(B, C, 2, generator=gen, device=device, dtype=torch.float32)
-        return lo.to(device) + u * span.to(device)
-
-    return sample
-
+__all__ = ["Scenario", "SCENARIOS", "get_scenario", "warehouse_world", "scenario_names",
+           "place_entities", "uniform_sampler"]
 
 @dataclass(frozen=True)
 class Scenario:
@@ -140,8 +123,8 @@ class Scenario:
     # ------------------------------------------------------------------ spawning
     def _samplers(self) -> tuple[Sampler, Sampler]:
         w = self.world
-        agents = self.agent_sampler or _uniform_sampler(w, w.agent_radius)
-        tasks = self.task_sampler or _uniform_sampler(w, w.agent_radius)
+        agents = self.agent_sampler or uniform_sampler(w, w.agent_radius)
+        tasks = self.task_sampler or uniform_sampler(w, w.agent_radius)
         return agents, tasks
 
     def _check_room(self) -> None:
@@ -193,59 +176,9 @@ class Scenario:
             agents, tasks = self.scene
             return (agents.to(device).expand(B, -1, -1).clone(),
                     tasks.to(device).expand(B, -1, -1).clone())
-        w = self.world
         agent_sampler, task_sampler = self._samplers()
-        obstacles = torch.tensor(np.array(w.obstacles), dtype=torch.float32, device=device)
-        r, cap = w.agent_radius, w.capture_radius
-        n, m = self.num_agents, self.num_tasks
-        lib = kernels if torch.device(device).type == "cpu" else None
-        # Entities are placed one at a time (agents, then tasks), each for all B scenes at once.
-        # gap[k, j]: minimum distance between entity k and an earlier entity j.
-        kinds = torch.tensor([True] * n + [False] * m, device=device)
-        same = kinds.unsqueeze(1) == kinds.unsqueeze(0)
-        f32 = dict(dtype=torch.float32, device=device)  # whatever torch's default dtype
-        own_gap = torch.where(kinds, torch.tensor(2 * r, **f32),
-                              torch.tensor(w.task_spacing, **f32)).unsqueeze(1)
-        gap = torch.where(same, own_gap, torch.tensor(cap + 1e-3, **f32)) ** 2
-        placed = torch.zeros(B, n + m, 2, dtype=torch.float32, device=device)
-        rows = torch.arange(B, device=device)
-        for k in range(n + m):
-            sampler = agent_sampler if k < n else task_sampler
-            todo = rows
-            gap_k = gap[k, :k].contiguous()
-            for _ in range(_ROUNDS):
-                cand = sampler(len(todo), _CANDIDATES, gen, device).float()  # (b, C, 2)
-                ok = _clear_of_obstacles(cand, obstacles, r)  # (b, C)
-                if lib is not None:  # the same rule, one pass in C
-                    b = len(todo)
-                    cand, ok = cand.contiguous(), ok.contiguous()
-                    found = torch.empty(b, dtype=torch.bool)
-                    # todo, placed and found are made here with the kernel's dtypes and shapes.
-                    lib.agv_spawn_pick(
-                        b, _CANDIDATES, n + m, k,
-                        pointer(cand, torch.float32, (b, _CANDIDATES, 2), "candidates"),
-                        pointer(ok, torch.bool, (b, _CANDIDATES), "candidate mask"),
-                        todo.data_ptr(), pointer(gap_k, torch.float32, (k,), "gap"),
-                        placed.data_ptr(), found.data_ptr(),
-                    )
-                else:
-                    if k:
-                        prev = placed[todo, :k]  # (b, k, 2)
-                        d2 = ((cand.unsqueeze(2) - prev.unsqueeze(1)) ** 2).sum(-1)  # (b, C, k)
-                        ok &= (d2 >= gap_k).all(dim=2)
-                    found = ok.any(dim=1)
-                    first = ok.to(torch.uint8).argmax(dim=1)
-                    chosen = cand[torch.arange(len(todo), device=device), first]
-                    placed[todo[found], k] = chosen[found]
-                todo = todo[~found]
-                if not len(todo):
-                    break
-            else:
-                raise RuntimeError(
-                    f"could not place {n} AGVs and {m} tasks with the required spacing after "
-                    "many tries; the floor is too crowded"
-                )
-        return placed[:, :n].contiguous(), placed[:, n:].contiguous()
+        return place_entities(self.world, self.num_agents, self.num_tasks, agent_sampler,
+                              task_sampler, B, gen, device, kernels)
 
     def with_options(self, **options: Any) -> Scenario:
         """A copy with some fields replaced (e.g. ``max_steps``)."""
@@ -256,15 +189,6 @@ class Scenario:
                 f"expected some of {sorted(self.__dataclass_fields__)}"
             )
         return replace(self, **options)
-
-
-def _clear_of_obstacles(points: Tensor, obstacles: Tensor, r: float) -> Tensor:
-    """True where a disc of radius r at ``points`` (..., 2) clears every rectangle."""
-    if obstacles.numel() == 0:
-        return torch.ones(points.shape[:-1], dtype=torch.bool, device=points.device)
-    p = points.unsqueeze(-2)
-    closest = torch.minimum(torch.maximum(p, obstacles[:, :2]), obstacles[:, 2:])
-    return (torch.linalg.vector_norm(p - closest, dim=-1) >= r + 1e-6).all(dim=-1)
 
 
 # ---------------------------------------------------------------------- the registry
@@ -363,14 +287,29 @@ def warehouse_scenario(num_agents: int = 6, num_tasks: int = 6, **options: Any) 
     return Scenario(**base)
 
 
-SCENARIOS: dict[str, Callable[..., Scenario]] = {
+def warehouse_lifelong(num_agents: int, **options: Any) -> LifelongScenario:
+    """``warehouse-N``: the lifelong warehouse of :func:`sim.floors.warehouse_floor` for N
+    AGVs (shelf rows, pickups at the shelf faces, stations along one side, a depot)."""
+    from sim.floors import warehouse_floor
+
+    world = options.pop("world", None) or warehouse_floor(num_agents)
+    options.setdefault("name", f"warehouse-{num_agents}")
+    return LifelongScenario(world=world, num_agents=num_agents, **options)
+
+
+SCENARIOS: dict[str, Callable[..., Scenario | LifelongScenario]] = {
     "3v3": lambda **o: paper_scenario(3, 3, **o),
     "6v6": lambda **o: paper_scenario(6, 6, **o),
     "warehouse": warehouse_scenario,
+    "warehouse-20": lambda **o: warehouse_lifelong(20, **o),
+    "warehouse-50": lambda **o: warehouse_lifelong(50, **o),
+    "warehouse-100": lambda **o: warehouse_lifelong(100, **o),
 }
-"""Named scenarios; any ``"NvM"`` (e.g. ``"10v12"``) is built on demand."""
+"""Named scenarios; any ``"NvM"`` (e.g. ``"10v12"``) and any ``"warehouse-N"`` (lifelong) are
+built on demand."""
 
 _NVM = re.compile(r"^(\d+)v(\d+)$")
+_WAREHOUSE = re.compile(r"^warehouse-(\d+)$")
 
 
 def scenario_names() -> list[str]:
@@ -378,24 +317,43 @@ def scenario_names() -> list[str]:
     return sorted(SCENARIOS)
 
 
-def get_scenario(name: str | Scenario, **options: Any) -> Scenario:
+def get_scenario(name: str | Scenario | LifelongScenario | World,
+                 **options: Any) -> Scenario | LifelongScenario:
     """Look a scenario up by name, with optional field overrides.
+
+    Parameters
+    ----------
+    name : str, Scenario, LifelongScenario or World
+        A registry name (``"3v3"``, any ``"NvM"``, ``"warehouse"``, any ``"warehouse-N"``), a
+        scenario, or a floor with pickup points and stations (e.g. from
+        :func:`sim.load_floor`), which needs ``num_agents=`` and gives a lifelong scenario.
+    **options
+        Fields to replace (``max_steps=50``, ``arrivals=sim.Poisson(0.4)``, ...).
 
     Raises
     ------
     ValueError
         For an unknown name (the message lists the known ones) or unknown options.
     """
-    if isinstance(name, Scenario):
+    if isinstance(name, (Scenario, LifelongScenario)):
         return name.with_options(**options) if options else name
-    unknown = set(options) - set(Scenario.__dataclass_fields__)
-    if unknown:
-        raise ValueError(
-            f"unknown scenario option(s) {sorted(unknown)}; "
-            f"expected some of {sorted(Scenario.__dataclass_fields__)}"
-        )
+    if isinstance(name, World):
+        if "num_agents" not in options:
+            raise ValueError("a floor (World) needs num_agents=N to make a lifelong scenario, "
+                             "e.g. sim.make_env(world, num_agents=20)")
+        options.setdefault("name", "floor")
+        return _lifelong(options, world=name)
     if not isinstance(name, str):
-        raise ValueError(f"scenario must be a name or a Scenario, got {type(name).__name__}")
+        raise ValueError(f"scenario must be a name, a Scenario or a floor (World), got "
+                         f"{type(name).__name__}")
+    warehouse = _WAREHOUSE.match(name)
+    if warehouse:
+        n = int(warehouse.group(1))
+        if n < 1:
+            raise ValueError(f"scenario {name!r} needs at least one AGV")
+        _check_options(options, LifelongScenario)
+        return warehouse_lifelong(n, **options)
+    _check_options(options, Scenario)
     if name in SCENARIOS:
         return SCENARIOS[name](**options)
     match = _NVM.match(name)
@@ -405,6 +363,20 @@ def get_scenario(name: str | Scenario, **options: Any) -> Scenario:
             raise ValueError(f"scenario {name!r} needs at least one AGV and one task")
         return paper_scenario(n, m, **options)
     raise ValueError(
-        f"unknown scenario {name!r}; expected one of {scenario_names()} or 'NvM' "
-        "(N AGVs, M tasks, e.g. '10v10')"
+        f"unknown scenario {name!r}; expected one of {scenario_names()}, 'NvM' "
+        "(N AGVs, M tasks, e.g. '10v10') or 'warehouse-N' (lifelong, N AGVs)"
     )
+
+
+def _check_options(options: dict[str, Any], kind: type) -> None:
+    unknown = set(options) - set(kind.__dataclass_fields__)
+    if unknown:
+        raise ValueError(
+            f"unknown scenario option(s) {sorted(unknown)}; "
+            f"expected some of {sorted(kind.__dataclass_fields__)}"
+        )
+
+
+def _lifelong(options: dict[str, Any], world: World) -> LifelongScenario:
+    _check_options(options, LifelongScenario)
+    return LifelongScenario(world=world, **options)

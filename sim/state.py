@@ -7,10 +7,14 @@ The static parameters (bounds, shelves, AGV size, physics constants) live in
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from torch import Tensor
 
-__all__ = ["SimState", "StepContext"]
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.orders import Events, Fleet, Orders
+
+__all__ = ["LifelongContext", "LifelongState", "SimState", "StepContext"]
 
 
 @dataclass
@@ -43,3 +47,33 @@ class StepContext:
     team_reward: Tensor  # (B,) float, the paper's R_t (0 where inactive)
     team_distance: Tensor  # (B, N) float, R_t + collision_pairs for every AGV (0 where inactive)
     team_collision: Tensor  # (B, N) float, -collision_pairs for every AGV
+
+
+@dataclass
+class LifelongState:
+    """The changing state of B lifelong floors (views of the env's tensors, not copies)."""
+
+    agent_pos: Tensor  # (B, N, 2)
+    agent_vel: Tensor  # (B, N, 2)
+    orders: Orders  # the order table, (B, Q) tensors
+    fleet: Fleet  # each AGV's order, status, service and repair, (B, N) tensors
+    steps: Tensor  # (B,) int64
+    done: Tensor  # (B,) bool, the truncation horizon
+
+
+@dataclass
+class LifelongContext:
+    """What a lifelong reward may read about the step just taken."""
+
+    prev_agent_pos: Tensor  # (B, N, 2) positions before the step
+    prev_orders: Orders  # the order table before the step
+    prev_fleet: Fleet  # the fleet before the step
+    active: Tensor  # (B,) bool
+    events: Events  # what happened in the step
+    collisions_per_agent: Tensor  # (B, N) float, 0 where inactive
+    collision_pairs: Tensor  # (B,) float, 0 where inactive
+    team_reward: Tensor  # (B,) the lifelong R_t (sim.tasks.remaining_work), 0 where inactive
+    team_distance: Tensor  # (B, N) R_t + collision_pairs for every AGV
+    team_collision: Tensor  # (B, N) -collision_pairs for every AGV
+    target: Tensor  # (B, N, 2) each AGV's target after the step (0 where none)
+    has_target: Tensor  # (B, N) bool: loaded (drop-off) or assigned (pickup)

@@ -1,4 +1,5 @@
-"""The task rules: who claims which task, and the paper's team reward R_t.
+"""The task rules: who claims which task, and the paper's team reward R_t (and its lifelong
+form, :func:`remaining_work`).
 
 A task is claimed the first time an AGV that holds no task comes within the capture radius of
 it; the AGV then holds it and parks. When several AGVs reach tasks in one step, each task goes
@@ -10,10 +11,12 @@ R_t; tests check both against the functions here, and the classical controller's
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
-__all__ = ["claim", "team_reward"]
+__all__ = ["claim", "remaining_work", "team_reward"]
 
 
 def claim(
@@ -90,3 +93,45 @@ def team_reward(dist: Tensor, collision_pairs: Tensor, active: Tensor) -> Tensor
     """
     nearest = dist.min(dim=1).values.sum(dim=1) if dist.shape[2] else collision_pairs * 0
     return torch.where(active, -nearest - collision_pairs, torch.zeros_like(collision_pairs))
+
+
+def remaining_work(agent_pos: Tensor, orders: Any, agent_status: Tensor, active: Tensor) -> Tensor:
+    """The distance still to cover for every order in the table, per environment: the lifelong
+    R_t is ``-remaining_work - collision_pairs``.
+
+    An order not yet picked up (open or assigned) counts the distance from its pickup to the
+    nearest AGV that could take it (idle or on its way to a pickup; the nearest AGV at all
+    when none is) plus its loaded trip, pickup to drop-off; a loaded order counts the distance
+    from its AGV to its drop-off. So the sum does not jump when an order is picked up (the
+    AGV stands on the pickup) and drops to 0 for an order at its delivery, as the paper's sum
+    over tasks drops to the capture radius when a task is claimed.
+
+    Parameters
+    ----------
+    agent_pos : Tensor, shape (B, N, 2)
+    orders : sim.orders.Orders
+        The table after the step.
+    agent_status : Tensor of int8, shape (B, N)
+        :data:`sim.orders.AGENT_STATUS` codes.
+    active : Tensor of bool, shape (B,)
+
+    Returns
+    -------
+    Tensor, shape (B,), float32; 0 where inactive.
+    """
+    from sim.orders import ASSIGNED, BROKEN, CARRYING, LOADED, OPEN
+
+    status = orders.status
+    waiting = (status == OPEN) | (status == ASSIGNED)  # (B, Q)
+    d = torch.cdist(orders.pickup, agent_pos, compute_mode="donot_use_mm_for_euclid_dist")
+    available = (agent_status != CARRYING) & (agent_status != BROKEN)  # (B, N)
+    inf = torch.tensor(float("inf"), dtype=d.dtype, device=d.device)
+    near_avail = torch.where(available.unsqueeze(1), d, inf).min(dim=2).values
+    near_any = d.min(dim=2).values if d.shape[2] else torch.zeros_like(near_avail)
+    near = torch.where(available.any(1, keepdim=True), near_avail, near_any)
+    trip = torch.linalg.vector_norm(orders.dropoff - orders.pickup, dim=-1)
+    carrier = orders.agent.clamp_min(0).unsqueeze(-1).expand(-1, -1, 2)
+    carried = torch.linalg.vector_norm(agent_pos.gather(1, carrier) - orders.dropoff, dim=-1)
+    work = torch.where(waiting, near + trip, torch.where(status == LOADED, carried,
+                                                         torch.zeros_like(trip)))
+    return torch.where(active, work.sum(dim=1), torch.zeros_like(work[:, 0]))

@@ -27,9 +27,11 @@ from collections.abc import Callable
 from sim.rewards.base import RewardFn
 from sim.rewards.greedy import Greedy
 from sim.rewards.ipf import IPFReward
+from sim.rewards.lifelong import LifelongGreedy, LifelongIPF, LifelongMiniDist
 from sim.rewards.minidist import MiniDist
 
-__all__ = ["RewardFn", "MiniDist", "Greedy", "IPFReward", "REWARDS", "make_reward"]
+__all__ = ["RewardFn", "MiniDist", "Greedy", "IPFReward", "REWARDS", "LIFELONG_REWARDS",
+           "LifelongMiniDist", "LifelongGreedy", "LifelongIPF", "make_reward"]
 
 REWARDS: dict[str, Callable[[], RewardFn]] = {
     "minidist": MiniDist,
@@ -38,14 +40,23 @@ REWARDS: dict[str, Callable[[], RewardFn]] = {
 }
 """Registered rewards by name."""
 
+LIFELONG_REWARDS: dict[str, Callable[[], RewardFn]] = {
+    "minidist": LifelongMiniDist,
+    "greedy": LifelongGreedy,
+    "ipf": LifelongIPF,
+}
+"""The same names in lifelong mode (:mod:`sim.rewards.lifelong`)."""
 
-def make_reward(reward: str | RewardFn) -> RewardFn:
+
+def make_reward(reward: str | RewardFn, lifelong: bool = False) -> RewardFn:
     """Return the reward callable for a registered name, or the callable itself.
 
     Parameters
     ----------
     reward : str or RewardFn
         A name of :data:`REWARDS` or an object called as ``reward(state, ctx)``.
+    lifelong : bool
+        Names give their lifelong forms (:data:`LIFELONG_REWARDS`).
 
     Returns
     -------
@@ -62,7 +73,7 @@ def make_reward(reward: str | RewardFn) -> RewardFn:
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; expected one of {names}, or a "
                              "callable reward(state, ctx) -> {term: (B, N) tensor}")
-        return REWARDS[reward]()
+        return (LIFELONG_REWARDS if lifelong else REWARDS)[reward]()
     if isinstance(reward, type):
         raise ValueError(f"reward must be a name or a reward object, got the class "
                          f"{reward.__name__}; pass an instance, {reward.__name__}()")

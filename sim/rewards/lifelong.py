@@ -1,0 +1,127 @@
+"""The paper's three rewards in lifelong mode, for pickups and drop-offs (``docs/lifelong.md``).
+
+Each is a callable ``reward(state, ctx) -> {term: (B, N)}`` of a
+:class:`sim.state.LifelongState` and a :class:`sim.state.LifelongContext`, zero in
+environments that were not running.
+
+- :class:`LifelongMiniDist` (global): every AGV gets the lifelong R_t = -(remaining work of
+  every order, :func:`sim.tasks.remaining_work`) - (overlapping pairs).
+- :class:`LifelongGreedy` (individual): the distance each working AGV closed during the step to
+  its own target of before the step (a loaded AGV's drop-off, an assigned AGV's pickup, an
+  idle AGV's nearest open pickup), minus the AGVs it overlaps.
+- :class:`LifelongIPF`: r_IPF + r_g + r_c, where r_IPF is the AGV's own field at its own
+  cell: for an AGV with a target (loaded: its drop-off; assigned: its pickup) that target
+  alone at +5, otherwise every open pickup at +5; the other AGVs at -3 (broken ones too: they
+  stay obstacles), walls and shelves at 0. r_g is the MiniDist distance term and r_c = -1
+  while the AGV overlaps another. A broken AGV's r_IPF is 0.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from sim.orders import BROKEN, OPEN
+from sim.rewards.base import zero_inactive
+from sim.state import LifelongContext, LifelongState
+from sim.world import World
+
+__all__ = ["LifelongGreedy", "LifelongIPF", "LifelongMiniDist"]
+
+
+class LifelongMiniDist:
+    """Every AGV receives the lifelong team reward R_t. Terms ``distance``, ``collision``."""
+
+    zeroes_inactive = True
+
+    def __call__(self, state: LifelongState, ctx: LifelongContext) -> dict[str, Tensor]:
+        return {"distance": ctx.team_distance, "collision": ctx.team_collision}
+
+
+def targets_before(ctx: LifelongContext) -> tuple[Tensor, Tensor]:
+    """Each AGV's target before the step and whether it had one, (B, N, 2) and (B, N) bool:
+    a loaded AGV's drop-off, an assigned AGV's pickup, an idle AGV's nearest open pickup;
+    none for a broken AGV or an idle one with no open order."""
+    from sim.orders import CARRYING, TO_PICKUP
+
+    o, f = ctx.prev_orders, ctx.prev_fleet
+    B, N = f.order.shape
+    slot = f.order.clamp_min(0).unsqueeze(-1).expand(B, N, 2)
+    own = torch.where((f.status == CARRYING).unsqueeze(-1), o.dropoff.gather(1, slot),
+                      o.pickup.gather(1, slot))
+    d = torch.cdist(ctx.prev_agent_pos, o.pickup, compute_mode="donot_use_mm_for_euclid_dist")
+    d = d.masked_fill((o.status != OPEN).unsqueeze(1), float("inf"))
+    nearest_d, nearest_q = d.min(dim=2) if d.shape[2] else (d.sum(2), d.sum(2).long())
+    nearest = o.pickup.gather(1, nearest_q.unsqueeze(-1).expand(B, N, 2))
+    has_own = (f.status == CARRYING) | (f.status == TO_PICKUP)
+    idle = (f.status != BROKEN) & ~has_own & torch.isfinite(nearest_d)
+    return torch.where(has_own.unsqueeze(-1), own, nearest), has_own | idle
+
+
+class LifelongGreedy:
+    """Progress towards the AGV's own target of before the step. Terms ``progress``,
+    ``collision``."""
+
+    zeroes_inactive = True
+
+    def __call__(self, state: LifelongState, ctx: LifelongContext) -> dict[str, Tensor]:
+        target, has = targets_before(ctx)
+        before = torch.linalg.vector_norm(ctx.prev_agent_pos - target, dim=-1)
+        after = torch.linalg.vector_norm(state.agent_pos - target, dim=-1)
+        progress = torch.where(has, before - after, torch.zeros_like(before))
+        return zero_inactive({"progress": progress, "collision": -ctx.collisions_per_agent},
+                             ctx.active)
+
+
+class LifelongIPF:
+    """The IPF reward in lifelong mode. Terms ``ipf``, ``goal``, ``collision``.
+
+    Parameters
+    ----------
+    resolution : float, optional
+        Grid cell size; default the IPF grid's default for the floor.
+    task_value, agent_value : float
+        The fixed potentials (+5, -3 in the paper).
+    """
+
+    zeroes_inactive = True
+
+    def __init__(self, resolution: float | None = None, task_value: float = 5.0,
+                 agent_value: float = -3.0) -> None:
+        from sim.ipf import check_resolution
+
+        self.resolution = None if resolution is None else check_resolution(resolution)
+        for name, value in (("task_value", task_value), ("agent_value", agent_value)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                    or not math.isfinite(value):
+                raise ValueError(f"{name} must be a finite number, got {value!r}")
+        self.task_value = float(task_value)
+        self.agent_value = float(agent_value)
+        self._grid: Any = None
+
+    def setup(self, world: World, kernels: Any = None) -> None:
+        """Make the floor's grid (refused with a ValueError if it does not fit)."""
+        from sim.ipf import DEFAULT_RESOLUTION, ipf_grid
+
+        grid = ipf_grid(world, self.resolution or DEFAULT_RESOLUTION)
+        if not hasattr(grid, "lifelong_potentials"):
+            raise ValueError("the IPF grid of this version has no lifelong potentials")
+        self._grid = grid
+
+    def __call__(self, state: LifelongState, ctx: LifelongContext) -> dict[str, Tensor]:
+        if self._grid is None:
+            raise ValueError("LifelongIPF.setup(world) must be called before the reward "
+                             "(sim.make_env does it)")
+        o = state.orders
+        potential = self._grid.lifelong_potentials(
+            state.agent_pos, o.pickup, o.status == OPEN, ctx.target, ctx.has_target,
+            ctx.active, task_value=self.task_value, agent_value=self.agent_value,
+            dtype=state.agent_pos.dtype)
+        potential = torch.where(state.fleet.status == BROKEN, 0.0, potential)
+        collision = -ctx.collisions_per_agent.clamp_max(1.0)
+        return zero_inactive({"ipf": potential, "goal": ctx.team_distance,
+                              "collision": collision}, ctx.active)
