@@ -9,7 +9,10 @@ from typing import Any
 
 from sim.env import AGVEnv, make_env
 from sim.evaluate import Metrics, evaluate
-from sim.observations import ObsLayout
+from sim.lifelong import LifelongEnv, LifelongScenario
+from sim.lifelong_eval import LifelongMetrics, evaluate_lifelong
+from sim.observations import LifelongObsLayout, ObsLayout
+from sim.orders import Backlog, Breakdowns, FaultSchedule, Poisson, Trace, read_trace
 from sim.rewards import REWARDS, make_reward
 from sim.scenarios import SCENARIOS, Scenario, get_scenario, scenario_names
 from sim.state import SimState, StepContext
@@ -19,7 +22,9 @@ __all__ = [
     "AGVEnv", "SimState", "StepContext", "make_env", "REWARDS", "make_reward", "SCENARIOS",
     "Scenario", "get_scenario", "scenario_names", "Physics", "World", "ObsLayout",
     "evaluate", "Metrics", "pettingzoo_env", "ipf_field", "render_scene", "render_episode",
-    "render_field",
+    "render_field", "LifelongEnv", "LifelongScenario", "LifelongMetrics", "evaluate_lifelong",
+    "LifelongObsLayout", "Poisson", "Backlog", "Trace", "read_trace", "Breakdowns",
+    "FaultSchedule", "load_floor", "warehouse_floor",
 ]
 
 _LAZY = {
@@ -28,6 +33,8 @@ _LAZY = {
     "render_scene": "sim.render",
     "render_episode": "sim.render",
     "render_field": "sim.render",
+    "load_floor": "sim.floors",
+    "warehouse_floor": "sim.floors",
 }
 
 

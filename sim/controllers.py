@@ -7,7 +7,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from sim.observations import ObsLayout
+from sim.observations import LifelongObsLayout, ObsLayout
 from sim.world import Physics
 
 __all__ = ["NearestTaskController", "RandomController"]
@@ -15,6 +15,9 @@ __all__ = ["NearestTaskController", "RandomController"]
 
 class NearestTaskController:
     """Each AGV drives at its nearest visible unclaimed task, reading only its observation.
+
+    In lifelong mode it drives at its own target (a loaded AGV's drop-off) or else at the
+    nearest visible open pickup.
 
     A proportional velocity command towards the task, converted to the MPE acceleration
     action. No coordination: two AGVs may chase the same task (the weakest sensible policy).
@@ -27,7 +30,7 @@ class NearestTaskController:
         Desired velocity per unit distance (1/s).
     max_speed : float
         Cap on the commanded speed.
-    layout : ObsLayout, optional
+    layout : ObsLayout or LifelongObsLayout, optional
         Where the features sit in the observations; :meth:`reset` takes the environment's.
         Until then, any layout with task slots (the nearest task's slot is at the same place
         in all of them).
@@ -41,7 +44,8 @@ class NearestTaskController:
         self.layout = layout
 
     def reset(self, env: Any) -> None:
-        """Read the observation layout of ``env`` (an :class:`~sim.env.AGVEnv`)."""
+        """Read the observation layout of ``env`` (an :class:`~sim.env.AGVEnv` or a
+        :class:`~sim.lifelong.LifelongEnv`)."""
         self.layout = env.obs_layout
 
     def act(self, obs: Tensor) -> Tensor:
@@ -49,7 +53,14 @@ class NearestTaskController:
         ph = self.physics
         lay = self.layout or ObsLayout(k_tasks=1, k_agents=0)
         vel = obs[..., lay.vel]
-        if lay.k_tasks:  # the nearest task, zero when none is visible
+        if isinstance(lay, LifelongObsLayout):
+            # Lifelong: the AGV's own target (its drop-off when loaded), else the nearest open
+            # pickup, zero when none is visible.
+            rel = obs[..., lay.target_rel]
+            if lay.k_pickups:
+                nearest = obs[..., lay.pickup_rel(0)] * obs[..., lay.pickup_mask(0)]
+                rel = torch.where(obs[..., lay.target_mask] > 0, rel, nearest)
+        elif lay.k_tasks:  # the nearest task, zero when none is visible
             rel = obs[..., lay.task_rel(0)] * obs[..., lay.task_mask(0)]
         else:
             rel = torch.zeros_like(vel)
