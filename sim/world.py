@@ -3,6 +3,10 @@
 A :class:`World` never changes during an episode; the changing state lives in
 :class:`sim.state.SimState`. Every geometric helper here works on numpy arrays so that the
 classical solvers (``allocator``) and the IPF field share one definition of "free space".
+
+A world may also be a *floor* for lifelong operation: it then carries its pickup points, its
+drop-off stations and the depot where the AGVs start (:mod:`sim.floors` loads and builds
+floors). The paper's worlds have none of these.
 """
 
 from __future__ import annotations
@@ -66,9 +70,52 @@ def _as_obstacles(obstacles: object) -> np.ndarray:
         )
     if not np.all(np.isfinite(arr)):
         raise ValueError("obstacles contain NaN or infinite coordinates")
-    if np.any(arr[:, 2] <= arr[:, 0]) or np.any(arr[:, 3] <= arr[:, 1]):
-        raise ValueError("every obstacle needs xmax > xmin and ymax > ymin")
+    empty = np.flatnonzero((arr[:, 2] <= arr[:, 0]) | (arr[:, 3] <= arr[:, 1]))
+    if empty.size:
+        raise ValueError(f"every obstacle needs xmax > xmin and ymax > ymin (rows "
+                         f"{_head(empty)} do not)")
     return arr
+
+
+def _head(rows: np.ndarray, limit: int = 8) -> str:
+    """``[3, 7, 9]`` or ``[3, 7, ..., 40 rows in all]`` for an error message."""
+    listed = ", ".join(str(int(k)) for k in rows[:limit])
+    return f"[{listed}]" if len(rows) <= limit else f"[{listed}, ... {len(rows)} rows in all]"
+
+
+def _real_array(value: object, name: str, width: int, what: str) -> np.ndarray:
+    """A read-only float64 copy of ``value`` with shape (K, width); empty input gives (0, width).
+
+    Refuses strings, bools, complex numbers, objects, ragged rows, a wrong shape and NaN or
+    infinite values, naming the field (and the rows).
+    """
+    try:
+        raw = np.asarray(value)
+    except ValueError:  # ragged rows
+        raise ValueError(f"{name} must be an (K, {width}) array of {what}, got ragged rows"
+                         ) from None
+    if raw.size == 0:
+        arr = np.zeros((0, width), dtype=np.float64)
+    else:
+        if raw.dtype.kind not in "iuf":
+            raise ValueError(f"{name} must hold real numbers, got dtype {raw.dtype} "
+                             "(complex, bool, strings and objects are refused)")
+        if raw.ndim != 2 or raw.shape[1] != width:
+            raise ValueError(f"{name} must be an (K, {width}) array of {what}, got shape "
+                             f"{raw.shape}")
+        arr = np.array(raw, dtype=np.float64)  # a copy: the caller's array stays writable
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if bad.size:
+            raise ValueError(f"{name} rows {_head(bad)} contain NaN or infinite values")
+    arr.setflags(write=False)
+    return arr
+
+
+def _describe(name: str, arr: np.ndarray, rows: np.ndarray, limit: int = 4) -> str:
+    """``pickups[2] at (1.5, 0.2), pickups[7] at (3, 0.2)`` for an error message."""
+    items = [f"{name}[{int(k)}] at ({arr[k, 0]:.6g}, {arr[k, 1]:.6g})" for k in rows[:limit]]
+    more = f" and {len(rows) - limit} more" if len(rows) > limit else ""
+    return ", ".join(items) + more
 
 
 @dataclass(frozen=True)
@@ -89,6 +136,18 @@ class World:
         Keep AGVs inside ``bounds`` (disable only for the MPE parity check).
     physics : Physics
         The MPE constants.
+    pickups : np.ndarray
+        ``(P, 2)`` pickup points of a lifelong floor (at the shelf faces), may be empty.
+    stations : np.ndarray
+        ``(S, 2)`` drop-off stations of a lifelong floor, may be empty.
+    depot : np.ndarray
+        ``(D, 4)`` rectangles ``(xmin, ymin, xmax, ymax)`` where the AGVs start: every AGV disc
+        lies wholly inside one of them. Empty: anywhere on the free floor.
+
+    Every array field is stored as a read-only float64 array. Every pickup and station lies
+    inside the walls with room for an AGV disc there, clear of the shelves; every depot
+    rectangle lies inside the walls, holds at least one AGV disc and overlaps no shelf. Derive a
+    changed world with :func:`dataclasses.replace` (the checks run again).
     """
 
     bounds: tuple[float, float, float, float] = (-1.0, -1.0, 1.0, 1.0)
@@ -97,6 +156,9 @@ class World:
     capture_radius: float = 0.1
     walls: bool = True
     physics: Physics = field(default_factory=Physics)
+    pickups: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    stations: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    depot: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
     def __post_init__(self) -> None:
         b = tuple(float(v) for v in self.bounds)
@@ -119,6 +181,116 @@ class World:
                 f"agent_radius {self.agent_radius} is too large for bounds {b}: "
                 "an AGV must fit between the walls"
             )
+        for name in ("pickups", "stations"):
+            points = _real_array(getattr(self, name), name, 2, "points (x, y)")
+            object.__setattr__(self, name, points)
+            self._check_points_free(name, points)
+        depot = _real_array(self.depot, "depot", 4, "rectangles (xmin, ymin, xmax, ymax)")
+        object.__setattr__(self, "depot", depot)
+        self._check_depot(depot)
+
+    def _check_points_free(self, name: str, points: np.ndarray) -> None:
+        """Every point inside the walls, with room for an AGV disc there, off the shelves."""
+        if not len(points):
+            return
+        r = self.agent_radius
+        walls = self.wall_distance(points)
+        outside = np.flatnonzero(walls < -1e-9)
+        if outside.size:
+            raise ValueError(f"{_describe(name, points, outside)}: outside the world bounds "
+                             f"{self.bounds}")
+        shelves = self._near_obstacle_distance(points, r)
+        in_shelf = np.flatnonzero(shelves < 0)
+        if in_shelf.size:
+            raise ValueError(f"{_describe(name, points, in_shelf)}: inside a shelf")
+        # The test of is_free, on the nearby shelves only (a floor may have thousands).
+        tight = np.flatnonzero((walls < r - 1e-9) | (shelves < r - 1e-9))
+        if tight.size:
+            raise ValueError(
+                f"{_describe(name, points, tight)}: no room for an AGV disc of radius {r:g} "
+                f"there (closer than {r:g} to a wall or a shelf); move the point into the aisle"
+            )
+
+    def _near_obstacle_distance(self, points: np.ndarray, reach: float) -> np.ndarray:
+        """:meth:`obstacle_distance` where it is below ``reach``; ``inf`` or a value >= reach
+        elsewhere.
+
+        The shelves, grown by ``reach``, are entered into square buckets; each point is
+        measured against the shelves of its own bucket only, so P points and K shelves cost
+        about P + K instead of P x K (grid maps give thousands of each).
+        """
+        out = np.full(len(points), np.inf)
+        obs = self.obstacles
+        if not len(obs) or not len(points):
+            return out
+        xmin, ymin, xmax, ymax = self.bounds
+        side = max(4.0 * reach, math.sqrt((xmax - xmin) * (ymax - ymin) / 4e6))
+        nx = max(1, math.ceil((xmax - xmin) / side))
+        ny = max(1, math.ceil((ymax - ymin) / side))
+
+        def bucket(v: np.ndarray, lo: float, n: int) -> np.ndarray:
+            return np.clip(np.floor((v - lo) / side), 0, n - 1).astype(np.int64)
+
+        # Bucket ranges of every grown shelf, then one (bucket, shelf) entry per bucket covered.
+        bx0, bx1 = bucket(obs[:, 0] - reach, xmin, nx), bucket(obs[:, 2] + reach, xmin, nx)
+        by0, by1 = bucket(obs[:, 1] - reach, ymin, ny), bucket(obs[:, 3] + reach, ymin, ny)
+        wide, tall = bx1 - bx0 + 1, by1 - by0 + 1
+        count = wide * tall
+        shelf = np.repeat(np.arange(len(obs)), count)
+        local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+        cells = ((by0[shelf] + local // wide[shelf]) * nx + bx0[shelf] + local % wide[shelf])
+        order = np.argsort(cells, kind="stable")
+        cells, shelf = cells[order], shelf[order]
+        # Each point against the shelves entered in its bucket.
+        own = bucket(points[:, 1], ymin, ny) * nx + bucket(points[:, 0], xmin, nx)
+        start = np.searchsorted(cells, own, side="left")
+        many = np.searchsorted(cells, own, side="right") - start
+        point = np.repeat(np.arange(len(points)), many)
+        pair = np.repeat(start, many) + np.arange(many.sum()) - np.repeat(np.cumsum(many) - many,
+                                                                          many)
+        rect = obs[shelf[pair]]  # (pairs, 4)
+        p = points[point]  # (pairs, 2)
+        lo, hi = rect[:, :2], rect[:, 2:]
+        out_dist = np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0), axis=-1)
+        in_dist = np.min(np.minimum(p - lo, hi - p), axis=-1)
+        signed = np.where(out_dist > 0, out_dist, -np.maximum(in_dist, 0.0))
+        np.minimum.at(out, point, signed)
+        return out
+
+    def _check_depot(self, depot: np.ndarray) -> None:
+        """Every depot rectangle inside the walls, at least one AGV disc big, off the shelves."""
+        if not len(depot):
+            return
+        r = self.agent_radius
+        empty = np.flatnonzero((depot[:, 2] <= depot[:, 0]) | (depot[:, 3] <= depot[:, 1]))
+        if empty.size:
+            raise ValueError(f"depot rows {_head(empty)} need xmax > xmin and ymax > ymin")
+        small = np.flatnonzero(np.minimum(depot[:, 2] - depot[:, 0],
+                                          depot[:, 3] - depot[:, 1]) < 2 * r - 1e-9)
+        if small.size:
+            k = int(small[0])
+            raise ValueError(f"depot rows {_head(small)} are too small to hold an AGV disc of "
+                             f"radius {r:g} (depot[{k}] = {depot[k].tolist()}); each side "
+                             f"needs at least {2 * r:g}")
+        xmin, ymin, xmax, ymax = self.bounds
+        tol = 1e-9
+        outside = np.flatnonzero((depot[:, 0] < xmin - tol) | (depot[:, 1] < ymin - tol)
+                                 | (depot[:, 2] > xmax + tol) | (depot[:, 3] > ymax + tol))
+        if outside.size:
+            k = int(outside[0])
+            raise ValueError(f"depot rows {_head(outside)} reach outside the world bounds "
+                             f"{self.bounds} (depot[{k}] = {depot[k].tolist()})")
+        if self.has_obstacles:
+            lo = np.maximum(depot[:, None, :2], self.obstacles[None, :, :2])  # (D, K, 2)
+            hi = np.minimum(depot[:, None, 2:], self.obstacles[None, :, 2:])
+            overlap = np.all(hi - lo > tol, axis=-1)  # (D, K): positive-area intersection
+            rows = np.flatnonzero(overlap.any(axis=1))
+            if rows.size:
+                k = int(rows[0])
+                j = int(np.flatnonzero(overlap[k])[0])
+                raise ValueError(f"depot rows {_head(rows)} overlap a shelf (depot[{k}] = "
+                                 f"{depot[k].tolist()} overlaps obstacle {j} = "
+                                 f"{self.obstacles[j].tolist()}); the depot must be free floor")
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -129,6 +301,33 @@ class World:
     @property
     def has_obstacles(self) -> bool:
         return len(self.obstacles) > 0
+
+    @property
+    def is_floor(self) -> bool:
+        """Whether this is a lifelong floor: it has pickup points and drop-off stations."""
+        return len(self.pickups) > 0 and len(self.stations) > 0
+
+    def in_depot(self, points: np.ndarray) -> np.ndarray:
+        """Whether an AGV centred at each point may start there.
+
+        Inside a depot rectangle with its whole disc, or, for a world without a depot, anywhere
+        an AGV disc fits (:meth:`is_free`).
+
+        Parameters
+        ----------
+        points : np.ndarray, shape (..., 2)
+
+        Returns
+        -------
+        np.ndarray of bool, shape (...)
+        """
+        pts = np.asarray(points, dtype=np.float64)
+        if not len(self.depot):
+            return self.is_free(pts)
+        r = self.agent_radius - 1e-9
+        p = pts[..., None, :]  # (..., 1, 2)
+        lo, hi = self.depot[:, :2] + r, self.depot[:, 2:] - r  # (D, 2) centre ranges
+        return np.all((p >= lo) & (p <= hi), axis=-1).any(axis=-1)
 
     @property
     def task_spacing(self) -> float:
