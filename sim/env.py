@@ -11,7 +11,7 @@ leading batch dimension and no Python loop runs over agents or environments on t
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,14 +20,12 @@ from torch import Tensor
 from sim import native as native_kernels
 from sim import physics, tasks
 from sim.checks import check_count, check_device, check_env_ids, check_seed, real_array
+from sim.lifelong import LifelongEnv, LifelongScenario
 from sim.observations import ObsLayout, global_state, observe
 from sim.rewards import RewardFn, make_reward
 from sim.scenarios import Scenario, get_scenario
 from sim.state import SimState, StepContext
 from sim.world import World
-
-if TYPE_CHECKING:  # pragma: no cover
-    from sim.lifelong import LifelongEnv, LifelongScenario
 
 __all__ = ["AGVEnv", "make_env"]
 
@@ -83,6 +81,9 @@ class AGVEnv:
     ) -> None:
         if isinstance(scenario, str):
             scenario = get_scenario(scenario)
+        if isinstance(scenario, LifelongScenario):
+            raise ValueError(f"scenario {scenario.name!r} is lifelong: build it with "
+                             f"sim.make_env({scenario.name!r}, ...) (a LifelongEnv)")
         if not isinstance(scenario, Scenario):
             raise ValueError(f"scenario must be a registry name (str) or a Scenario, got "
                              f"{type(scenario).__name__} {scenario!r}")
@@ -630,8 +631,6 @@ def make_env(
     >>> reward.shape, done.shape
     (torch.Size([4, 3]), torch.Size([4]))
     """
-    from sim.lifelong import LifelongEnv, LifelongScenario
-
     if not isinstance(scenario, (str, Scenario, LifelongScenario, World)):
         raise ValueError(f"scenario must be a registry name (str), a Scenario or a floor "
                          f"(World), got {type(scenario).__name__} {scenario!r:.80}")

@@ -275,7 +275,11 @@ def _scenario(scenario: Any) -> Scenario:
             f"scenario must be a registry name such as '3v3' or a Scenario, "
             f"got {type(scenario).__name__}"
         )
-    return get_scenario(scenario)
+    scn = get_scenario(scenario)
+    if not isinstance(scn, Scenario):
+        raise ValueError(f"scenario {scn.name!r} is a lifelong scenario; score it with "
+                         f"sim.evaluate_lifelong(controller, {scn.name!r}, steps=...)")
+    return scn
 
 
 def evaluation_scenes(

@@ -282,7 +282,7 @@ class LifelongEnv:
         arr = scenario.arrivals
         self._poisson_table = arr.counts_table() if isinstance(arr, Poisson) else None
         if isinstance(arr, Trace):
-            self._trace = {name: torch.as_tensor(np.asarray(getattr(arr, name)), device=dev)
+            self._trace = {name: torch.as_tensor(np.array(getattr(arr, name)), device=dev)
                            for name in ("release", "pickup", "dropoff", "priority", "deadline")}
         faults = scenario.faults
         if isinstance(faults, FaultSchedule):

@@ -2,7 +2,9 @@
 
 Per-agent dicts live only here, at the edge; inside, everything stays batched tensors.
 All AGVs end together (terminated when every task is claimed, truncated at the step limit);
-a parked AGV keeps receiving observations and its actions are ignored.
+a parked AGV keeps receiving observations and its actions are ignored. In lifelong mode
+(``"warehouse-N"`` or a floor) nothing terminates: the run is truncated at the scenario's
+horizon ``max_steps``.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from sim.env import AGVEnv
+from sim.lifelong import LifelongEnv, LifelongScenario
 from sim.scenarios import Scenario, get_scenario
 
 __all__ = ["AGVParallelEnv", "pettingzoo_env"]
@@ -26,20 +29,24 @@ class AGVParallelEnv(ParallelEnv):
 
     Agents are named ``"agv_0" ... "agv_{N-1}"``; observations are float32 vectors of length
     O; actions are accelerations in ``[-1, 1]^2``. Every agent's info holds ``"task"`` (int,
-    the task it holds or -1) and ``"terms"`` ({term name: float}, its reward terms), at
-    :meth:`reset` (terms 0.0) as at :meth:`step`, so that wrappers that build their info
-    layout from the reset (TorchRL's ``PettingZooWrapper``) keep them.
+    the task it holds or -1; in lifelong mode the slot of its order or -1) and ``"terms"``
+    ({term name: float}, its reward terms), at :meth:`reset` (terms 0.0) as at :meth:`step`,
+    so that wrappers that build their info layout from the reset (TorchRL's
+    ``PettingZooWrapper``) keep them; in lifelong mode also ``"status"`` (its
+    :data:`sim.orders.AGENT_STATUS` name).
     """
 
     metadata = {"name": "agv_task_allocation_v0", "render_modes": ["rgb_array"],
                 "is_parallelizable": True}
 
-    def __init__(self, scenario: str | Scenario = "3v3", reward: str = "minidist",
+    def __init__(self, scenario: str | Scenario | LifelongScenario = "3v3",
+                 reward: str = "minidist",
                  seed: int | None = None, render_mode: str | None = None) -> None:
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.scenario = get_scenario(scenario)
-        self._env = AGVEnv(self.scenario, num_envs=1, reward=reward, seed=seed)
+        self.lifelong = isinstance(self.scenario, LifelongScenario)
+        self._env = self._make(reward, seed)
         self.render_mode = render_mode
         self.possible_agents = [f"agv_{i}" for i in range(self.scenario.num_agents)]
         self.agents: list[str] = []
@@ -47,10 +54,15 @@ class AGVParallelEnv(ParallelEnv):
         self._obs_dim = self._env.obs_dim
         self._term_names = self._reward_term_names(reward)
 
+    def _make(self, reward: Any, seed: int | None) -> AGVEnv | LifelongEnv:
+        if self.lifelong:
+            return LifelongEnv(self.scenario, num_envs=1, reward=reward, seed=seed)
+        return AGVEnv(self.scenario, num_envs=1, reward=reward, seed=seed)
+
     def _reward_term_names(self, reward: Any) -> list[str]:
         """The names of the reward's terms, read from one step of a separate environment, so
         that :meth:`reset` can report the same info keys as :meth:`step`."""
-        probe = AGVEnv(self.scenario, num_envs=1, reward=reward, seed=0)
+        probe = self._make(reward, 0)
         _, _, _, info = probe.step(torch.zeros(1, self.scenario.num_agents, 2))
         return list(info["reward_terms"])
 
@@ -69,10 +81,24 @@ class AGVParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         obs = self._env.reset(seed=seed)
         self.agents = list(self.possible_agents)
-        agent_task = self._env.agent_task[0].cpu().numpy()
-        infos = {a: {"task": int(agent_task[i]), "terms": dict.fromkeys(self._term_names, 0.0)}
-                 for i, a in enumerate(self.possible_agents)}
+        infos = self._infos(dict.fromkeys(self._term_names, 0.0), None)
         return self._obs_dict(obs), infos
+
+    def _infos(self, zero_terms: dict[str, float] | None, terms: dict | None) -> dict:
+        env = self._env
+        held = (env.fleet.order if self.lifelong else env.agent_task)[0].cpu().numpy()
+        infos = {}
+        for i, a in enumerate(self.possible_agents):
+            own = dict(zero_terms) if terms is None else \
+                {k: float(v[0, i]) for k, v in terms.items()}
+            infos[a] = {"task": int(held[i]), "terms": own}
+        if self.lifelong:
+            from sim.orders import AGENT_STATUS
+
+            status = env.agent_status[0].cpu().numpy()
+            for i, a in enumerate(self.possible_agents):
+                infos[a]["status"] = AGENT_STATUS[int(status[i])]
+        return infos
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
@@ -90,13 +116,10 @@ class AGVParallelEnv(ParallelEnv):
                 raise ValueError(f"action of {agent} must have shape (2,), got {arr.shape}")
             batch[0, self._index[agent]] = arr
         obs, reward, done, info = self._env.step(torch.from_numpy(batch))
-        all_claimed = bool(self._env.task_claimed.all())
+        all_claimed = not self.lifelong and bool(self._env.task_claimed.all())
         ended = bool(done[0])
         r = reward[0].cpu().numpy()
-        agent_task = info["agent_task"][0].cpu().numpy()
-        infos = {a: {"task": int(agent_task[i]),
-                     "terms": {k: float(v[0, i]) for k, v in info["reward_terms"].items()}}
-                 for i, a in enumerate(self.possible_agents)}
+        infos = self._infos(None, info["reward_terms"])
         obs_d = self._obs_dict(obs)
         rewards = {a: float(r[i]) for i, a in enumerate(self.possible_agents)}
         terminated = {a: ended and all_claimed for a in self.possible_agents}
@@ -110,6 +133,9 @@ class AGVParallelEnv(ParallelEnv):
             return None
         from sim.render import _plt, render_scene
 
+        if self.lifelong:
+            raise ValueError("render_mode='rgb_array' draws episodic scenes only; for "
+                             "lifelong runs use sim.render.render_lifelong")
         fig = render_scene(self._env)
         fig.canvas.draw()
         image = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
@@ -123,7 +149,7 @@ class AGVParallelEnv(ParallelEnv):
         pass
 
 
-def pettingzoo_env(scenario: str | Scenario = "3v3", reward: str = "minidist",
+def pettingzoo_env(scenario: str | Scenario | LifelongScenario = "3v3", reward: str = "minidist",
                    seed: int | None = None, render_mode: str | None = None) -> AGVParallelEnv:
     """A PettingZoo ``ParallelEnv`` of one AGV environment.
 
