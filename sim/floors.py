@@ -420,8 +420,10 @@ def _load_json(text: str, agent_radius: float | None) -> World:
     try:
         data = json.loads(text)
     except json.JSONDecodeError as err:
+        hint = (" (it looks like a grid map; name it .map)"
+                if text.lstrip()[:4].lower() == "type" else "")
         raise ValueError(f"not valid JSON: {err.msg} at line {err.lineno}, column {err.colno}"
-                         ) from None
+                         f"{hint}") from None
     if not isinstance(data, dict):
         raise ValueError(f"a floor plan is a JSON object with the keys {list(_JSON_REQUIRED)} "
                          f"(and optionally {list(_JSON_OPTIONAL)}), got a {type(data).__name__}")
@@ -594,8 +596,9 @@ def warehouse_floor(num_agents: int, agent_radius: float = 0.15) -> World:
     Returns
     -------
     World
-        Bounds ``(0, 0, width, height)``; ``obstacles`` (blocks, K x 4), ``pickups`` (P, 2),
-        ``stations`` (S, 2), ``depot`` (1, 4).
+        Bounds ``(0, 0, width, height)``; ``obstacles`` (blocks, K x 4, bottom row first),
+        ``pickups`` (P, 2, bottom to top, then left to right), ``stations`` (S, 2, by column
+        from the wall, bottom to top), ``depot`` (1, 4).
 
     Raises
     ------

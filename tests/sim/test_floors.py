@@ -240,6 +240,12 @@ def test_format_is_chosen_by_content_for_other_names(tmp_path: Path) -> None:
         load_floor(_write(tmp_path, "floor.csv", "x,y\n1,2\n"))
 
 
+def test_a_grid_map_named_json_gets_a_hint(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"not valid JSON: .*\(it looks like a grid map; name "
+                                         r"it .map\)"):
+        load_floor(_write(tmp_path, "kiva.json", _map_text(KIVA)))
+
+
 def test_cell_size_with_a_json_plan_is_an_error(tmp_path: Path) -> None:
     path = _write(tmp_path, "floor.json", json.dumps(_plan()))
     with pytest.raises(ValueError, match="cell_size applies to grid maps"):
