@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from sim import native as sim_native
+from sim.ipf.hierarchy import SeparatorTree
 from sim.world import World
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -23,6 +24,8 @@ __all__ = [
     "AGENT_VALUE",
     "DEFAULT_RESOLUTION",
     "MAX_GREEN_BYTES",
+    "MAX_TREE_BYTES",
+    "MAX_COLUMN_BYTES",
     "IPFGrid",
     "TaskBlockCache",
     "check_resolution",
@@ -36,8 +39,17 @@ AGENT_VALUE = -3.0
 DEFAULT_RESOLUTION = 0.05
 """Default cell size in world units (40 x 40 cells on the MPE box, an AGV spans 6 cells)."""
 MAX_GREEN_BYTES = 1 << 29
-"""Largest dense Green's function (``F^2 * 8`` bytes) a grid may build: 512 MiB, about 8000
-free cells (the 4.5 x 3.3 warehouse at 0.05 needs 195 MiB and builds in seconds)."""
+"""Largest dense Green's function (``F^2 * 8`` bytes) a grid builds: 512 MiB, about 8000
+free cells (the 4.5 x 3.3 warehouse at 0.05 needs 195 MiB and builds in seconds). Larger
+grids use the separator tree of :mod:`sim.ipf.hierarchy` instead (``IPFGrid.method``)."""
+MAX_TREE_BYTES = 1 << 30
+"""Largest separator-tree tables (:class:`sim.ipf.hierarchy.SeparatorTree`) a grid builds:
+1 GiB (the 14.8 x 11.2 warehouse-100 floor at 0.05 needs about 250 MiB)."""
+MAX_CELLS = 1 << 20
+"""Largest grid (``H * W`` cells) a grid considers at all; beyond it even the separator tree
+would exceed :data:`MAX_TREE_BYTES`."""
+MAX_COLUMN_BYTES = 1 << 28
+"""Memory for whole rows of ``G`` kept for cells that recur (pickups, stations): 256 MiB."""
 
 
 class IPFGrid:
@@ -92,14 +104,12 @@ class IPFGrid:
                 f"ring); use resolution <= {min(width, height) / 3:.4g}"
             )
         # Refuse absurd grids before any (H, W) array is made; the exact test on the free
-        # cells' Green's function follows once the shelves are known.
-        max_cells = 64 * math.isqrt(max_bytes // 8)
-        if H * W > max_cells:
+        # cells' tables follows once the shelves are known.
+        if H * W > MAX_CELLS:
             raise ValueError(
                 f"resolution {resolution} gives a {H} x {W} grid on a {width:g} x {height:g} "
-                f"world, more than {max_cells} cells; its Green's function would not fit in "
-                f"max_bytes={max_bytes}; use resolution >= "
-                f"{1.05 * math.sqrt(width * height / max_cells):.3g}"
+                f"world, more than {MAX_CELLS} cells; its Green's function would not fit in "
+                f"memory; use resolution >= {1.05 * math.sqrt(width * height / MAX_CELLS):.3g}"
             )
         self.shape = (H, W)
         xmin, ymin, _, _ = world.bounds
@@ -121,19 +131,29 @@ class IPFGrid:
                 f"the {H} x {W} grid at resolution {resolution} has no free cell; use a finer one"
             )
         need = self.num_free**2 * 8
+        self.tree: SeparatorTree | None = None
+        self.method = "dense"
         if need > max_bytes:
-            scale = math.sqrt(need / max_bytes) * 1.05
-            raise ValueError(
-                f"resolution {resolution} gives {self.num_free} free cells on this "
-                f"{width:g} x {height:g} world; its Green's function would need "
-                f"{need / 2**20:.0f} MiB (limit {max_bytes / 2**20:.0f} MiB); "
-                f"use resolution >= {resolution * scale:.3g} or raise max_bytes"
-            )
+            # Too large for the dense G: exact entries from a separator tree instead.
+            self.method = "tree"
+            self.tree = SeparatorTree(self.fixed)
+            if self.tree.nbytes > MAX_TREE_BYTES:
+                scale = (self.tree.nbytes / MAX_TREE_BYTES) ** (1 / 3) * 1.1
+                raise ValueError(
+                    f"resolution {resolution} gives {self.num_free} free cells on this "
+                    f"{width:g} x {height:g} world; its Green's function would need "
+                    f"{need / 2**20:.0f} MiB dense (limit max_bytes={max_bytes / 2**20:.0f} MiB) "
+                    f"and its separator tree {self.tree.nbytes / 2**20:.0f} MiB (limit "
+                    f"{MAX_TREE_BYTES / 2**20:.0f} MiB); use resolution >= "
+                    f"{resolution * scale:.3g}"
+                )
         self.free_index = np.full(H * W, -1, dtype=np.int64)
         self.free_index[free] = np.arange(self.num_free)
         self._green: Tensor | None = None
         self._torch: dict[torch.device, tuple[Tensor, Tensor]] = {}
         self._native_tables: tuple[Tensor, Tensor, int, int, int] | None = None
+        self._index: dict[torch.device, Tensor] = {}
+        self._rows_cache: dict[int, Tensor] = {}  # free index -> row of G (F + 1,), CPU
 
     # ------------------------------------------------------------------ the graph
     @functools.cached_property
@@ -169,7 +189,18 @@ class IPFGrid:
     @property
     def green(self) -> np.ndarray:
         """The Dirichlet Green's function ``G = L^{-1}``, dense float64 (F, F), built on first use
-        (a read-only view)."""
+        (a read-only view).
+
+        Raises
+        ------
+        ValueError
+            On grids too large for it (``method == "tree"``); use :meth:`green_entries`.
+        """
+        if self.method != "dense":
+            raise ValueError(
+                f"this grid has {self.num_free} free cells: its dense Green's function "
+                f"({self.num_free**2 * 8 / 2**20:.0f} MiB) is not built (method 'tree'); "
+                "read entries with IPFGrid.green_entries(rows, cols)")
         view = self._padded_green()[: self.num_free, : self.num_free].numpy()
         view.setflags(write=False)
         return view
@@ -192,12 +223,94 @@ class IPFGrid:
         return self._green
 
     def _tables(self, device: torch.device) -> tuple[Tensor, Tensor]:
-        """The padded ``G`` and the cell -> free-index table (fixed cells -> F) on ``device``."""
+        """The padded ``G`` and the cell -> free-index table (fixed cells -> F) on ``device``
+        (dense grids only)."""
         if device not in self._torch:
+            self._torch[device] = (self._padded_green().to(device), self._cell_index(device))
+        return self._torch[device]
+
+    def _cell_index(self, device: torch.device) -> Tensor:
+        """The cell -> free-index table (fixed cells -> F), (H * W,) int64 on ``device``."""
+        if device not in self._index:
             F = self.num_free
             index = torch.from_numpy(np.where(self.free_index >= 0, self.free_index, F))
-            self._torch[device] = (self._padded_green().to(device), index.to(device))
-        return self._torch[device]
+            self._index[device] = index.to(device)
+        return self._index[device]
+
+    def green_entries(self, rows: Tensor, cols: Tensor) -> Tensor:
+        """Entries ``G[rows[..., j], cols[..., k]]`` of the Green's function, on any grid.
+
+        Parameters
+        ----------
+        rows : Tensor of int64, shape (..., J)
+            Free-cell indices (``free_index`` of a cell) in ``[0, F]``; ``F`` stands for a
+            fixed cell and reads 0.
+        cols : Tensor of int64, shape (..., K)
+            The same, with the batch dimensions of ``rows``.
+
+        Returns
+        -------
+        Tensor of float64, shape (..., J, K), on the device of ``rows``
+
+        Raises
+        ------
+        ValueError
+            For indices outside ``[0, F]`` or batch dimensions that differ.
+        """
+        rows, cols = torch.as_tensor(rows), torch.as_tensor(cols)
+        if rows.dim() == 0 or cols.dim() == 0 or rows.shape[:-1] != cols.shape[:-1]:
+            raise ValueError(f"rows and cols must have shapes (..., J) and (..., K) with the same "
+                             f"batch dimensions, got {tuple(rows.shape)} and {tuple(cols.shape)}")
+        for name, t in (("rows", rows), ("cols", cols)):
+            if t.dtype != torch.int64 or (t.numel() and (int(t.min()) < 0
+                                                         or int(t.max()) > self.num_free)):
+                raise ValueError(f"{name} must be int64 free-cell indices in [0, {self.num_free}]")
+        return self._gather(rows, cols)
+
+    def _green_rows(self, fidx: Tensor) -> Tensor:
+        """Whole rows ``G[fidx[k], :]`` as (S, F + 1) float64 on the CPU (column F reads 0)."""
+        table, where = self._row_table(fidx)
+        return table.index_select(0, where)
+
+    def _row_table(self, fidx: Tensor) -> tuple[Tensor, Tensor]:
+        """The distinct rows of ``G`` that ``fidx`` (any shape, values in [0, F]) names, as a
+        table (U, F + 1) float64 on the CPU, and where each entry of ``fidx`` finds its row
+        (flat, (fidx.numel(),)). On tree grids the rows are kept (up to
+        :data:`MAX_COLUMN_BYTES`), so that cells that recur (pickups, stations, task cells of
+        an episode) cost one gather after their first use."""
+        flat = fidx.cpu().reshape(-1)
+        if self.method == "dense":
+            return self._padded_green(), flat
+        assert self.tree is not None
+        F1 = self.num_free + 1
+        wanted, where = torch.unique(flat, return_inverse=True)
+        keys = wanted.tolist()
+        missing = [f for f in keys if f not in self._rows_cache]
+        extra: dict[int, Tensor] = {}
+        if missing:
+            fresh = self.tree.rows(torch.tensor(missing, dtype=torch.int64))
+            room = max(MAX_COLUMN_BYTES // (8 * F1) - len(self._rows_cache), 0)
+            for k, f in enumerate(missing):
+                if k < room:
+                    self._rows_cache[f] = fresh[k].clone()
+                else:
+                    extra[f] = fresh[k]
+        table = torch.stack([self._rows_cache[f] if f in self._rows_cache else extra[f]
+                             for f in keys])
+        return table, where
+
+    def _pair_block(self, fixed: Tensor, other: Tensor) -> Tensor:
+        """``G[fixed[b, k], other[b, j]]`` as (B, K, J) float64 on the device of ``other``,
+        where ``fixed`` holds cells that recur between calls (pickups, stations): on tree
+        grids their whole rows are kept and this is one gather."""
+        if self.method == "dense":
+            return self._gather(fixed, other)
+        table, where = self._row_table(fixed)
+        B, K = fixed.shape
+        J = other.shape[1]
+        F1 = self.num_free + 1
+        flat = (where.view(B, K, 1) * F1 + other.cpu().view(B, 1, J)).view(-1)
+        return table.view(-1).index_select(0, flat).view(B, K, J).to(other.device)
 
     # ------------------------------------------------------------------ cells
     def cell_of(self, points: Tensor | np.ndarray) -> Tensor:
@@ -259,17 +372,18 @@ class IPFGrid:
         mask = (torch.ones_like(cells, dtype=torch.bool) if source_mask is None
                 else torch.as_tensor(source_mask, device=device).bool())
         _check_sources(self, cells, values, mask)
-        green, index = self._tables(device)
+        index = self._cell_index(device)
         F = self.num_free
         fidx = index[cells]  # (K, S)
         kept = _dedupe(cells, mask & (fidx < F))
         eye = torch.eye(cells.shape[1], dtype=torch.float64, device=device)
-        gss = green[fidx.unsqueeze(-1), fidx.unsqueeze(-2)]
+        gss = self._gather(fidx, fidx)
         both = kept.unsqueeze(-1) & kept.unsqueeze(-2)
         gss = torch.where(both, gss, eye)
         weights = torch.linalg.solve(gss, (values * kept).unsqueeze(-1))  # (K, S, 1)
-        free_field = green[:F].index_select(1, fidx.flatten()).view(F, *fidx.shape)  # (F, K, S)
-        free_field = torch.einsum("fks,ks->kf", free_field, weights.squeeze(-1) * kept)
+        rows = self._green_rows(torch.where(kept, fidx, F).flatten()).to(device)  # (K S, F + 1)
+        free_field = rows[:, :F].view(*fidx.shape, F)  # (K, S, F)
+        free_field = torch.einsum("ksf,ks->kf", free_field, weights.squeeze(-1) * kept)
         H, W = self.shape
         out = torch.zeros(cells.shape[0], H * W, dtype=torch.float64, device=device)
         out[:, torch.from_numpy(self.free_index >= 0).to(device)] = free_field
@@ -330,7 +444,7 @@ class IPFGrid:
             ``native=True`` where the kernel cannot run.
         """
         kernels = None
-        if native is not False and agent_pos.dtype == torch.float32 \
+        if native is not False and self.method == "dense" and agent_pos.dtype == torch.float32 \
                 and task_pos.dtype == torch.float32 and task_pos.device.type == "cpu":
             kernels = sim_native.library_for(agent_pos.device)
         if kernels is not None:
@@ -339,13 +453,14 @@ class IPFGrid:
                                           task_value, agent_value, cache)
             return phi.to(agent_pos.dtype)
         if native:
-            raise ValueError("native=True needs float32 CPU tensors and the fused kernels "
-                             "(see sim.native.disabled_reason())")
+            raise ValueError("native=True needs float32 CPU tensors, the fused kernels "
+                             "(see sim.native.disabled_reason()) and a grid with a dense "
+                             "Green's function (method 'dense')")
         _check_batch_shapes(agent_pos, task_pos, task_open)
         N = agent_pos.shape[1]
         T = N + task_pos.shape[1]
         device = agent_pos.device
-        _, index = self._tables(device)
+        index = self._cell_index(device)
         cells = self._cells(torch.cat([agent_pos, task_pos], dim=1))  # (B, T), AGVs first
         fidx = index[cells]
         candidate = fidx < self.num_free
@@ -420,7 +535,7 @@ class IPFGrid:
                 raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
         if dtype not in (torch.float64, torch.float32):
             raise ValueError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
-        if kernels is not None:
+        if kernels is not None and self.method == "dense":
             return self._potentials_native(kernels, agent_pos, task_pos, task_claimed, True,
                                            task_value, agent_value, cache, agent_task, active,
                                            dtype)
@@ -431,6 +546,167 @@ class IPFGrid:
             phi = torch.where(agent_task >= 0, task_value, phi)
         if active is not None:
             phi = phi * active.unsqueeze(1)
+        return phi.to(dtype)
+
+    def lifelong_potentials(
+        self,
+        agent_pos: Tensor,
+        pickup_pos: Tensor,
+        pickup_open: Tensor,
+        dropoff_pos: Tensor,
+        loaded: Tensor,
+        active: Tensor | None = None,
+        *,
+        task_value: float = TASK_VALUE,
+        agent_value: float = AGENT_VALUE,
+        cache: TaskBlockCache | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> Tensor:
+        """``r_IPF`` of every AGV on a lifelong floor: its own field at its own cell.
+
+        AGV i's field depends on what it carries:
+
+        - *not loaded*: every open pickup at ``task_value`` (pickups that share a cell are one
+          source) and every other AGV at ``agent_value``;
+        - *loaded*: only its own drop-off at ``task_value`` and every other AGV at
+          ``agent_value`` (other AGVs' drop-offs and all pickups are not sources).
+
+        Rules for coinciding cells, as in :meth:`reward_potentials` (the AGV wins): a pickup or
+        a drop-off on a cell that holds an AGV is not a source (that cell is ``agent_value`` in
+        every field but that AGV's own, where it reads the rules below); AGVs that share a cell
+        are one source. AGV i reads ``agent_value`` if another AGV shares its cell, else
+        ``task_value`` if a ``task_value`` source of its own field (an open pickup when not
+        loaded, its own drop-off when loaded) shares its cell; 0 on a boundary or shelf cell
+        (sources there are ignored) and in environments that are not ``active``.
+
+        Exact and batched: per environment one ``N x N`` inverse of the Schur complement of the
+        open pickups' block (whose factor is kept in ``cache`` while the open pickups stay the
+        same) serves every unloaded AGV, and one inverse of ``G[agents, agents]`` with a rank-one
+        border per AGV (its drop-off) serves every loaded one:
+        ``P_ii = Q_ii + h_i^2 / s``, ``Phi_i = v_i - ((Q v)_i + h_i (h . v - v_d) / s) / P_ii``
+        with ``Q = G[A, A]^{-1}``, ``h = Q G[A, d_i]``, ``s = G[d_i, d_i] - G[d_i, A] h``.
+        On large grids (``method == "tree"``) the rows of ``G`` at pickup and drop-off cells
+        are kept after their first use (they recur: a floor has finitely many), so only the
+        AGVs' own block comes from the separator tree at every call.
+
+        Parameters
+        ----------
+        agent_pos : Tensor, shape (B, N, 2)
+            AGV positions (float32 or float64).
+        pickup_pos : Tensor, shape (B, Q, 2)
+            Pickup points of the orders (or slots) of each environment.
+        pickup_open : Tensor of bool, shape (B, Q)
+            Which pickups are open (sources for the AGVs that are not loaded).
+        dropoff_pos : Tensor, shape (B, N, 2)
+            Each AGV's drop-off point (read only where ``loaded``).
+        loaded : Tensor of bool, shape (B, N)
+            AGVs carrying an order.
+        active : Tensor of bool, shape (B,), optional
+            Environments that are running (default all); the others read 0.
+        task_value, agent_value : float
+            The fixed potentials (+5 and -3).
+        cache : TaskBlockCache, optional
+            The open pickups' factors kept between calls (updated in place; keep one per batch
+            of environments, apart from the episodic reward's).
+        dtype : torch.dtype
+            ``torch.float32`` or ``torch.float64``, the dtype of the result.
+
+        Returns
+        -------
+        Tensor, shape (B, N), of ``dtype``
+
+        Raises
+        ------
+        ValueError
+            Naming the argument, for positions that are not ``(B, ., 2)`` real tensors with
+            the same B, masks that are not boolean of the right shape, non-finite potentials
+            or another dtype.
+        """
+        for name, t in (("agent_pos", agent_pos), ("pickup_pos", pickup_pos),
+                        ("dropoff_pos", dropoff_pos)):
+            if not isinstance(t, Tensor) or t.dim() != 3 or t.shape[-1] != 2 \
+                    or not t.is_floating_point():
+                raise ValueError(f"{name} must be a real tensor of shape (B, K, 2), got "
+                                 f"{getattr(t, 'dtype', type(t).__name__)} "
+                                 f"{tuple(getattr(t, 'shape', ()))}")
+        B, N = agent_pos.shape[:2]
+        Q = pickup_pos.shape[1]
+        if pickup_pos.shape[0] != B:
+            raise ValueError(f"pickup_pos must have shape ({B}, Q, 2), got "
+                             f"{tuple(pickup_pos.shape)}")
+        if tuple(dropoff_pos.shape) != (B, N, 2):
+            raise ValueError(f"dropoff_pos must have shape ({B}, {N}, 2), got "
+                             f"{tuple(dropoff_pos.shape)}")
+        for name, t, shape in (("pickup_open", pickup_open, (B, Q)), ("loaded", loaded, (B, N)),
+                               ("active", active, (B,))):
+            if name == "active" and t is None:
+                continue
+            if not isinstance(t, Tensor) or t.dtype != torch.bool or tuple(t.shape) != shape:
+                raise ValueError(f"{name} must be a bool tensor of shape {shape}, got "
+                                 f"{getattr(t, 'dtype', type(t).__name__)} "
+                                 f"{tuple(getattr(t, 'shape', ()))}")
+        for name, value in (("task_value", task_value), ("agent_value", agent_value)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not math.isfinite(value):
+                raise ValueError(f"{name} must be a finite number, got {value!r}")
+        if dtype not in (torch.float64, torch.float32):
+            raise ValueError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
+        device = agent_pos.device
+        F = self.num_free
+        index = self._cell_index(device)
+        ca, cp, cd = self._cells(agent_pos), self._cells(pickup_pos), self._cells(dropoff_pos)
+        fa, fp, fd = index[ca], index[cp], index[cd]
+        a_cand = fa < F
+        a_kept = _dedupe(ca, a_cand)
+        # the AGV wins a shared cell: pickups and drop-offs there are not sources
+        on_agent_p = ((cp.unsqueeze(-1) == ca.unsqueeze(-2)) & a_cand.unsqueeze(-2)).any(-1)
+        on_agent_d = ((cd.unsqueeze(-1) == ca.unsqueeze(-2)) & a_cand.unsqueeze(-2)).any(-1)
+        p_open = pickup_open.to(device) & (fp < F)
+        p_kept = _dedupe(cp, p_open & ~on_agent_p)
+        loaded = loaded.to(device)
+        d_src = loaded & (fd < F) & ~on_agent_d
+        f_a = torch.where(a_kept, fa, F)
+        f_p = torch.where(p_kept, fp, F)
+        v_a = a_kept.to(torch.float64) * agent_value
+        g_aa = self._gather(f_a, f_a)  # (B, N, N)
+        g_aa.diagonal(dim1=-2, dim2=-1).add_(~a_kept)  # non-sources decouple
+        phi = torch.zeros(B, N, dtype=torch.float64, device=device)
+        if bool((~loaded).any()):
+            # the open pickups' block D = L_D L_D^T, X = G[A, P] L_D^{-T}, S = G_AA - X X^T
+            if cache is None:
+                cache = TaskBlockCache()
+            inv_chol_d, u = cache.update(self, f_p, task_value)
+            x_t = self._pair_block(f_p, f_a).mT @ inv_chol_d.mT  # (B, N, Q)
+            schur = torch.baddbmm(g_aa, x_t, x_t.mT, alpha=-1.0)
+            r = v_a - (x_t @ u.unsqueeze(-1)).squeeze(-1)
+            p_aa, _ = torch.linalg.inv_ex(schur)
+            p_ii = p_aa.diagonal(dim1=-2, dim2=-1)
+            phi = v_a - (p_aa @ r.unsqueeze(-1)).squeeze(-1) / p_ii
+        if bool(loaded.any()):
+            f_d = torch.where(d_src, fd, F)
+            q_aa, _ = torch.linalg.inv_ex(g_aa)
+            g_da = self._pair_block(f_d, f_a)  # (B, N_i, N_j): G[d_i, a_j]
+            gamma = self._pair_block(f_d, f_d).diagonal(dim1=-2, dim2=-1)  # G[d_i, d_i]
+            h = g_da @ q_aa  # row i: (Q G[A, d_i])^T (Q symmetric)
+            s = torch.where(d_src, gamma - (h * g_da).sum(-1), 1.0)
+            v_d = d_src.to(torch.float64) * task_value
+            h_ii = h.diagonal(dim1=-2, dim2=-1)
+            p_ii = q_aa.diagonal(dim1=-2, dim2=-1) + h_ii * h_ii / s
+            qv = (q_aa @ v_a.unsqueeze(-1)).squeeze(-1)
+            hv = (h @ v_a.unsqueeze(-1)).squeeze(-1)
+            phi_l = v_a - (qv + h_ii * (hv - v_d) / s) / p_ii
+            phi = torch.where(loaded, phi_l, phi)
+        # coinciding cells, then fixed cells and inactive environments
+        not_self = ~self._eye(N, device, torch.bool)
+        on_other = ((ca.unsqueeze(-1) == ca.unsqueeze(-2)) & a_cand.unsqueeze(-2)
+                    & not_self).any(-1)
+        on_pickup = ((ca.unsqueeze(-1) == cp.unsqueeze(-2)) & p_open.unsqueeze(-2)).any(-1)
+        on_own = torch.where(loaded, (cd == ca) & (fd < F), on_pickup)
+        phi = torch.where(on_own, task_value, phi)
+        phi = torch.where(on_other, agent_value, phi)
+        phi = torch.where(a_cand, phi, 0.0)
+        if active is not None:
+            phi = phi * active.to(device).unsqueeze(1)
         return phi.to(dtype)
 
     def _potentials_native(
@@ -501,7 +777,13 @@ class IPFGrid:
         return self._native_tables[2], self._native_tables[3], self._native_tables[4]
 
     def _gather(self, rows: Tensor, cols: Tensor) -> Tensor:
-        """``G[rows[b, j], cols[b, k]]`` as (B, J, K) from the padded G (index F reads 0)."""
+        """``G[rows[b, j], cols[b, k]]`` as (B, J, K) from the padded G (index F reads 0), or
+        from the separator tree on large grids."""
+        if self.method != "dense":
+            assert self.tree is not None
+            if rows.device.type == "cpu":
+                return self.tree.entries(rows, cols)
+            return self.tree.entries(rows.cpu(), cols.cpu()).to(rows.device)
         green, _ = self._tables(rows.device)
         F1 = self.num_free + 1
         flat = (rows.unsqueeze(-1) * F1 + cols.unsqueeze(-2)).view(-1)

@@ -1,0 +1,330 @@
+"""Exact entries of the Dirichlet Green's function of large grids, without the dense ``G``.
+
+The free cells are split recursively by straight separator lines (a row or a column of the
+domain, chosen where it crosses the fewest free cells, so through shelves where it can); the
+pieces below a size are *leaves*. For a domain ``D`` with separator ``Sigma`` and the rest
+``C = D \\ Sigma`` (the children, not connected to each other once ``Sigma`` is removed), block
+elimination of ``L_D`` (the Laplacian restricted to ``D``; every cell outside ``D`` is fixed at 0)
+gives, with the harmonic measure ``E = -L_CC^{-1} L_{C Sigma}`` and the Schur complement
+``S = L_{Sigma Sigma} + L_{Sigma C} E = R R^T``,
+
+``G_D(s, t) = [s, t in one child c] G_c(s, t) + y_s . y_t``,   ``y_s = R^{-1} b_s``,
+
+where ``b_s`` is row ``s`` of ``E`` for ``s`` in ``C`` and ``e_s`` for ``s`` on ``Sigma``.
+Unrolled over the tree, ``G(s, t)`` is the sum of ``y_s . y_t`` over the domains that hold both
+cells, plus the leaf's dense Green's function when both lie in one leaf. Per level of the tree the
+vectors ``y`` sit in one table ``(F + 1, s_max)`` (row ``F``, and the rows of cells outside every
+domain of that level, are zero), so a block of entries between two sets of cells is one gather
+and one small matrix product per level, masked to the pairs that share the domain.
+
+Memory is ``F * (sum over levels of the widest separator) * 8`` bytes plus the leaves'
+``sum m^2 * 8``: on a floor of ``F`` free cells the separators shrink by about ``sqrt(2)`` a
+level, so the sum is a few times the first one, ``O(F sqrt(F))`` against ``F^2`` for ``G``.
+Everything is float64 and direct (Cholesky factors and sparse LU solves), so the entries are
+exact up to rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["LEAF_CELLS", "SeparatorTree", "free_laplacian"]
+
+LEAF_CELLS = 320
+"""Domains of at most this many free cells are leaves (a dense Green's function each)."""
+_BALANCE = 0.2
+"""A separator line must leave at least this fraction of the domain's cells on each side."""
+
+
+def free_laplacian(fixed: np.ndarray) -> object:
+    """The Dirichlet Laplacian ``4 I - A`` over the free (not fixed) cells of a grid, sparse CSC
+    (F, F), free cells in row-major order. Built with numpy (no graph), for large grids.
+
+    Parameters
+    ----------
+    fixed : np.ndarray of bool, shape (H, W)
+        Cells fixed at 0; the outer ring must be fixed (every free cell then has 4 neighbours).
+    """
+    import scipy.sparse as sp
+
+    H, W = fixed.shape
+    free = ~fixed.ravel()
+    index = np.full(H * W, -1, dtype=np.int64)
+    F = int(free.sum())
+    index[free] = np.arange(F)
+    cells = np.flatnonzero(free)
+    rows, cols = [np.arange(F)], [np.arange(F)]
+    vals = [np.full(F, 4.0)]
+    for step in (1, -1, W, -W):
+        nb = index[cells + step]
+        ok = nb >= 0
+        rows.append(np.flatnonzero(ok))
+        cols.append(nb[ok])
+        vals.append(np.full(int(ok.sum()), -1.0))
+    return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(F, F))
+
+
+@dataclass
+class _Node:
+    cells: np.ndarray  # free indices of the domain (separator cells included)
+    level: int
+    sep: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    children: list[_Node] = field(default_factory=list)
+
+    @property
+    def leaf(self) -> bool:
+        return not self.children and len(self.sep) == 0
+
+
+def _split(rc: np.ndarray) -> tuple[int, int] | None:
+    """The separator line of a domain with cell coordinates ``rc`` (n, 2): ``(axis, value)``,
+    the row or column with the fewest cells among those leaving ``_BALANCE`` of the cells on
+    each side (ties: the most balanced), or None if no line does."""
+    n = len(rc)
+    best: tuple[float, int, int] | None = None
+    for axis in (0, 1):
+        coord = rc[:, axis]
+        lo = int(coord.min())
+        counts = np.bincount(coord - lo)
+        below = np.cumsum(counts) - counts
+        above = n - below - counts
+        ok = np.minimum(below, above) >= _BALANCE * n
+        if not ok.any():
+            continue
+        cand = np.flatnonzero(ok)
+        score = counts[cand] + np.abs(below[cand] - above[cand]) / (2.0 * n)
+        k = int(np.argmin(score))
+        if best is None or score[k] < best[0]:
+            best = (float(score[k]), axis, int(cand[k]) + lo)
+    return None if best is None else (best[1], best[2])
+
+
+class SeparatorTree:
+    """Nested dissection of a grid's free cells and the tables that give exact entries of
+    its Dirichlet Green's function (see the module notes).
+
+    Made in two stages: the tree (cheap, index work only; :attr:`nbytes` is then exact, so a
+    caller can refuse a grid before any factorization) and :meth:`build` (the numerics).
+
+    Parameters
+    ----------
+    fixed : np.ndarray of bool, shape (H, W)
+        Cells fixed at 0, the outer ring included.
+    leaf_cells : int
+        Domains of at most this many free cells are leaves.
+
+    Attributes
+    ----------
+    num_free : int
+        F.
+    depth : int
+        Number of separator levels.
+    separator_widths : list of int
+        The widest separator of each level.
+    nbytes : int
+        Memory the tables will take (float64 vectors, node ids, leaf blocks).
+    """
+
+    def __init__(self, fixed: np.ndarray, leaf_cells: int = LEAF_CELLS) -> None:
+        fixed = np.asarray(fixed, dtype=bool)
+        if fixed.ndim != 2:
+            raise ValueError(f"fixed must be a 2-D mask (H, W), got shape {fixed.shape}")
+        if not (isinstance(leaf_cells, (int, np.integer)) and leaf_cells >= 1):
+            raise ValueError(f"leaf_cells must be a positive integer, got {leaf_cells!r}")
+        self.fixed = fixed
+        H, W = fixed.shape
+        flat = np.flatnonzero(~fixed.ravel())
+        self.num_free = F = len(flat)
+        self._rc = np.stack([flat // W, flat % W], axis=1).astype(np.int64)  # (F, 2)
+        self.root = _Node(np.arange(F, dtype=np.int64), 0)
+        self.leaves: list[_Node] = []
+        self.levels: list[list[_Node]] = []
+        stack = [self.root]
+        while stack:
+            node = stack.pop()
+            rc = self._rc[node.cells]
+            line = None if len(node.cells) <= leaf_cells else _split(rc)
+            if line is None:
+                self.leaves.append(node)
+                continue
+            axis, value = line
+            coord = rc[:, axis]
+            node.sep = node.cells[coord == value]
+            while len(self.levels) <= node.level:
+                self.levels.append([])
+            self.levels[node.level].append(node)
+            for side in (coord < value, coord > value):
+                if side.any():
+                    child = _Node(node.cells[side], node.level + 1)
+                    node.children.append(child)
+                    stack.append(child)
+        self.depth = len(self.levels)
+        self.separator_widths = [max(len(n.sep) for n in lev) for lev in self.levels]
+        leaf_bytes = sum(len(n.cells) ** 2 for n in self.leaves) * 8
+        self.nbytes = int((F + 1) * (8 * sum(self.separator_widths) + 8 * self.depth + 24)
+                          + leaf_bytes)
+        self._built = False
+
+    # ------------------------------------------------------------------ numerics
+    def build(self) -> SeparatorTree:
+        """Factor every separator's Schur complement and fill the tables (once)."""
+        if self._built:
+            return self
+        import scipy.linalg as sla
+        import scipy.sparse.linalg as spla
+
+        F = self.num_free
+        lap = free_laplacian(self.fixed).tocsr()
+        self._y: list[Tensor] = []
+        self._node_id: list[Tensor] = []
+        self._multi: list[bool] = []
+        for lev, nodes in enumerate(self.levels):
+            width = self.separator_widths[lev]
+            y = np.zeros((F + 1, width))
+            node_id = np.full(F + 1, -1, dtype=np.int64)
+            for k, node in enumerate(nodes):
+                sep = node.sep
+                s = len(sep)
+                rest = np.setdiff1d(node.cells, sep, assume_unique=True)
+                lap_ss = lap[sep][:, sep].toarray()
+                if len(rest):
+                    lap_cs = lap[rest][:, sep]
+                    lap_cc = lap[rest][:, rest].tocsc()
+                    if len(rest) <= 2000:
+                        harm = -np.linalg.solve(lap_cc.toarray(), lap_cs.toarray())
+                    else:
+                        lu = spla.splu(lap_cc, permc_spec="MMD_AT_PLUS_A")
+                        harm = -lu.solve(lap_cs.toarray())
+                    schur = lap_ss + lap_cs.T @ harm
+                else:
+                    harm = np.zeros((0, s))
+                    schur = lap_ss
+                chol = np.linalg.cholesky(0.5 * (schur + schur.T))
+                # y_s = R^{-1} b_s for every cell of the domain: rows of [E; I] R^{-T}
+                y[rest, :s] = sla.solve_triangular(chol, harm.T, lower=True).T
+                y[sep, :s] = sla.solve_triangular(chol, np.eye(s), lower=True).T
+                node_id[node.cells] = k
+            self._y.append(torch.from_numpy(y))
+            self._node_id.append(torch.from_numpy(node_id))
+            self._multi.append(len(nodes) > 1)
+        # leaves: dense inverses, packed; per cell its leaf, its place in it
+        leaf_id = np.full(F + 1, -1, dtype=np.int64)
+        local = np.zeros(F + 1, dtype=np.int64)
+        size = np.zeros(len(self.leaves) + 1, dtype=np.int64)
+        offset = np.zeros(len(self.leaves) + 1, dtype=np.int64)
+        blocks = []
+        total = 0
+        for k, leaf in enumerate(self.leaves):
+            m = len(leaf.cells)
+            block = lap[leaf.cells][:, leaf.cells].toarray()
+            chol = np.linalg.cholesky(block)
+            inv = sla.cho_solve((chol, True), np.eye(m))
+            blocks.append((0.5 * (inv + inv.T)).ravel())
+            leaf_id[leaf.cells] = k
+            local[leaf.cells] = np.arange(m)
+            size[k], offset[k] = m, total
+            total += m * m
+        self._leaf_values = torch.from_numpy(np.concatenate(blocks + [np.zeros(1)]))
+        self._leaf_id = torch.from_numpy(leaf_id)
+        self._leaf_local = torch.from_numpy(local)
+        self._leaf_size = torch.from_numpy(size)
+        self._leaf_offset = torch.from_numpy(offset)
+        mmax = max(len(leaf.cells) for leaf in self.leaves)
+        cells = np.full((len(self.leaves) + 1, mmax), F, dtype=np.int64)
+        for k, leaf in enumerate(self.leaves):
+            cells[k, : len(leaf.cells)] = leaf.cells
+        self._leaf_cells = torch.from_numpy(cells)
+        self._built = True
+        return self
+
+    # ------------------------------------------------------------------ queries
+    def entries(self, rows: Tensor, cols: Tensor) -> Tensor:
+        """``G[rows[..., j], cols[..., k]]`` as ``(..., J, K)`` float64; index ``F`` reads 0.
+
+        Parameters
+        ----------
+        rows : Tensor of int64, shape (..., J)
+            Free-cell indices in ``[0, F]`` (F: no cell).
+        cols : Tensor of int64, shape (..., K)
+            The same, batch dimensions equal to ``rows``'.
+        """
+        self.build()
+        sym = rows is cols
+        batch, J, K = rows.shape[:-1], rows.shape[-1], cols.shape[-1]
+        r = rows.reshape(-1, J).contiguous()
+        c = r if sym else cols.reshape(-1, K).contiguous()
+        rf, cf = r.view(-1), c.view(-1)
+
+        def take(table: Tensor, flat: Tensor, like: Tensor) -> Tensor:
+            return table.index_select(0, flat).view(like.shape + table.shape[1:])
+
+        lr = take(self._leaf_id, rf, r)
+        lc = lr if sym else take(self._leaf_id, cf, c)
+        loc_r = take(self._leaf_local, rf, r)
+        loc_c = loc_r if sym else take(self._leaf_local, cf, c)
+        # leaf block: cells outside every leaf have id -1; they are matched by nothing valid
+        lr_safe = lr.clamp_min(0)
+        base = take(self._leaf_offset, lr_safe.view(-1), r) \
+            + loc_r * take(self._leaf_size, lr_safe.view(-1), r)
+        same = (lr.unsqueeze(-1) == lc.unsqueeze(-2)) & (lr >= 0).unsqueeze(-1)
+        flat = (base.unsqueeze(-1) + loc_c.unsqueeze(-2)).masked_fill_(~same, 0)
+        out = self._leaf_values.index_select(0, flat.view(-1)).view(flat.shape)
+        out.masked_fill_(~same, 0.0)
+        for y, node, multi in zip(self._y, self._node_id, self._multi, strict=True):
+            # rows of y are zero where the node id is -1, so -1 == -1 pairs add nothing
+            yr = take(y, rf, r)
+            yc = yr if sym else take(y, cf, c)
+            nr = take(node, rf, r)
+            nc = nr if sym else take(node, cf, c)
+            prod = torch.matmul(yr, yc.mT)
+            if multi:  # else one domain at this level: every pair shares it
+                prod.mul_(nr.unsqueeze(-1) == nc.unsqueeze(-2))
+            out += prod
+        return out.view(*batch, J, K)
+
+    def rows(self, cells: Tensor) -> Tensor:
+        """Whole rows ``G[cells[k], :]`` as ``(S, F + 1)`` float64 (column ``F`` is 0).
+
+        Parameters
+        ----------
+        cells : Tensor of int64, shape (S,)
+            Free-cell indices in ``[0, F]``.
+        """
+        self.build()
+        F = self.num_free
+        S = cells.shape[0]
+        out = torch.zeros(S, F + 1, dtype=torch.float64)
+        for y, node in zip(self._y, self._node_id, strict=True):
+            prod = y[cells] @ y.T  # (S, F + 1)
+            nr = node[cells]
+            prod.masked_fill_((node.unsqueeze(0) != nr.unsqueeze(1)) | (nr < 0).unsqueeze(1), 0.0)
+            out += prod
+        leaf = self._leaf_id[cells]
+        has = leaf >= 0
+        lf = torch.where(has, leaf, len(self.leaves))
+        mmax = self._leaf_cells.shape[1]
+        span = torch.arange(mmax)
+        size = self._leaf_size[lf]
+        idx = (self._leaf_offset[lf] + self._leaf_local[cells] * size).unsqueeze(1) + span
+        inside = (span < size.unsqueeze(1)) & has.unsqueeze(1)
+        vals = torch.where(inside, self._leaf_values[torch.where(inside, idx, 0)], 0.0)
+        out.scatter_add_(1, self._leaf_cells[lf], vals)
+        out[:, F] = 0.0
+        return out
+
+    def describe(self) -> str:
+        """One line: levels, separator widths, leaves and memory."""
+        return (f"{self.depth} levels, widest separators {self.separator_widths}, "
+                f"{len(self.leaves)} leaves (<= {max(len(x.cells) for x in self.leaves)} cells), "
+                f"{self.nbytes / 2**20:.0f} MiB")
+
+
+def estimate_bytes(fixed: np.ndarray, leaf_cells: int = LEAF_CELLS) -> int:
+    """:attr:`SeparatorTree.nbytes` of the tree ``fixed`` would get (the tree is made, not
+    the numerics)."""
+    return SeparatorTree(fixed, leaf_cells).nbytes
