@@ -106,7 +106,7 @@ def grid_rectangles(blocked: np.ndarray, cell_size: float = 1.0) -> np.ndarray:
         for key in current:
             open_.setdefault(key, i)
     done.extend((top, H - 1, *key) for key, top in open_.items())
-    done.sort()
+    done.sort(key=lambda rect: (rect[0], rect[2]))  # top row, then left column
     if not done:
         return np.zeros((0, 4), dtype=np.float64)
     top, bottom, c0, c1 = np.array(done, dtype=np.float64).T
@@ -193,8 +193,8 @@ def check_reachable(world: World, resolution: float | None = None) -> None:
     cell's half-diagonal) clears the walls and shelves, the free cells are labelled into
     4-connected components (:func:`scipy.ndimage.label`) and every pickup, station and depot
     rectangle must lie in the component holding the most of them. No connection an AGV can
-    drive is ever missed; a gap between shelves narrower than an AGV by less than the
-    half-diagonal (at most 0.18 radius at the default resolution) counts as passable.
+    drive is ever missed; a gap narrower than an AGV diameter by less than a cell diagonal
+    (0.35 radius at the default resolution, 0.71 at the coarsest) may count as passable.
 
     Parameters
     ----------
