@@ -133,7 +133,10 @@ class TrainConfig:
         if not isinstance(self.scenario, str):
             raise ValueError(f"scenario must be a scenario name (a string), got "
                              f"{self.scenario!r}")
-        sim.get_scenario(self.scenario)
+        if getattr(sim.get_scenario(self.scenario), "lifelong", False):
+            raise ValueError(f"scenario {self.scenario!r} is lifelong; the learners train on "
+                             "the paper's episodic scenarios ('3v3', '6v6', 'NvM', "
+                             "'warehouse') for now")
         for name in ("episodes", "eval_episodes", "log_every", "checkpoint_every", "threads"):
             setattr(self, name, check_int(name, getattr(self, name), 1))
         self.eval_every = check_int("eval_every", self.eval_every, 0)

@@ -139,3 +139,8 @@ def test_config_changed_after_it_was_made_is_checked_again(tmp_path):
         train(tc)
     with pytest.raises(ValueError, match="tau must be a finite number in"):
         make_config("bicnet", {"tau": 5})
+
+
+def test_train_config_refuses_a_lifelong_scenario() -> None:
+    with pytest.raises(ValueError, match="'warehouse-20' is lifelong"):
+        TrainConfig(scenario="warehouse-20")
