@@ -400,7 +400,11 @@ class AllocatorController:
         for b in np.unique(todo[:, 0]):
             parked = pos[b][held[b] >= 0]
             boxes = np.concatenate([parked - r, parked + r], axis=1)
-            blocked = replace(world, obstacles=np.concatenate([world.obstacles, boxes]))
+            # A planning map only: the floor's pickups, stations and depot (which a parked
+            # AGV's box may cover) are not needed to plan a path and would fail its checks.
+            blocked = replace(world, obstacles=np.concatenate([world.obstacles, boxes]),
+                              pickups=np.zeros((0, 2)), stations=np.zeros((0, 2)),
+                              depot=np.zeros((0, 4)))
             grid = GridMap(blocked, resolution=0.04)
             for i in todo[todo[:, 0] == b, 1]:
                 path = grid.path(pos[b, i], goal[b, i])

@@ -24,7 +24,8 @@ __all__ = [
     "evaluate", "Metrics", "pettingzoo_env", "ipf_field", "render_scene", "render_episode",
     "render_field", "LifelongEnv", "LifelongScenario", "LifelongMetrics", "evaluate_lifelong",
     "LifelongObsLayout", "Poisson", "Backlog", "Trace", "read_trace", "Breakdowns",
-    "FaultSchedule", "load_floor", "warehouse_floor",
+    "FaultSchedule", "load_floor", "warehouse_floor", "save_floor_json", "check_reachable",
+    "render_lifelong", "plot_lifelong",
 ]
 
 _LAZY = {
@@ -35,6 +36,10 @@ _LAZY = {
     "render_field": "sim.render",
     "load_floor": "sim.floors",
     "warehouse_floor": "sim.floors",
+    "save_floor_json": "sim.floors",
+    "check_reachable": "sim.floors",
+    "render_lifelong": "sim.render",
+    "plot_lifelong": "sim.render",
 }
 
 

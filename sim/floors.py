@@ -36,7 +36,7 @@ from sim.io import atomic_write_text
 from sim.world import World
 
 __all__ = ["load_floor", "save_floor_json", "warehouse_floor", "check_reachable",
-           "grid_rectangles"]
+           "unreachable_points", "grid_rectangles"]
 
 BLOCKED = "@TOW"
 """Grid-map characters of blocked cells (out of bounds, trees, water)."""
@@ -210,6 +210,17 @@ def check_reachable(world: World, resolution: float | None = None) -> None:
         Naming (field, index and coordinates) every point cut off from the main component; for
         a resolution above half the AGV radius, or a floor too large to rasterise at it.
     """
+    resolution = _resolution(world, resolution)
+    named_points = _floor_points(world)
+    if not any(len(p) for _, p in named_points):
+        return
+    labels, cell_of = _labelled(world, resolution)
+    _check_one_component([(name, points, labels[cell_of(points)])
+                          for name, points in named_points])
+
+
+def _resolution(world: World, resolution: float | None) -> float:
+    """The checked raster resolution of :func:`check_reachable` (its default when None)."""
     if not isinstance(world, World):
         raise ValueError(f"world must be a sim.World, got {type(world).__name__}")
     r = world.agent_radius
@@ -221,19 +232,54 @@ def check_reachable(world: World, resolution: float | None = None) -> None:
     if resolution > r / 2 + 1e-12:
         raise ValueError(f"resolution must be at most half the AGV radius ({r / 2:g}), got "
                          f"{resolution:g}")
-    named_points = _floor_points(world)
-    if not any(len(p) for _, p in named_points):
-        return
+    return resolution
+
+
+def _labelled(world: World, resolution: float | None) -> tuple[np.ndarray, Any]:
+    """The 4-connected components of the floor's free raster, and a function from points
+    (K, 2) to their cells' (row, col) index arrays."""
+    resolution = _resolution(world, resolution)
     free, x, y = _free_raster(world, resolution)
     labels, _ = ndimage.label(free)  # 4-connected by default
     xmin, ymin, xmax, ymax = world.bounds
     dx, dy = (xmax - xmin) / len(x), (ymax - ymin) / len(y)
-    named = []
-    for field_name, points in named_points:  # the cell holding each point
+
+    def cell_of(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         col = np.clip(np.floor((points[:, 0] - xmin) / dx).astype(np.int64), 0, len(x) - 1)
         row = np.clip(np.floor((points[:, 1] - ymin) / dy).astype(np.int64), 0, len(y) - 1)
-        named.append((field_name, points, labels[row, col]))
-    _check_one_component(named)
+        return row, col
+
+    return labels, cell_of
+
+
+def unreachable_points(world: World, points: np.ndarray,
+                       resolution: float | None = None) -> np.ndarray:
+    """Indices of the points an AGV cannot reach from the floor's main free area.
+
+    The main area is the 4-connected free component (as in :func:`check_reachable`) holding
+    the most of the floor's own pickups, stations and depot, or, on a floor without them, the
+    most of ``points``.
+
+    Parameters
+    ----------
+    world : World
+    points : np.ndarray, shape (K, 2)
+    resolution : float, optional
+        As in :func:`check_reachable`.
+
+    Returns
+    -------
+    np.ndarray of int64, shape (U,)
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if not len(pts):
+        return np.zeros(0, dtype=np.int64)
+    labels, cell_of = _labelled(world, resolution)
+    own = np.concatenate([p for _, p in _floor_points(world)])
+    ref = labels[cell_of(own)] if len(own) else labels[cell_of(pts)]
+    counted = ref[ref > 0]
+    main = int(np.bincount(counted).argmax()) if counted.size else -1
+    return np.flatnonzero(labels[cell_of(pts)] != main).astype(np.int64)
 
 
 # ---------------------------------------------------------------------- loading

@@ -464,3 +464,16 @@ def test_warehouse_floor_bad_num_agents(bad: object) -> None:
 def test_warehouse_floor_bad_radius() -> None:
     with pytest.raises(ValueError, match="agent_radius must be a positive finite number"):
         warehouse_floor(20, agent_radius=0.0)
+
+
+def test_unreachable_points_names_the_cut_off_ones() -> None:
+    from sim.floors import unreachable_points
+
+    world = warehouse_floor(20)
+    x0, y0, x1, y1 = world.obstacles[0]
+    inside_block = [(x0 + x1) / 2, (y0 + y1) / 2]  # on a shelf: no free cell there
+    points = np.array([world.pickups[0], world.stations[0], inside_block])
+    assert unreachable_points(world, points).tolist() == [2]
+    assert unreachable_points(world, np.zeros((0, 2))).tolist() == []
+    # A floor without points of its own: the main area is the one most points lie in.
+    assert unreachable_points(sim.World(), np.array([[0.0, 0.0], [0.5, 0.5]])).tolist() == []
