@@ -423,25 +423,76 @@ def _run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _lifelong_scenario(value: str) -> str:
+    """An argparse type: the name of a lifelong scenario (``warehouse-20``, ``warehouse-N``)."""
+    try:
+        scenario = sim.get_scenario(value)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    if getattr(scenario, "lifelong", False) is not True:
+        raise argparse.ArgumentTypeError(
+            f"{value!r} is an episodic scenario; a lifelong run needs a lifelong one such as "
+            "warehouse-20, warehouse-50, warehouse-100 or warehouse-N")
+    return value
+
+
+def _fault_spec(value: str) -> tuple[float, int]:
+    """An argparse type: ``RATE:REPAIR``, breakdowns per AGV-step and the steps a repair
+    takes (checked as :class:`sim.Breakdowns` checks them)."""
+    rate, sep, repair = value.partition(":")
+    try:
+        if not sep:
+            raise ValueError("no ':' between RATE and REPAIR")
+        try:
+            number = float(rate)
+        except ValueError:
+            raise ValueError(f"RATE {rate!r} is not a number") from None
+        try:
+            steps = int(repair)
+        except ValueError:
+            raise ValueError(f"REPAIR {repair!r} is not an integer") from None
+        faults = sim.Breakdowns(number, steps)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(
+            f"expected RATE:REPAIR, a breakdown rate per AGV-step and the repair steps, e.g. "
+            f"0.002:60, got {value!r}: {err}") from None
+    return faults.rate, faults.repair_steps
+
+
 def _add_render(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "render", help="draw a scene, an episode (GIF) or an IPF field",
+        "render", help="draw a scene, an episode (GIF), an IPF field or a lifelong run (GIF)",
         description="Draw a scenario's start scene (PNG), an episode of the scripted "
-                    "nearest-task controller (--gif) or one AGV's IPF field (--field).")
-    p.add_argument("--scenario", type=scenario_name, default="3v3",
-                   help=f"scenario: {_SCENARIOS_HELP} (default 3v3)")
+                    "nearest-task controller (--gif), one AGV's IPF field (--field), or a "
+                    "lifelong run of the nearest-task controller (--lifelong SCENARIO, a GIF; "
+                    "with --plot also its throughput and waits over time).")
+    p.add_argument("--scenario", type=scenario_name, default=None,
+                   help=f"scenario: {_SCENARIOS_HELP} (default 3v3; not with --lifelong)")
     p.add_argument("--seed", type=seed, default=0,
-                   help="seed of the scene, in [0, 2**63) (default 0)")
+                   help="seed of the scene or the lifelong run, in [0, 2**63) (default 0)")
     what = p.add_mutually_exclusive_group()
     what.add_argument("--field", action="store_true", help="draw AGV --agent's IPF heatmap")
     what.add_argument("--gif", action="store_true",
                       help="animate an episode of the scripted nearest-task controller")
+    what.add_argument("--lifelong", metavar="SCENARIO", type=_lifelong_scenario, default=None,
+                      help="animate a lifelong run of the scripted nearest-task controller on "
+                           "SCENARIO (warehouse-20, warehouse-50, warehouse-100, warehouse-N)")
     p.add_argument("--agent", type=non_negative_int, default=None,
                    help="whose field, an AGV index (with --field; default 0)")
+    p.add_argument("--steps", type=positive_int, default=None,
+                   help="steps of the lifelong run (with --lifelong; default 200)")
+    p.add_argument("--faults", type=_fault_spec, default=None, metavar="RATE:REPAIR",
+                   help="breakdowns in the lifelong run (with --lifelong): RATE per AGV-step, "
+                        "each repaired after REPAIR steps, e.g. 0.002:60 (default none)")
+    p.add_argument("--plot", type=output_file, default=None, metavar="PATH",
+                   help="with --lifelong: also write the throughput and wait over time of the "
+                        "same run (sim.evaluate_lifelong, same seed, steps and faults) as an "
+                        "image file")
     p.add_argument("--out", type=output_file, default=None,
                    help="output file, missing folders made: .png for a scene (default "
                         "scene_<scenario>.png), .gif with --gif (episode_<scenario>.gif), an "
-                        "image file with --field (ipf_<scenario>_agent<i>.png)")
+                        "image file with --field (ipf_<scenario>_agent<i>.png), .gif with "
+                        "--lifelong (lifelong_<scenario>.gif)")
     p.set_defaults(func=_run_render)
 
 
@@ -451,10 +502,44 @@ def _image_suffixes() -> set[str]:
     return {f".{ext}" for ext in FigureCanvasBase.get_supported_filetypes()}
 
 
-def _check_suffix(out: str, allowed: set[str], what: str) -> None:
+def _check_suffix(out: str, allowed: set[str], what: str, flag: str = "--out") -> None:
     if Path(out).suffix.lower() not in allowed:
-        raise ValueError(f"--out {out!r}: {what} is written as {' or '.join(sorted(allowed))}, "
+        raise ValueError(f"{flag} {out!r}: {what} is written as {' or '.join(sorted(allowed))}, "
                          f"so the file name must end in it")
+
+
+def _run_render_lifelong(args: argparse.Namespace) -> int:
+    from sim.controllers import NearestTaskController
+    from sim.render import plot_lifelong, render_lifelong
+
+    if args.scenario is not None:
+        raise ValueError("--lifelong names the scenario itself: drop --scenario")
+    name = args.lifelong
+    out = args.out or f"lifelong_{name}.gif"
+    _check_suffix(out, {".gif"}, "a lifelong run")
+    if args.plot is not None:
+        _check_suffix(args.plot, _image_suffixes(), "the plot", "--plot")
+        if Path(args.plot).absolute() == Path(out).absolute():
+            raise ValueError(f"--plot {args.plot!r} is the GIF's own file: give another name")
+    steps = args.steps or 200
+    faults = sim.Breakdowns(*args.faults) if args.faults is not None else None
+    physics = sim.get_scenario(name).world.physics
+    render_lifelong(name, NearestTaskController(physics), steps=steps, seed=args.seed,
+                    path=out, faults=faults)
+    print(f"wrote {out}")
+    if args.plot is not None:
+        metrics = sim.evaluate_lifelong(NearestTaskController(physics), name, steps=steps,
+                                        seed=args.seed, faults=faults,
+                                        window=max(10, steps // 20))
+        broken = "" if faults is None else \
+            f", breakdowns {faults.rate:g}/AGV-step, repair {faults.repair_steps} steps"
+        plot_lifelong({"nearest task": metrics}, path=args.plot,
+                      title=f"{name}, seed {args.seed}{broken}")
+        print(f"{name}: {metrics.delivered} orders delivered in {steps} steps, throughput "
+              f"{metrics.throughput:.0f} per 1000 steps (bound {metrics.throughput_bound:.0f}), "
+              f"mean wait {metrics.wait_mean:.0f} steps")
+        print(f"wrote {args.plot}")
+    return 0
 
 
 def _run_render(args: argparse.Namespace) -> int:
@@ -462,26 +547,33 @@ def _run_render(args: argparse.Namespace) -> int:
 
     if args.agent is not None and not args.field:
         raise ValueError("--agent chooses whose IPF field to draw: use it with --field")
-    env = sim.make_env(args.scenario, num_envs=1, seed=args.seed)
+    if args.lifelong is not None:
+        return _run_render_lifelong(args)
+    for flag, value in (("--steps", args.steps), ("--faults", args.faults),
+                        ("--plot", args.plot)):
+        if value is not None:
+            raise ValueError(f"{flag} is for a lifelong run: use it with --lifelong SCENARIO")
+    scenario = args.scenario or "3v3"
+    env = sim.make_env(scenario, num_envs=1, seed=args.seed)
     if args.field:
         import matplotlib.pyplot as plt
 
         agent = args.agent or 0
         if agent >= env.num_agents:
             raise ValueError(f"--agent must be an AGV index in [0, {env.num_agents - 1}] for "
-                             f"{args.scenario}, got {agent}")
-        out = args.out or f"ipf_{args.scenario}_agent{agent}.png"
+                             f"{scenario}, got {agent}")
+        out = args.out or f"ipf_{scenario}_agent{agent}.png"
         _check_suffix(out, _image_suffixes(), "the field")
         fig = sim.render_field(env.agent_pos[0].numpy(), env.task_pos[0].numpy(), agent=agent,
                                world=env.world, out=out)
         plt.close(fig)
     elif args.gif:
-        out = args.out or f"episode_{args.scenario}.gif"
+        out = args.out or f"episode_{scenario}.gif"
         _check_suffix(out, {".gif"}, "an episode")
-        sim.render_episode(NearestTaskController(env.world.physics), args.scenario,
+        sim.render_episode(NearestTaskController(env.world.physics), scenario,
                            seed=args.seed, path=out)
     else:
-        out = args.out or f"scene_{args.scenario}.png"
+        out = args.out or f"scene_{scenario}.png"
         _check_suffix(out, {".png"}, "a scene")
         sim.render_scene(env, path=out)
     print(f"wrote {out}")

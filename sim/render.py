@@ -1,5 +1,7 @@
 """Headless pictures with matplotlib: scenes (PNG), episodes (animated GIF) and one AGV's
-information potential field (the paper's Figs. 3 and 4; the field itself is :mod:`sim.ipf`).
+information potential field (the paper's Figs. 3 and 4; the field itself is :mod:`sim.ipf`);
+for lifelong operation (:mod:`sim.lifelong`), a run as an animated GIF
+(:func:`render_lifelong`) and its throughput and waits over time (:func:`plot_lifelong`).
 
 matplotlib is imported on first use with the Agg backend, so nothing here needs a screen.
 """
@@ -32,6 +34,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "SceneSource", "draw_scene", "render_scene", "render_episode", "plot_field", "render_field",
+    "LIFELONG_COLORS", "render_lifelong", "plot_lifelong",
 ]
 
 
@@ -361,3 +364,537 @@ def render_field(
     field = ipf_field(agents, tasks, agent=agent, world=world, resolution=resolution,
                       claimed=claimed)
     return plot_field(field, agents, tasks, agent=field.agent, path=out, claimed=claimed)
+
+
+# ---------------------------------------------------------------------- lifelong operation
+LIFELONG_COLORS: dict[str, str] = {
+    "idle": "#b4bec8",
+    "to_pickup": "#1f77b4",
+    "loaded": "#2ca02c",
+    "broken": "#e0201b",
+}
+"""Face colour of an AGV disc in each :data:`sim.orders.AGENT_STATUS` (``#rrggbb``); no other
+element of a :func:`render_lifelong` frame uses these colours."""
+
+_SHELF, _SHELF_EDGE = "#8f8f8f", "#606060"
+_PICKUP_POINT = "#4a4a4a"
+_OPEN_ORDER, _OPEN_EDGE = "#ffb000", "#a86f00"
+_STATION = "#7b3294"
+_DEPOT, _DEPOT_EDGE = "#f2ead9", "#b9a67c"
+_GIF_WIDTH_IN, _GIF_DPI = 6.4, 90
+_GIF_LAST_FRAME_MS = 1500
+
+
+class _NoReward:
+    """A renderer needs no reward terms (the env then skips computing any)."""
+
+    zeroes_inactive = True
+
+    def __call__(self, state: Any, ctx: Any) -> dict[str, Tensor]:
+        return {}
+
+
+def _lifelong_run(env_or_scenario: Any, steps: int, seed: int, env_index: int,
+                  faults: Any) -> tuple[Any, int, Tensor]:
+    """The environment to run, the index to draw and its first observations."""
+    from sim.lifelong import LifelongEnv, LifelongScenario
+    from sim.lifelong_eval import lifelong_runs
+    from sim.orders import check_faults
+    from sim.scenarios import Scenario, get_scenario
+
+    if isinstance(env_or_scenario, LifelongEnv):
+        env = env_or_scenario
+        if faults is not None:
+            raise ValueError("faults: a LifelongEnv keeps its scenario's breakdowns; pass the "
+                             "scenario (or its name) to render_lifelong to add faults")
+        if not 0 <= env_index < env.num_envs:
+            raise ValueError(f"env_index must lie in [0, {env.num_envs}), got {env_index}")
+        return env, env_index, env.observe()
+    if getattr(env_or_scenario, "lifelong", False) is not True and hasattr(
+            env_or_scenario, "task_pos"):
+        raise ValueError(f"env_or_scenario is an episodic {type(env_or_scenario).__name__}; "
+                         "render_lifelong draws lifelong runs (use render_episode for episodes)")
+    if isinstance(env_or_scenario, str):
+        sc = get_scenario(env_or_scenario)
+    elif isinstance(env_or_scenario, (LifelongScenario, Scenario)):
+        sc = env_or_scenario
+    else:
+        raise ValueError(f"env_or_scenario must be a LifelongEnv, a LifelongScenario or a "
+                         f"lifelong scenario name such as 'warehouse-20', got "
+                         f"{type(env_or_scenario).__name__}")
+    if not isinstance(sc, LifelongScenario):
+        raise ValueError(f"scenario {sc.name!r} is episodic; render_lifelong needs a lifelong "
+                         "one ('warehouse-20', 'warehouse-50', 'warehouse-100', ...); use "
+                         "render_episode for episodes")
+    if env_index != 0:
+        raise ValueError(f"env_index must be 0 when a scenario is given (one run is drawn), "
+                         f"got {env_index}")
+    changes: dict[str, Any] = {"max_steps": steps}
+    if faults is not None:
+        changes["faults"] = check_faults(faults, sc.num_agents)
+    sc = sc.with_options(**changes)
+    env = LifelongEnv(sc, num_envs=1, reward=_NoReward(), seed=seed)
+    agents, keys = lifelong_runs(sc, 1, seed)
+    return env, 0, env.set_state(agents, keys)
+
+
+def _lifelong_snapshot(env: Any, e: int) -> dict[str, Any]:
+    """What one frame shows of environment ``e`` of a LifelongEnv, as numpy arrays."""
+    from sim.orders import ASSIGNED, CARRYING, OPEN, TO_PICKUP
+
+    o = env.orders
+    status = env.agent_status[e].cpu().numpy()
+    pos = env.agent_pos[e].cpu().numpy()
+    target = env.targets()[0][e].cpu().numpy()
+    order_status = o.status[e].cpu().numpy()
+    pickup = o.pickup[e].cpu().numpy()
+    loaded = status == CARRYING
+    heading = status == TO_PICKUP
+    return {
+        "step": int(env.steps[e]),
+        "pos": pos,
+        "status": status,
+        "open": pickup[order_status == OPEN],
+        "assigned": pickup[order_status == ASSIGNED],
+        "to_dropoff": np.stack([pos[loaded], target[loaded]], 1),
+        "to_pickup": np.stack([pos[heading], target[heading]], 1),
+        "delivered": int(env.delivered[e]),
+        "waiting": int((order_status == OPEN).sum() + (order_status == ASSIGNED).sum()),
+    }
+
+
+class _LifelongCanvas:
+    """A fixed-size Agg figure of a floor whose moving parts are updated frame by frame."""
+
+    def __init__(self, world: World, label: str, status_names: tuple[str, ...]) -> None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.collections import EllipseCollection, LineCollection
+        from matplotlib.figure import Figure
+        from matplotlib.lines import Line2D
+        from matplotlib.patches import Patch, Rectangle
+
+        self.label = label
+        self.colors = np.array([_hex_rgb(LIFELONG_COLORS[name]) for name in status_names])
+        xmin, ymin, xmax, ymax = world.bounds
+        pad = 0.02 * max(xmax - xmin, ymax - ymin)
+        span_x, span_y = xmax - xmin + 2 * pad, ymax - ymin + 2 * pad
+        width = _GIF_WIDTH_IN
+        ax_w = width - 0.2
+        ax_h = ax_w * span_y / span_x
+        title_h, legend_h = 0.34, 0.5
+        height = ax_h + title_h + legend_h
+        # Whole pixels, so that every frame has the same even size.
+        height = round(height * _GIF_DPI) / _GIF_DPI
+        self.fig = Figure(figsize=(width, height), dpi=_GIF_DPI, facecolor="white")
+        self.canvas = FigureCanvasAgg(self.fig)
+        ax = self.fig.add_axes((0.1 / width, legend_h / height, ax_w / width, ax_h / height))
+        self.ax = ax
+        ax.set_xlim(xmin - pad, xmax + pad)
+        ax.set_ylim(ymin - pad, ymax + pad)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_axis_off()
+        px_per_unit = self.fig.dpi * ax_w / span_x
+        pt = 72.0 / self.fig.dpi  # points per pixel
+        ax.add_patch(Rectangle((xmin, ymin), xmax - xmin, ymax - ymin, fill=False, lw=1.5,
+                               ec="#333333", zorder=1))
+        for x0, y0, x1, y1 in np.asarray(world.depot).reshape(-1, 4):
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fc=_DEPOT, ec=_DEPOT_EDGE,
+                                   lw=0.8, zorder=0))
+            ax.text((x0 + x1) / 2, (y0 + y1) / 2, "depot", ha="center", va="center",
+                    fontsize=8, color=_DEPOT_EDGE, zorder=0.5)
+        for x0, y0, x1, y1 in world.obstacles:
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fc=_SHELF, ec=_SHELF_EDGE,
+                                   lw=0.6, zorder=1))
+        pickups = np.asarray(world.pickups).reshape(-1, 2)
+        stations = np.asarray(world.stations).reshape(-1, 2)
+        r_px = world.agent_radius * px_per_unit
+        if len(pickups):
+            ax.scatter(*pickups.T, s=(0.35 * r_px * pt) ** 2 * 4, c=_PICKUP_POINT, lw=0,
+                       zorder=2)
+        if len(stations):
+            ax.scatter(*stations.T, marker="s", s=(2.2 * r_px * pt) ** 2, c=_STATION,
+                       ec="white", lw=0.8, zorder=2)
+        # The moving parts.
+        empty2 = np.zeros((0, 2))
+        ring = (1.6 * r_px * pt) ** 2
+        self.open = ax.scatter(*empty2.T, s=ring, c=_OPEN_ORDER, ec=_OPEN_EDGE, lw=0.8,
+                               zorder=3)
+        self.assigned = ax.scatter(*empty2.T, s=ring, facecolors="none", ec=_OPEN_ORDER,
+                                   lw=1.6, zorder=3)
+        # Lines drawn without antialiasing: crisp in a 64-colour GIF, and far fewer pixels
+        # change from frame to frame (a third less GIF).
+        self.to_pickup = LineCollection([], colors=LIFELONG_COLORS["to_pickup"], lw=1.0,
+                                        linestyles=(0, (2, 2)), antialiaseds=False, zorder=4)
+        self.to_dropoff = LineCollection([], colors=LIFELONG_COLORS["loaded"], lw=1.0,
+                                         antialiaseds=False, zorder=4)
+        ax.add_collection(self.to_pickup)
+        ax.add_collection(self.to_dropoff)
+        d = 2 * world.agent_radius
+        self.agents = EllipseCollection(d, d, 0.0, units="xy", offsets=empty2,
+                                        offset_transform=ax.transData, edgecolors="#222222",
+                                        linewidths=0.7, zorder=5)
+        ax.add_collection(self.agents)
+        self.broken = ax.scatter(*empty2.T, marker="x", s=(1.3 * r_px * pt) ** 2, c="black",
+                                 lw=1.6, zorder=6)
+        self.title = self.fig.text(0.5, 1 - 0.5 * title_h / height, "", ha="center",
+                                   va="center", fontsize=10)
+
+        def disc(name: str, text: str) -> Line2D:
+            return Line2D([], [], ls="", marker="o", ms=7, mfc=LIFELONG_COLORS[name],
+                          mec="#222222", label=text)
+
+        handles = [
+            disc("idle", "idle"), disc("to_pickup", "to pickup"), disc("loaded", "loaded"),
+            Line2D([], [], ls="", marker="o", ms=7, mfc=LIFELONG_COLORS["broken"],
+                   mec="#222222", label="broken"),
+            Line2D([], [], ls="", marker="o", ms=8, mfc=_OPEN_ORDER, mec=_OPEN_EDGE,
+                   label="open order"),
+            Line2D([], [], ls="", marker="o", ms=8, mfc="none", mec=_OPEN_ORDER, mew=1.6,
+                   label="order assigned"),
+            Line2D([], [], color=LIFELONG_COLORS["loaded"], lw=1.4, label="to drop-off"),
+            Line2D([], [], ls="", marker="o", ms=3, mfc=_PICKUP_POINT, mec="none",
+                   label="pickup point"),
+            Line2D([], [], ls="", marker="s", ms=7, mfc=_STATION, mec="white",
+                   label="station"),
+            Patch(fc=_SHELF, ec=_SHELF_EDGE, label="shelf"),
+        ]
+        self.fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=7,
+                        frameon=False, handletextpad=0.3, columnspacing=1.0,
+                        borderaxespad=0.2)
+        self.broken_code = status_names.index("broken")
+        self._moving = [self.open, self.assigned, self.to_pickup, self.to_dropoff, self.agents,
+                        self.broken, self.title]
+        for artist in self._moving:
+            artist.set_animated(True)
+        self._background: Any = None
+
+    def _snap(self, points: np.ndarray) -> np.ndarray:
+        """Points (..., 2) moved to the nearest pixel centre: an AGV that moved less than half
+        a pixel draws the same pixels again, which keeps the GIF's frame deltas small."""
+        flat = points.reshape(-1, 2)
+        if not len(flat):
+            return points
+        to_px = self.ax.transData
+        px = np.floor(to_px.transform(flat)) + 0.5
+        return to_px.inverted().transform(px).reshape(points.shape)
+
+    def draw(self, snap: dict[str, Any]) -> np.ndarray:
+        """The frame of one snapshot as (H, W, 3) uint8 RGB.
+
+        The floor and the legend are drawn once; each frame restores that background and
+        draws only the moving parts on it.
+        """
+        if self._background is None:
+            self.canvas.draw()
+            self._background = self.canvas.copy_from_bbox(self.fig.bbox)
+        status = snap["status"]
+        broken = status == self.broken_code
+        pos = self._snap(snap["pos"])
+        self.agents.set_offsets(pos)
+        self.agents.set_facecolors(self.colors[status])
+        self.broken.set_offsets(pos[broken])
+        self.open.set_offsets(snap["open"])
+        self.assigned.set_offsets(snap["assigned"])
+        self.to_pickup.set_segments(list(self._snap(snap["to_pickup"])))
+        self.to_dropoff.set_segments(list(self._snap(snap["to_dropoff"])))
+        self.title.set_text(
+            f"{self.label}   step {snap['step']}   delivered {snap['delivered']}   "
+            f"waiting {snap['waiting']}   broken {int(broken.sum())}/{len(status)}")
+        self.canvas.restore_region(self._background)
+        for artist in self._moving:
+            self.fig.draw_artist(artist)
+        return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
+
+
+def _hex_rgb(color: str) -> tuple[float, float, float]:
+    return tuple(int(color[k:k + 2], 16) / 255.0 for k in (1, 3, 5))  # type: ignore[return-value]
+
+
+def _gif_palette(frame: np.ndarray) -> Any:
+    """A 64-colour palette from a frame and every state colour (so a colour that first appears
+    later, a broken AGV's red say, keeps its own entry)."""
+    from PIL import Image
+
+    named = [LIFELONG_COLORS[k] for k in LIFELONG_COLORS] + [
+        _OPEN_ORDER, _OPEN_EDGE, _STATION, _SHELF, _SHELF_EDGE, _DEPOT, _PICKUP_POINT]
+    swatch = np.repeat(np.array([[int(c[k:k + 2], 16) for k in (1, 3, 5)] for c in named],
+                                dtype=np.uint8), 8 * frame.shape[1], axis=0)
+    sample = np.concatenate([frame.reshape(-1, 3), swatch]).reshape(-1, frame.shape[1], 3)
+    return Image.fromarray(sample).quantize(colors=64, method=Image.Quantize.MEDIANCUT,
+                                            dither=Image.Dither.NONE)
+
+
+def _write_gif(frames: list[np.ndarray], path: str | os.PathLike[str], fps: float) -> Path:
+    from PIL import Image
+
+    palette = _gif_palette(frames[0])
+    images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE)
+              for f in frames]
+    step_ms = max(int(round(1000.0 / fps)), 20)
+    durations = [step_ms] * (len(images) - 1) + [max(step_ms, _GIF_LAST_FRAME_MS)]
+
+    def save(tmp: str) -> None:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                       duration=durations, loop=0, optimize=True)
+
+    return atomic_save(save, path)
+
+
+def render_lifelong(
+    env_or_scenario: Any,
+    controller: Any = None,
+    steps: int = 200,
+    seed: int = 0,
+    path: str | os.PathLike[str] | None = None,
+    fps: float = 10,
+    env_index: int = 0,
+    faults: Any = None,
+) -> Path | list[np.ndarray]:
+    """Run a controller in lifelong operation and draw every step: an animated GIF.
+
+    Each frame shows the floor (shelves grey, pickup points as small dots, stations as purple
+    squares, the depot), the AGVs as discs coloured by state (:data:`LIFELONG_COLORS`: idle,
+    to pickup, loaded, broken; a broken AGV also carries a black cross), the open orders'
+    pickups (gold: open, gold ring: an AGV is on its way), a dotted line from each AGV going to
+    a pickup to it and a solid line from each loaded AGV to its drop-off; the title gives the
+    step, the orders delivered so far, the orders waiting for a pickup and the broken AGVs.
+
+    Parameters
+    ----------
+    env_or_scenario : LifelongEnv, LifelongScenario or str
+        A scenario (or its name, ``"warehouse-20"``, ``"warehouse-50"``, ...): the run is run 0
+        of :func:`sim.evaluate_lifelong` with the same ``seed``, ``steps`` and ``faults`` (same
+        fleet, orders and breakdowns), so the GIF and that evaluation's series describe one
+        run. A :class:`sim.lifelong.LifelongEnv`: it is stepped from its current state (all B
+        environments; ``seed`` is not used, and a run stops moving at the env's
+        ``max_steps``), environment ``env_index`` is drawn.
+    controller : Controller or callable, optional
+        ``act(obs)`` (or a callable) from (B, N, O) lifelong observations to (B, N, 2)
+        actions; ``reset(env)`` is called once first if it has one. Default
+        :class:`sim.controllers.NearestTaskController`.
+    steps : int
+        Steps to run (>= 1); the animation has ``steps + 1`` frames, the start and one after
+        each step.
+    seed : int
+        In [0, 2**63), for a scenario.
+    path : str or Path, optional
+        Where to write the GIF (atomically; missing folders are made; the name must end in
+        ``.gif``). Without it the frames are returned instead.
+    fps : float
+        Frames per second of the GIF (the last frame is held 1.5 s).
+    env_index : int
+        Which environment of an env to draw (0 for a scenario).
+    faults : sim.Breakdowns, sim.FaultSchedule or list of (step, agent, repair_steps), optional
+        Breakdowns for a scenario (replacing its own).
+
+    Returns
+    -------
+    Path
+        ``path``, when given.
+    list of np.ndarray
+        Otherwise the ``steps + 1`` frames, each (H, W, 3) uint8 RGB.
+
+    Raises
+    ------
+    ValueError
+        For an episodic env or scenario, an unknown name, ``steps`` or ``fps`` not positive, a
+        seed outside [0, 2**63), ``env_index`` outside [0, B), ``faults`` with an env or a bad
+        fault list, a path not ending in ``.gif``, or actions the env refuses; the message
+        names the argument.
+
+    Examples
+    --------
+    >>> import sim
+    >>> frames = sim.render_lifelong("warehouse-20", steps=3)   # doctest: +SKIP
+    >>> len(frames), frames[0].dtype                             # doctest: +SKIP
+    (4, dtype('uint8'))
+    """
+    from sim.checks import check_count, check_seed
+    from sim.controllers import NearestTaskController
+    from sim.evaluate import _as_policy
+    from sim.orders import AGENT_STATUS
+
+    steps = check_count("steps", steps)
+    seed = check_seed(seed, bits=63)
+    if isinstance(fps, (bool, np.bool_)) or not isinstance(fps, (int, float, np.integer,
+                                                               np.floating)) \
+            or not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    if isinstance(env_index, (bool, np.bool_)) or not isinstance(env_index, (int, np.integer)):
+        raise ValueError(f"env_index must be an integer, got {env_index!r}")
+    env_index = int(env_index)
+    if path is not None and Path(path).suffix.lower() != ".gif":
+        raise ValueError(f"path {str(path)!r} must end in .gif (the animation is a GIF)")
+    env, e, obs = _lifelong_run(env_or_scenario, steps, seed, env_index, faults)
+    if controller is None:
+        controller = NearestTaskController(env.world.physics)
+    act = _as_policy(controller)
+    reset = getattr(controller, "reset", None)
+    if callable(reset):
+        reset(env)
+    canvas = _LifelongCanvas(env.world, env.scenario.name, AGENT_STATUS)
+    try:
+        frames = [canvas.draw(_lifelong_snapshot(env, e))]
+        for _ in range(steps):
+            obs, *_ = env.step(act(obs))
+            frames.append(canvas.draw(_lifelong_snapshot(env, e)))
+    finally:
+        canvas.fig.clear()
+    if path is None:
+        return frames
+    return _write_gif(frames, path, float(fps))
+
+
+def _lifelong_runs_arg(metrics: Any) -> list[tuple[str | None, Any]]:
+    """``metrics`` as (label, LifelongMetrics) pairs; label None for a single unlabelled run."""
+    from collections.abc import Mapping
+
+    from sim.lifelong_eval import LifelongMetrics
+
+    if isinstance(metrics, LifelongMetrics):
+        return [(None, metrics)]
+    if not isinstance(metrics, Mapping):
+        raise ValueError(f"metrics must be a sim.LifelongMetrics or a dict label -> "
+                         f"LifelongMetrics, got {type(metrics).__name__}")
+    if not metrics:
+        raise ValueError("metrics is an empty dict; give at least one label -> LifelongMetrics")
+    runs = []
+    for label, m in metrics.items():
+        if not isinstance(label, str) or not label:
+            raise ValueError(f"metrics labels must be non-empty strings, got {label!r}")
+        if not isinstance(m, LifelongMetrics):
+            raise ValueError(f"metrics[{label!r}] must be a sim.LifelongMetrics (from "
+                             f"sim.evaluate_lifelong), got {type(m).__name__}")
+        runs.append((label, m))
+    return runs
+
+
+def plot_lifelong(
+    metrics: Any,
+    path: str | os.PathLike[str] | None = None,
+    ax: Any = None,
+    open_orders: bool = False,
+    title: str | None = None,
+) -> Figure:
+    """Throughput and waits over time of lifelong runs (:func:`sim.evaluate_lifelong`).
+
+    The throughput panel has each run's deliveries per 1000 steps in every window of its
+    series (``LifelongMetrics.throughput_series`` at ``time``) and the throughput bound as a
+    dashed line (one line when the runs share a bound, else one per run in its colour); the
+    wait panel the mean wait (release to pickup, steps) of the orders picked up in each window;
+    an optional third panel the orders waiting for a pickup at each window's end.
+
+    Parameters
+    ----------
+    metrics : LifelongMetrics or dict of str -> LifelongMetrics
+        One run, or several to compare (a label each, e.g. the controller's name).
+    path : str or Path, optional
+        Save the figure there, in the format its suffix names (PNG without one), atomically.
+    ax : matplotlib Axes or sequence of Axes, optional
+        One Axes: throughput on it and the waits on a twin y-axis (dotted), open orders not
+        drawn. A sequence of 2 Axes (3 with ``open_orders``): one panel each. Default a new
+        figure with one panel each, sharing the step axis.
+    open_orders : bool
+        Add the panel of orders waiting for a pickup.
+    title : str, optional
+        Title of the figure (default the scenario's steps and runs).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+
+    Raises
+    ------
+    ValueError
+        For ``metrics`` that is not a LifelongMetrics or a non-empty dict of them with string
+        labels, or ``ax`` that is not an Axes or a sequence of as many Axes as panels.
+
+    Examples
+    --------
+    >>> import sim
+    >>> from sim.controllers import NearestTaskController
+    >>> m = sim.evaluate_lifelong(NearestTaskController(), "warehouse-20", steps=200)
+    >>> fig = sim.plot_lifelong({"nearest": m})                 # doctest: +SKIP
+    """
+    from matplotlib.axes import Axes
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    runs = _lifelong_runs_arg(metrics)
+    if not isinstance(open_orders, (bool, np.bool_)):
+        raise ValueError(f"open_orders must be True or False, got {open_orders!r}")
+    panels = 3 if open_orders else 2
+    twin = False
+    if ax is None:
+        fig = Figure(figsize=(7.0, 2.1 + 1.6 * panels), layout="constrained")
+        FigureCanvasAgg(fig)
+        axes = list(fig.subplots(panels, 1, sharex=True))
+    elif isinstance(ax, Axes):
+        if open_orders:
+            raise ValueError("open_orders=True needs a panel of its own: pass ax=None or a "
+                             "sequence of 3 Axes")
+        axes, twin, fig = [ax, ax.twinx()], True, ax.figure
+    else:
+        try:
+            axes = list(ax)
+        except TypeError:
+            raise ValueError(f"ax must be a matplotlib Axes or a sequence of {panels} Axes, "
+                             f"got {type(ax).__name__}") from None
+        if len(axes) != panels or not all(isinstance(a, Axes) for a in axes):
+            raise ValueError(f"ax must be a sequence of {panels} matplotlib Axes (throughput, "
+                             f"wait{', open orders' if open_orders else ''}), got {len(axes)} "
+                             "items")
+        fig = axes[0].figure
+    colors = [f"C{k % 10}" for k in range(len(runs))]
+    top = 0.0
+    bounds = np.array([m.throughput_bound for _, m in runs])
+    shared_bound = bool(np.allclose(bounds, bounds[0]))
+    for (label, m), color in zip(runs, colors, strict=True):
+        name = label or "throughput"
+        axes[0].plot(m.time, m.throughput_series, "-o", ms=3, lw=1.6, color=color,
+                     label=f"{name} (mean {m.throughput:.0f})")
+        if not shared_bound:
+            axes[0].axhline(m.throughput_bound, ls="--", lw=1.2, color=color,
+                            label=f"{name}: bound {m.throughput_bound:.0f}")
+        wait_label = f"{label} wait" if (label and twin) else (label or "mean wait")
+        axes[1].plot(m.time, m.wait_series, ":" if twin else "-", marker="s", ms=3, lw=1.4,
+                     color=color, label=wait_label)
+        if open_orders:
+            axes[2].plot(m.time, m.open_series, "-", lw=1.4, color=color, label=label)
+        top = max(top, float(np.nanmax(m.throughput_series, initial=0.0)), m.throughput_bound)
+    if shared_bound:
+        axes[0].axhline(bounds[0], ls="--", lw=1.2, color="0.25",
+                        label=f"throughput bound ({bounds[0]:.0f})")
+    axes[0].set_ylim(0, 1.1 * top if top > 0 else 1.0)
+    axes[0].set_ylabel("deliveries / 1000 steps")
+    axes[1].set_ylabel("mean wait (steps)")
+    axes[1].set_ylim(bottom=0)
+    if open_orders:
+        axes[2].set_ylabel("orders waiting")
+        axes[2].set_ylim(bottom=0)
+    for a in axes[: 1 if twin else panels]:
+        a.grid(True, alpha=0.3)
+    axes[0 if twin else -1].set_xlabel("step")
+    if twin:
+        handles, labels = [], []
+        for a in axes:
+            h, lab = a.get_legend_handles_labels()
+            handles += h
+            labels += lab
+        axes[0].legend(handles, labels, fontsize=8, loc="best")
+    else:
+        axes[0].legend(fontsize=8, loc="best", ncol=2 if len(runs) > 2 else 1)
+        if any(label for label, _ in runs):
+            axes[1].legend(fontsize=8, loc="best")
+    first = runs[0][1]
+    if title is None:
+        runs_text = "1 run" if first.runs == 1 else f"{first.runs} runs"
+        title = f"lifelong operation: {first.steps} steps, {runs_text}"
+    if ax is None:
+        fig.suptitle(title, fontsize=11)
+    else:
+        axes[0].set_title(title, fontsize=10)
+    if path is not None:  # the temporary file ends in .tmp: take the format from the target
+        fmt = Path(path).suffix.lstrip(".").lower() or "png"
+        atomic_save(lambda p: fig.savefig(p, dpi=120, format=fmt), path)
+    return fig
