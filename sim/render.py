@@ -590,8 +590,11 @@ class _LifelongCanvas:
         status = snap["status"]
         broken = status == self.broken_code
         pos = self._snap(snap["pos"])
-        self.agents.set_offsets(pos)
-        self.agents.set_facecolors(self.colors[status])
+        # Drawn in the order of the status codes, so a loaded or broken AGV that overlaps an
+        # idle one stays visible.
+        order = np.argsort(status, kind="stable")
+        self.agents.set_offsets(pos[order])
+        self.agents.set_facecolors(self.colors[status[order]])
         self.broken.set_offsets(pos[broken])
         self.open.set_offsets(snap["open"])
         self.assigned.set_offsets(snap["assigned"])
@@ -867,7 +870,7 @@ def plot_lifelong(
                         label=f"throughput bound ({bounds[0]:.0f})")
     axes[0].set_ylim(0, 1.1 * top if top > 0 else 1.0)
     axes[0].set_ylabel("deliveries / 1000 steps")
-    axes[1].set_ylabel("mean wait (steps)")
+    axes[1].set_ylabel("wait to pickup (steps)")
     axes[1].set_ylim(bottom=0)
     if open_orders:
         axes[2].set_ylabel("orders waiting")
@@ -883,9 +886,8 @@ def plot_lifelong(
             labels += lab
         axes[0].legend(handles, labels, fontsize=8, loc="best")
     else:
+        # One legend: the other panels use the same colour for each run.
         axes[0].legend(fontsize=8, loc="best", ncol=2 if len(runs) > 2 else 1)
-        if any(label for label, _ in runs):
-            axes[1].legend(fontsize=8, loc="best")
     first = runs[0][1]
     if title is None:
         runs_text = "1 run" if first.runs == 1 else f"{first.runs} runs"
