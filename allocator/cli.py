@@ -509,8 +509,7 @@ def _check_suffix(out: str, allowed: set[str], what: str, flag: str = "--out") -
 
 
 def _run_render_lifelong(args: argparse.Namespace) -> int:
-    from sim.controllers import NearestTaskController
-    from sim.render import plot_lifelong, render_lifelong
+    import torch
 
     if args.scenario is not None:
         raise ValueError("--lifelong names the scenario itself: drop --scenario")
@@ -521,25 +520,40 @@ def _run_render_lifelong(args: argparse.Namespace) -> int:
         _check_suffix(args.plot, _image_suffixes(), "the plot", "--plot")
         if Path(args.plot).absolute() == Path(out).absolute():
             raise ValueError(f"--plot {args.plot!r} is the GIF's own file: give another name")
+    # One floor's tensors are small: one torch thread is faster than several, and far faster
+    # on a busy machine (agv bench's default too). The caller's setting is restored after.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _write_lifelong(args, name, out)
+    finally:
+        torch.set_num_threads(threads)
+    return 0
+
+
+def _write_lifelong(args: argparse.Namespace, name: str, out: str) -> None:
+    """The GIF of ``agv render --lifelong`` and, with ``--plot``, its plot."""
+    from sim.controllers import NearestTaskController
+    from sim.render import plot_lifelong, render_lifelong
+
     steps = args.steps or 200
     faults = sim.Breakdowns(*args.faults) if args.faults is not None else None
     physics = sim.get_scenario(name).world.physics
     render_lifelong(name, NearestTaskController(physics), steps=steps, seed=args.seed,
                     path=out, faults=faults)
     print(f"wrote {out}")
-    if args.plot is not None:
-        metrics = sim.evaluate_lifelong(NearestTaskController(physics), name, steps=steps,
-                                        seed=args.seed, faults=faults,
-                                        window=max(10, steps // 20))
-        broken = "" if faults is None else \
-            f", breakdowns {faults.rate:g}/AGV-step, repair {faults.repair_steps} steps"
-        plot_lifelong({"nearest task": metrics}, path=args.plot,
-                      title=f"{name}, seed {args.seed}{broken}")
-        print(f"{name}: {metrics.delivered} orders delivered in {steps} steps, throughput "
-              f"{metrics.throughput:.0f} per 1000 steps (bound {metrics.throughput_bound:.0f}), "
-              f"mean wait {metrics.wait_mean:.0f} steps")
-        print(f"wrote {args.plot}")
-    return 0
+    if args.plot is None:
+        return
+    metrics = sim.evaluate_lifelong(NearestTaskController(physics), name, steps=steps,
+                                    seed=args.seed, faults=faults, window=max(10, steps // 20))
+    broken = "" if faults is None else \
+        f", breakdowns {faults.rate:g}/AGV-step, repair {faults.repair_steps} steps"
+    plot_lifelong({"nearest task": metrics}, path=args.plot,
+                  title=f"{name}, seed {args.seed}{broken}")
+    print(f"{name}: {metrics.delivered} orders delivered in {steps} steps, throughput "
+          f"{metrics.throughput:.0f} per 1000 steps (bound {metrics.throughput_bound:.0f}), "
+          f"mean wait {metrics.wait_mean:.0f} steps")
+    print(f"wrote {args.plot}")
 
 
 def _run_render(args: argparse.Namespace) -> int:

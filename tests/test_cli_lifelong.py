@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from allocator.cli import main
@@ -57,9 +58,17 @@ def test_lifelong_gif_and_plot_are_written(capsys, tmp_path) -> None:
     assert sorted(p.name for p in gif.parent.iterdir()) == ["run.gif"]
 
 
-def test_lifelong_default_file_name(capsys, tmp_path, monkeypatch) -> None:
+def test_lifelong_default_file_name_and_the_threads_come_back(capsys, tmp_path,
+                                                              monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)
-    code, out, err = run_main(capsys, ["render", "--lifelong", "warehouse-20", "--steps", "2"])
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        code, out, err = run_main(capsys, ["render", "--lifelong", "warehouse-20", "--steps",
+                                           "2"])
+        assert torch.get_num_threads() == 2  # the CLI ran on one thread, then restored them
+    finally:
+        torch.set_num_threads(threads)
     assert code == 0, err
     with Image.open(tmp_path / "lifelong_warehouse-20.gif") as im:
         assert im.n_frames == 3
