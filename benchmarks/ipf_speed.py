@@ -10,7 +10,13 @@ Measures, in one run and on a fixed number of threads:
    (target: ratio <= 1.5), interleaved, median of repeats, with the fused kernels of
    :mod:`sim.native` (the default) and on the torch reference path.
 
-Run: ``python benchmarks/ipf_speed.py [--threads 1 [2]] [--quick]``.
+With ``--large`` (writes ``benchmarks/results/ipf_speed_large.md`` instead): the separator-tree
+method on large floors: ``IPFGrid.lifelong_potentials`` on warehouse-50 against a 50v50
+MiniDist step (target ratio <= 2), the episodic 50v50 and 100v100 IPF steps against MiniDist,
+and the peak memory of fresh processes (warehouse-100 within 2 GB).
+
+Run: ``python benchmarks/ipf_speed.py [--threads 1 [2]] [--quick]`` or
+``python benchmarks/ipf_speed.py --large [--runs 3] [--quick]``.
 """
 
 from __future__ import annotations
@@ -198,13 +204,228 @@ def step_ratio(scenario: str, num_envs: int, repeats: int, use_native: bool = Tr
     return out
 
 
+# ---------------------------------------------------------------------- large floors
+LARGE_RESULTS = Path(__file__).parent / "results" / "ipf_speed_large.md"
+
+_MEMORY_PROBE = """
+import resource, sys, time, numpy as np, torch
+torch.set_num_threads(1)
+import sim
+from sim.floors import warehouse_floor
+from sim.ipf import ipf_grid
+kind = sys.argv[1]
+t0 = time.perf_counter()
+if kind == "warehouse-100":
+    world = warehouse_floor(100)
+    grid = ipf_grid(world)
+    grid.tree.build()
+    build = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    B, N, Q = 16, 100, 150
+    xmin, ymin, xmax, ymax = world.bounds
+    pts = rng.uniform((xmin, ymin), (xmax, ymax), size=(40 * B * N, 2))
+    pts = pts[world.is_free(pts, clearance=world.agent_radius)][: B * N]
+    agents = torch.from_numpy(pts.astype(np.float32)).view(B, N, 2)
+    pk, st = np.asarray(world.pickups), np.asarray(world.stations)
+    pick = torch.from_numpy(pk[np.stack([rng.permutation(len(pk))[:Q] for _ in range(B)])]
+                            .astype(np.float32))
+    drop = torch.from_numpy(st[rng.integers(0, len(st), (B, N))].astype(np.float32))
+    loaded = torch.from_numpy(rng.random((B, N)) < 0.5)
+    for _ in range(5):
+        out = grid.lifelong_potentials(agents, pick, torch.ones(B, Q, dtype=torch.bool), drop,
+                                       loaded)
+    assert bool(torch.isfinite(out).all())
+    info = f"{grid.shape[0]}x{grid.shape[1]}, F={grid.num_free}, tree {grid.tree.describe()}"
+else:
+    env = sim.make_env(kind, num_envs=16 if kind == "100v100" else 64, reward="ipf", seed=0)
+    for _ in range(5):
+        env.step(torch.rand(env.num_envs, env.num_agents, 2) * 2 - 1)
+    build = time.perf_counter() - t0
+    grid = ipf_grid(env.world)
+    info = f"{grid.shape[0]}x{grid.shape[1]}, F={grid.num_free}, tree {grid.tree.describe()}"
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, build, info, sep="|")
+"""
+
+
+def memory_probe(kind: str) -> dict:
+    """Peak RSS of a fresh process that builds the floor's tables and runs the IPF on it."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _MEMORY_PROBE, kind], capture_output=True,
+                         text=True, check=True, cwd=Path(__file__).resolve().parents[1])
+    rss, build, info = out.stdout.strip().splitlines()[-1].split("|")
+    return dict(kind=kind, rss_mib=float(rss), build_s=float(build), info=info)
+
+
+def lifelong_scene(world: sim.World, B: int, N: int, Q: int, rng: np.random.Generator,
+                   sets: int = 8) -> dict:
+    """AGV positions (``sets`` draws, (B, N, 2) each) on the free floor, Q distinct open
+    pickups per environment from the floor's pickups, drop-offs at its stations, half the
+    AGVs loaded."""
+    xmin, ymin, xmax, ymax = world.bounds
+    agents = []
+    for _ in range(sets):
+        pts = rng.uniform((xmin, ymin), (xmax, ymax), size=(40 * B * N, 2))
+        pts = pts[world.is_free(pts, clearance=world.agent_radius)][: B * N]
+        agents.append(torch.from_numpy(pts.astype(np.float32)).view(B, N, 2))
+    pk, st = np.asarray(world.pickups), np.asarray(world.stations)
+    pick = np.stack([rng.permutation(len(pk))[:Q] for _ in range(B)])
+    return dict(agents=agents,
+                pickups=torch.from_numpy(pk[pick].astype(np.float32)),
+                dropoffs=torch.from_numpy(st[rng.integers(0, len(st), (B, N))]
+                                          .astype(np.float32)),
+                loaded=torch.from_numpy(rng.random((B, N)) < 0.5))
+
+
+def lifelong_ratio(repeats: int) -> dict:
+    """One ``lifelong_potentials`` call on warehouse-50 (B = 64, N = 50, Q = 75 open pickups)
+    against one ``make_env("50v50", num_envs=64, reward="minidist")`` step, interleaved. Each
+    call sees new AGV positions, and one environment in eight changes one pickup (an order
+    picked up, another released), so the pickups' cached factors are refreshed as in a run."""
+    from sim.floors import warehouse_floor
+    from sim.ipf import TaskBlockCache
+
+    world = warehouse_floor(50)
+    grid = ipf_grid(world)
+    t0 = time.perf_counter()
+    grid.tree.build()
+    build_s = time.perf_counter() - t0
+    B, N, Q = 64, 50, 75
+    rng = np.random.default_rng(0)
+    scene = lifelong_scene(world, B, N, Q, rng)
+    open_ = torch.ones(B, Q, dtype=torch.bool)
+    cache = TaskBlockCache()
+    env = sim.make_env("50v50", num_envs=B, reward="minidist", seed=0)
+    gen = torch.Generator().manual_seed(0)
+    times: dict[str, list[float]] = {"minidist": [], "lifelong": []}
+    first = None
+    for k in range(repeats + 3):
+        actions = torch.rand(B, N, 2, generator=gen) * 2 - 1
+        if k % 10 == 0:
+            env.reset(seed=k)
+        t = time.perf_counter()
+        env.step(actions)
+        t1 = time.perf_counter()
+        flip = torch.from_numpy(rng.random(B) < 1 / 8)
+        col = torch.from_numpy(rng.integers(0, Q, B))
+        open_[flip, col[flip]] = ~open_[flip, col[flip]]
+        t2 = time.perf_counter()
+        grid.lifelong_potentials(scene["agents"][k % len(scene["agents"])], scene["pickups"],
+                                 open_, scene["dropoffs"], scene["loaded"], cache=cache)
+        t3 = time.perf_counter()
+        if first is None:
+            first = t3 - t2
+        if k >= 3:
+            times["minidist"].append(t1 - t)
+            times["lifelong"].append(t3 - t2)
+    mini, life = statistics.median(times["minidist"]), statistics.median(times["lifelong"])
+    return dict(floor=f"warehouse-50 {world.size[0]:g} x {world.size[1]:g}, "
+                      f"{grid.shape[0]}x{grid.shape[1]} cells, F={grid.num_free}",
+                tree=grid.tree.describe(), build_s=build_s, first_call_s=first,
+                minidist_ms=1e3 * mini, lifelong_ms=1e3 * life, ratio=life / mini)
+
+
+def large_floors(quick: bool, runs: int) -> dict:
+    """The large-floor section: ``runs`` runs of the lifelong ratio and of the episodic
+    50v50 / 100v100 step ratios (medians reported), and peak memory in fresh processes."""
+    reps = 10 if quick else 30
+    lifelong = [lifelong_ratio(reps) for _ in range(runs)]
+    for r in lifelong:
+        print(r, flush=True)
+    episodic = {}
+    for scenario, B in (("50v50", 64), ("100v100", 16)):
+        episodic[scenario] = [step_ratio(scenario, B, reps) for _ in range(runs)]
+        for r in episodic[scenario]:
+            print(r, flush=True)
+    memory = [memory_probe(kind) for kind in ("warehouse-100", "50v50", "100v100")]
+    for m in memory:
+        print(m, flush=True)
+    return dict(lifelong=lifelong, episodic=episodic, memory=memory, runs=runs, quick=quick)
+
+
+def large_markdown(res: dict, command: str) -> str:
+    med = statistics.median
+    life = res["lifelong"]
+    lines = [
+        "# IPF on large floors: speed and memory",
+        "",
+        f"Measured by `{command}` on {platform.machine()}, {os.cpu_count()} cores (shared), "
+        f"torch {torch.__version__}, 1 torch thread; each row is one run, times are medians "
+        "of the repeats inside it, and the two things compared run interleaved in one process.",
+        "",
+        "## Lifelong potentials against a MiniDist step (target ratio <= 2)",
+        "",
+        f"`IPFGrid.lifelong_potentials` on {life[0]['floor']} (tree: {life[0]['tree']}), "
+        "B = 64, N = 50, Q = 75 open pickups, half the AGVs loaded, new AGV positions at every "
+        "call, one environment in eight changing a pickup per call; against one step of "
+        "`sim.make_env(\"50v50\", num_envs=64, reward=\"minidist\")`.",
+        "",
+        "| run | tree build (s, once per floor) | first call (s) | MiniDist step (ms) | "
+        "lifelong_potentials (ms) | ratio |",
+        "|---|---|---|---|---|---|",
+    ]
+    for k, r in enumerate(life):
+        lines.append(f"| {k + 1} | {r['build_s']:.1f} | {r['first_call_s']:.2f} | "
+                     f"{r['minidist_ms']:.2f} | {r['lifelong_ms']:.2f} | **{r['ratio']:.2f}** |")
+    lines += [f"| median | | | {med(r['minidist_ms'] for r in life):.2f} | "
+              f"{med(r['lifelong_ms'] for r in life):.2f} | "
+              f"**{med(r['ratio'] for r in life):.2f}** |", ""]
+    lines += [
+        "## Episodic IPF step against MiniDist (default resolution 0.05, fused kernels on)",
+        "",
+        "| scenario | B | run | MiniDist step (ms) | IPF step (ms) | ratio (wall) | "
+        "ratio (CPU) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for scenario, rows in res["episodic"].items():
+        for k, s in enumerate(rows):
+            lines.append(f"| {scenario} | {s['B']} | {k + 1} | {s['minidist_wall_ms']:.2f} | "
+                         f"{s['ipf_wall_ms']:.2f} | **{s['ratio_wall']:.2f}** | "
+                         f"{s['ratio_cpu']:.2f} |")
+        lines.append(f"| {scenario} | | median | {med(s['minidist_wall_ms'] for s in rows):.2f} "
+                     f"| {med(s['ipf_wall_ms'] for s in rows):.2f} | "
+                     f"**{med(s['ratio_wall'] for s in rows):.2f}** | "
+                     f"{med(s['ratio_cpu'] for s in rows):.2f} |")
+    lines += [
+        "",
+        "## Memory (peak RSS of a fresh process)",
+        "",
+        "warehouse-100: the grid and its tree built, then 5 calls of `lifelong_potentials` "
+        "(B = 16, N = 100, Q = 150); 50v50 (B = 64) and 100v100 (B = 16): `make_env(..., "
+        "reward=\"ipf\")` and 5 steps. The time column includes the tree build.",
+        "",
+        "| what | grid and tree | peak RSS (MiB) | time (s) |",
+        "|---|---|---|---|",
+    ]
+    for m in res["memory"]:
+        lines.append(f"| {m['kind']} | {m['info']} | **{m['rss_mib']:.0f}** | "
+                     f"{m['build_s']:.1f} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, nargs="+", default=[1],
                         help="torch thread counts for the step comparison (default 1)")
     parser.add_argument("--quick", action="store_true", help="fewer scenes and repeats")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--large", action="store_true",
+                        help="only the large-floor section (writes ipf_speed_large.md)")
+    parser.add_argument("--runs", type=int, default=3,
+                        help="runs of the large-floor comparisons (medians reported)")
     args = parser.parse_args()
+    if args.large:
+        torch.set_num_threads(1)
+        res = large_floors(args.quick, args.runs)
+        command = (f"python benchmarks/ipf_speed.py --large --runs {args.runs}"
+                   f"{' --quick' if args.quick else ''}")
+        out = LARGE_RESULTS if args.out == RESULTS else args.out
+        out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out, large_markdown(res, command))
+        print(f"wrote {out}")
+        return
     steps = []
     for threads in args.threads:
         torch.set_num_threads(threads)

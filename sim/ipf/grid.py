@@ -153,7 +153,9 @@ class IPFGrid:
         self._torch: dict[torch.device, tuple[Tensor, Tensor]] = {}
         self._native_tables: tuple[Tensor, Tensor, int, int, int] | None = None
         self._index: dict[torch.device, Tensor] = {}
-        self._rows_cache: dict[int, Tensor] = {}  # free index -> row of G (F + 1,), CPU
+        self._slot: Tensor | None = None  # free index -> row of _row_store, or -1
+        self._row_store: Tensor | None = None
+        self._row_count = 0
 
     # ------------------------------------------------------------------ the graph
     @functools.cached_property
@@ -273,31 +275,34 @@ class IPFGrid:
         return table.index_select(0, where)
 
     def _row_table(self, fidx: Tensor) -> tuple[Tensor, Tensor]:
-        """The distinct rows of ``G`` that ``fidx`` (any shape, values in [0, F]) names, as a
-        table (U, F + 1) float64 on the CPU, and where each entry of ``fidx`` finds its row
-        (flat, (fidx.numel(),)). On tree grids the rows are kept (up to
-        :data:`MAX_COLUMN_BYTES`), so that cells that recur (pickups, stations, task cells of
-        an episode) cost one gather after their first use."""
+        """Rows of ``G`` for the cells ``fidx`` (any shape, values in [0, F]) names: a table
+        (U, F + 1) float64 on the CPU and, for each entry of ``fidx`` (flat), its row in it.
+
+        On tree grids rows are kept in one table of up to :data:`MAX_COLUMN_BYTES` (cells that
+        recur, pickups and stations, then cost one gather after their first use); when the
+        cells of one call do not fit, the call gets a table of its own."""
         flat = fidx.cpu().reshape(-1)
         if self.method == "dense":
             return self._padded_green(), flat
         assert self.tree is not None
         F1 = self.num_free + 1
-        wanted, where = torch.unique(flat, return_inverse=True)
-        keys = wanted.tolist()
-        missing = [f for f in keys if f not in self._rows_cache]
-        extra: dict[int, Tensor] = {}
-        if missing:
-            fresh = self.tree.rows(torch.tensor(missing, dtype=torch.int64))
-            room = max(MAX_COLUMN_BYTES // (8 * F1) - len(self._rows_cache), 0)
-            for k, f in enumerate(missing):
-                if k < room:
-                    self._rows_cache[f] = fresh[k].clone()
-                else:
-                    extra[f] = fresh[k]
-        table = torch.stack([self._rows_cache[f] if f in self._rows_cache else extra[f]
-                             for f in keys])
-        return table, where
+        if self._slot is None:
+            capacity = max(1, min(F1, MAX_COLUMN_BYTES // (8 * F1)))
+            self._slot = torch.full((F1,), -1, dtype=torch.int64)
+            self._row_store = torch.empty(capacity, F1, dtype=torch.float64)
+            self._row_count = 0
+        where = self._slot.index_select(0, flat)
+        if bool((where < 0).any()):
+            missing = torch.unique(flat[where < 0])
+            count = self._row_count
+            if count + len(missing) > self._row_store.shape[0]:
+                wanted, inverse = torch.unique(flat, return_inverse=True)
+                return self.tree.rows(wanted), inverse  # too many for the store: this call only
+            self._row_store[count: count + len(missing)] = self.tree.rows(missing)
+            self._slot[missing] = torch.arange(count, count + len(missing))
+            self._row_count = count + len(missing)
+            where = self._slot.index_select(0, flat)
+        return self._row_store, where
 
     def _pair_block(self, fixed: Tensor, other: Tensor) -> Tensor:
         """``G[fixed[b, k], other[b, j]]`` as (B, K, J) float64 on the device of ``other``,
@@ -679,14 +684,14 @@ class IPFGrid:
             x_t = self._pair_block(f_p, f_a).mT @ inv_chol_d.mT  # (B, N, Q)
             schur = torch.baddbmm(g_aa, x_t, x_t.mT, alpha=-1.0)
             r = v_a - (x_t @ u.unsqueeze(-1)).squeeze(-1)
-            p_aa, _ = torch.linalg.inv_ex(schur)
-            p_ii = p_aa.diagonal(dim1=-2, dim2=-1)
-            phi = v_a - (p_aa @ r.unsqueeze(-1)).squeeze(-1) / p_ii
+            p_ii, p_r = _inverse_diagonal_and_product(schur, r)
+            phi = v_a - p_r / p_ii
         if bool(loaded.any()):
             f_d = torch.where(d_src, fd, F)
-            q_aa, _ = torch.linalg.inv_ex(g_aa)
+            chol, _ = torch.linalg.cholesky_ex(g_aa)
+            q_aa = torch.cholesky_inverse(chol)
             g_da = self._pair_block(f_d, f_a)  # (B, N_i, N_j): G[d_i, a_j]
-            gamma = self._pair_block(f_d, f_d).diagonal(dim1=-2, dim2=-1)  # G[d_i, d_i]
+            gamma = self._pair_block(f_d.reshape(B * N, 1), f_d.reshape(B * N, 1)).view(B, N)
             h = g_da @ q_aa  # row i: (Q G[A, d_i])^T (Q symmetric)
             s = torch.where(d_src, gamma - (h * g_da).sum(-1), 1.0)
             v_d = d_src.to(torch.float64) * task_value
@@ -807,6 +812,9 @@ class IPFGrid:
         schur.diagonal(dim1=-2, dim2=-1).add_(dropped)
         v_agents = (~dropped).to(torch.float64) * agent_value
         r = v_agents - (x_t * u_tasks.unsqueeze(1)).sum(-1)  # v_A - G[A,T] D^{-1} v_T
+        if N > 16:  # many AGVs: a Cholesky factor and its triangular inverse are cheaper
+            p_ii, p_v = _inverse_diagonal_and_product(schur, r)
+            return v_agents - p_v / p_ii
         # P_AA = S^{-1} and (P v)_A = S^{-1} r; N x N LU inverses are the cheapest batched
         # LAPACK call here, and S is well conditioned (a Schur complement of G[T, T]).
         p_aa, _ = torch.linalg.inv_ex(schur)
@@ -966,6 +974,18 @@ class TaskBlockCache:
         inv_chol = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
         u = (inv_chol * ((~dropped).to(torch.float64) * task_value).unsqueeze(1)).sum(-1)
         return inv_chol, u
+
+
+def _inverse_diagonal_and_product(spd: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+    """``diag(S^{-1})`` and ``S^{-1} r`` for a batch of SPD matrices ``S`` (B, N, N) and vectors
+    ``r`` (B, N): with ``S = C C^T`` and ``Y = C^{-1}``, ``(S^{-1})_ii = sum_k Y_ki^2`` and
+    ``(S^{-1} r)_i = sum_k Y_ki (Y r)_k`` (a factor and a triangular inverse, about a third
+    of an LU inverse's work)."""
+    chol, _ = torch.linalg.cholesky_ex(spd)
+    eye = torch.eye(spd.shape[-1], dtype=spd.dtype, device=spd.device)
+    inv_chol = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+    z = (inv_chol @ r.unsqueeze(-1))  # (B, N, 1)
+    return (inv_chol * inv_chol).sum(-2), (inv_chol * z).sum(-2)
 
 
 def _dedupe(cells: Tensor, candidate: Tensor, same: Tensor | None = None) -> Tensor:

@@ -175,7 +175,6 @@ class SeparatorTree:
         """Factor every separator's Schur complement and fill the tables (once)."""
         if self._built:
             return self
-        import scipy.linalg as sla
         import scipy.sparse.linalg as spla
 
         F = self.num_free
@@ -194,20 +193,19 @@ class SeparatorTree:
                 lap_ss = lap[sep][:, sep].toarray()
                 if len(rest):
                     lap_cs = lap[rest][:, sep]
-                    lap_cc = lap[rest][:, rest].tocsc()
-                    if len(rest) <= 2000:
-                        harm = -np.linalg.solve(lap_cc.toarray(), lap_cs.toarray())
-                    else:
-                        lu = spla.splu(lap_cc, permc_spec="MMD_AT_PLUS_A")
-                        harm = -lu.solve(lap_cs.toarray())
+                    lu = spla.splu(lap[rest][:, rest].tocsc(), permc_spec="MMD_AT_PLUS_A")
+                    harm = -lu.solve(lap_cs.toarray())  # E = -L_CC^{-1} L_C,Sigma
                     schur = lap_ss + lap_cs.T @ harm
                 else:
                     harm = np.zeros((0, s))
                     schur = lap_ss
-                chol = np.linalg.cholesky(0.5 * (schur + schur.T))
+                # dense work in torch (its thread setting; numpy's BLAS may oversubscribe)
+                chol = torch.linalg.cholesky(torch.from_numpy(0.5 * (schur + schur.T)))
                 # y_s = R^{-1} b_s for every cell of the domain: rows of [E; I] R^{-T}
-                y[rest, :s] = sla.solve_triangular(chol, harm.T, lower=True).T
-                y[sep, :s] = sla.solve_triangular(chol, np.eye(s), lower=True).T
+                y[rest, :s] = torch.linalg.solve_triangular(
+                    chol, torch.from_numpy(np.ascontiguousarray(harm.T)), upper=False).T.numpy()
+                y[sep, :s] = torch.linalg.solve_triangular(
+                    chol, torch.eye(s, dtype=torch.float64), upper=False).T.numpy()
                 node_id[node.cells] = k
             self._y.append(torch.from_numpy(y))
             self._node_id.append(torch.from_numpy(node_id))
@@ -221,9 +219,8 @@ class SeparatorTree:
         total = 0
         for k, leaf in enumerate(self.leaves):
             m = len(leaf.cells)
-            block = lap[leaf.cells][:, leaf.cells].toarray()
-            chol = np.linalg.cholesky(block)
-            inv = sla.cho_solve((chol, True), np.eye(m))
+            lu = spla.splu(lap[leaf.cells][:, leaf.cells].tocsc(), permc_spec="MMD_AT_PLUS_A")
+            inv = lu.solve(np.eye(m))  # a sparse factor: far cheaper than a dense inverse
             blocks.append((0.5 * (inv + inv.T)).ravel())
             leaf_id[leaf.cells] = k
             local[leaf.cells] = np.arange(m)
