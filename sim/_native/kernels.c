@@ -15,6 +15,7 @@
 #include "observations.h"
 #include "physics.h"
 #include "tasks.h"
+#include "lifelong.h"
 
 #include "step.c"
 #include "ipf.c"
