@@ -568,6 +568,9 @@ def _run_render(args: argparse.Namespace) -> int:
         if value is not None:
             raise ValueError(f"{flag} is for a lifelong run: use it with --lifelong SCENARIO")
     scenario = args.scenario or "3v3"
+    if getattr(sim.get_scenario(scenario), "lifelong", False) is True:
+        raise ValueError(f"--scenario {scenario} is a lifelong scenario (orders, no fixed "
+                         f"tasks): draw a run of it with --lifelong {scenario}")
     env = sim.make_env(scenario, num_envs=1, seed=args.seed)
     if args.field:
         import matplotlib.pyplot as plt

@@ -100,6 +100,9 @@ def test_lifelong_default_file_name_and_the_threads_come_back(capsys, tmp_path,
     (["--steps", "5"], ("--steps", "--lifelong")),
     (["--faults", "0.1:5"], ("--faults", "--lifelong")),
     (["--gif", "--plot", "p.png"], ("--plot", "--lifelong")),
+    (["--scenario", "warehouse-20"], ("lifelong scenario", "--lifelong warehouse-20")),
+    (["--gif", "--scenario", "warehouse-50"], ("--lifelong warehouse-50",)),
+    (["--field", "--scenario", "warehouse-20"], ("--lifelong warehouse-20",)),
 ])
 def test_bad_lifelong_flags_are_one_line_and_exit_2(capsys, tmp_path, monkeypatch, argv,
                                                     fragments) -> None:
