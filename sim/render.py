@@ -373,8 +373,9 @@ LIFELONG_COLORS: dict[str, str] = {
     "loaded": "#2ca02c",
     "broken": "#e0201b",
 }
-"""Face colour of an AGV disc in each :data:`sim.orders.AGENT_STATUS` (``#rrggbb``); no other
-element of a :func:`render_lifelong` frame uses these colours."""
+"""Face colour of an AGV disc in each :data:`sim.orders.AGENT_STATUS` (``#rrggbb``). In a
+:func:`render_lifelong` frame only those discs, the legend and the lines to a pickup (to_pickup)
+and to a drop-off (loaded) use them."""
 
 _SHELF, _SHELF_EDGE = "#8f8f8f", "#606060"
 _PICKUP_POINT = "#4a4a4a"
@@ -483,7 +484,7 @@ class _LifelongCanvas:
         ax_h = ax_w * span_y / span_x
         title_h, legend_h = 0.34, 0.5
         height = ax_h + title_h + legend_h
-        # Whole pixels, so that every frame has the same even size.
+        # A whole number of pixels high.
         height = round(height * _GIF_DPI) / _GIF_DPI
         self.fig = Figure(figsize=(width, height), dpi=_GIF_DPI, facecolor="white")
         self.canvas = FigureCanvasAgg(self.fig)
