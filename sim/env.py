@@ -142,6 +142,10 @@ class AGVEnv:
             one = torch.empty((), dtype=torch.float32)
             self._like = (one.expand(B, N, M), one.expand(B, N), one.expand(B),
                           one.expand(B, N, self.obs_dim))
+        # Shelves: the fused kernel, bit for bit the torch reference (sim/physics.py).
+        self._shelves = (physics.shelf_kernel(self._native, self._obstacles,
+                                              self.world.agent_radius)
+                         if self._native is not None and self.world.has_obstacles else None)
         self._post_args = (B, N, M, self.k_tasks, self.k_agents, scenario.sensing_range,
                            self.world.capture_radius, 2.0 * self.world.agent_radius,
                            self.max_steps)
@@ -546,7 +550,7 @@ class AGVEnv:
         """
         self._agent_pos, self._agent_vel = physics.mpe_step(
             self._agent_pos, self._agent_vel, actions, movable, self.world, self._obstacles,
-            self._pairwise() if self._contacts else None, self._eye,
+            self._pairwise() if self._contacts else None, self._eye, shelves=self._shelves,
         )
         self._pair = None
         self._task_rel = None

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sim import native as native_kernels
 from sim import orders as rules
 from sim import physics, streams, tasks
 from sim.checks import check_count, check_device, check_env_ids, check_seed, real_array
@@ -216,7 +217,8 @@ class LifelongEnv:
         Seed of the generator that draws the starting fleets and each run's stream key.
     device : str or torch.device
     native : bool, optional
-        Lifelong mode runs the torch path; ``True`` is refused.
+        Use the fused CPU kernels (default: wherever they are available; ``True`` raises if
+        they are not) or the torch reference path (``False``).
 
     Attributes
     ----------
@@ -252,9 +254,6 @@ class LifelongEnv:
         if not isinstance(scenario, LifelongScenario):
             raise ValueError(f"scenario must be a LifelongScenario, got "
                              f"{type(scenario).__name__}")
-        if native:
-            raise ValueError("native=True: lifelong mode runs the torch path only (no fused "
-                             "kernels yet); pass native=None or False")
         if native is not None and not isinstance(native, (bool, np.bool_)):
             raise ValueError(f"native must be True, False or None, got {native!r}")
         self.scenario = scenario
@@ -277,6 +276,15 @@ class LifelongEnv:
         self._obstacles = torch.tensor(np.array(self.world.obstacles), dtype=self.dtype,
                                        device=dev)
         self._contacts = self.world.physics.contact_force > 0 and N > 1
+        self._native = native_kernels.library_for(self.device, None if native is None
+                                                  else bool(native))
+        if native and self._native is None:
+            reason = ("the kernels run on CPU tensors only" if self.device.type != "cpu"
+                      else native_kernels.disabled_reason())
+            raise ValueError(f"native=True but the fused kernels are unavailable: {reason}")
+        self._shelves = (physics.shelf_kernel(self._native, self._obstacles,
+                                              self.world.agent_radius)
+                         if self._native is not None and self.world.has_obstacles else None)
         self._pickups = torch.tensor(scenario.pickups, dtype=self.dtype, device=dev)
         self._stations = torch.tensor(scenario.stations, dtype=self.dtype, device=dev)
         arr = scenario.arrivals
@@ -369,7 +377,8 @@ class LifelongEnv:
 
     @property
     def native(self) -> bool:
-        return False
+        """Whether this environment steps with the fused CPU kernels (see :mod:`sim.native`)."""
+        return self._native is not None
 
     def order_balance(self) -> Tensor:
         """released - (delivered + open + assigned + loaded), (B,): always 0."""
@@ -638,7 +647,7 @@ class LifelongEnv:
         pair = self._pair_distances() if self._contacts else None
         self._agent_pos, self._agent_vel = physics.mpe_step(
             self._agent_pos, self._agent_vel, actions, movable, self.world, self._obstacles,
-            pair, self._eye)
+            pair, self._eye, shelves=self._shelves)
         self._steps = self._steps + active.long()
         o = self._orders
         # Rows delivered in the last step are freed.

@@ -9,13 +9,16 @@ distances and the overlaps exactly as :func:`pair_distances` and :func:`collisio
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import torch
 from torch import Tensor
 
 from sim.world import World
 
 __all__ = ["collide_obstacles", "collide_walls", "collisions", "contact_forces", "mpe_step",
-           "pair_distances"]
+           "pair_distances", "shelf_kernel"]
 
 
 def pair_distances(agent_pos: Tensor) -> Tensor:
@@ -96,6 +99,41 @@ def collide_obstacles(pos: Tensor, vel: Tensor, obstacles: Tensor,
     return pos + push, vel
 
 
+def shelf_kernel(lib: Any, obstacles: Tensor, radius: float
+                 ) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+    """:func:`collide_obstacles` as the fused kernel of ``sim/_native/shelves.h``, for
+    :func:`mpe_step`'s ``shelves``; bit for bit the same.
+
+    Parameters
+    ----------
+    lib : ctypes.CDLL
+        The kernels (:func:`sim.native.library_for`).
+    obstacles : Tensor, shape (K, 4) float32
+    radius : float
+        AGV radius.
+
+    Returns
+    -------
+    callable
+        ``collide(pos, vel) -> (pos, vel)``, writing into ``pos`` and ``vel`` (the physics
+        step's fresh tensors).
+    """
+    from sim.native import pointer
+
+    rects = obstacles.detach().to(torch.float32).contiguous()
+    K = rects.shape[0]
+    rect_ptr = pointer(rects, torch.float32, (K, 4), "obstacles")
+
+    def collide(pos: Tensor, vel: Tensor) -> tuple[Tensor, Tensor]:
+        shape = tuple(pos.shape)
+        lib.agv_collide_shelves(
+            pos.numel() // 2, pointer(pos, torch.float32, shape, "pos"),
+            pointer(vel, torch.float32, shape, "vel"), K, rect_ptr, float(radius))
+        return pos, vel
+
+    return collide
+
+
 def collide_walls(pos: Tensor, vel: Tensor, world: World) -> tuple[Tensor, Tensor]:
     """Clamp discs into the world bounds and stop the velocity into a wall they touch.
 
@@ -120,7 +158,8 @@ def collide_walls(pos: Tensor, vel: Tensor, world: World) -> tuple[Tensor, Tenso
 
 
 def mpe_step(agent_pos: Tensor, agent_vel: Tensor, actions: Tensor, movable: Tensor,
-             world: World, obstacles: Tensor, pair: Tensor | None, eye: Tensor
+             world: World, obstacles: Tensor, pair: Tensor | None, eye: Tensor,
+             shelves: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None,
              ) -> tuple[Tensor, Tensor]:
     """One MPE physics step: action and contact forces, integration, shelves, walls.
 
@@ -137,6 +176,10 @@ def mpe_step(agent_pos: Tensor, agent_vel: Tensor, actions: Tensor, movable: Ten
     pair : Tensor, shape (B, N, N), optional
         Pairwise distances of ``agent_pos`` (computed when needed and not given).
     eye : Tensor of bool, shape (N, N)
+    shelves : callable, optional
+        ``shelves(pos, vel) -> (pos, vel)`` in place of :func:`collide_obstacles` (the fused
+        kernel of :func:`shelf_kernel`, which may work in place on the fresh ``pos`` and
+        ``vel``).
 
     Returns
     -------
@@ -158,7 +201,10 @@ def mpe_step(agent_pos: Tensor, agent_vel: Tensor, actions: Tensor, movable: Ten
         vel = vel * (ph.max_speed / speed.clamp_min(ph.max_speed))
     vel = torch.where(m, vel, agent_vel)
     if world.has_obstacles:
-        pos, vel = collide_obstacles(pos, vel, obstacles, world.agent_radius)
+        if shelves is None:
+            pos, vel = collide_obstacles(pos, vel, obstacles, world.agent_radius)
+        else:
+            pos, vel = shelves(pos.contiguous(), vel.contiguous())
     if world.walls:
         pos, vel = collide_walls(pos, vel, world)
     return torch.where(m, pos, agent_pos), vel

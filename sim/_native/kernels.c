@@ -16,6 +16,7 @@
 #include "physics.h"
 #include "tasks.h"
 #include "lifelong.h"
+#include "shelves.h"
 
 #include "step.c"
 #include "ipf.c"

@@ -353,7 +353,9 @@ def test_signature_table_is_read_from_every_exported_c_function() -> None:
             head = line.split("(")[0].split()
             if len(head) == 2 and head[1].startswith("agv_") and not line.startswith("static"):
                 defined.add(head[1])
-    assert defined == set(table) and len(table) == 5
+    assert defined == set(table)
+    assert {"agv_prepare", "agv_post_step", "agv_observe", "agv_ipf", "agv_spawn_pick",
+            "agv_collide_shelves"} <= set(table)
     assert table["agv_prepare"] == (ctypes.c_int64, [ctypes.c_int64] * 2 + [ctypes.c_void_p] * 5)
     # Every kernel a Python module calls is in the table, so it is called with checked types.
     called = set()
