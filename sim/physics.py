@@ -118,8 +118,10 @@ def shelf_kernel(lib: Any, obstacles: Tensor, radius: float
         ``collide(pos, vel) -> (pos, vel)``, writing into ``pos`` and ``vel`` (the physics
         step's fresh tensors).
     """
+    from sim.lifelong_native import torch_norm_rounding
     from sim.native import pointer
 
+    fused = int(torch_norm_rounding()[0])  # how this torch rounds a 2-vector's length
     rects = obstacles.detach().to(torch.float32).contiguous()
     K = rects.shape[0]
     rect_ptr = pointer(rects, torch.float32, (K, 4), "obstacles")
@@ -128,7 +130,7 @@ def shelf_kernel(lib: Any, obstacles: Tensor, radius: float
         shape = tuple(pos.shape)
         lib.agv_collide_shelves(
             pos.numel() // 2, pointer(pos, torch.float32, shape, "pos"),
-            pointer(vel, torch.float32, shape, "vel"), K, rect_ptr, float(radius))
+            pointer(vel, torch.float32, shape, "vel"), K, rect_ptr, float(radius), fused)
         return pos, vel
 
     return collide

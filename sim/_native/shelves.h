@@ -13,7 +13,7 @@
 #include "common.h"
 
 void agv_collide_shelves(int64_t n, float *pos, float *vel, int64_t K, const float *rects,
-                         float radius) {
+                         float radius, int fused) {
     for (int64_t i = 0; i < n; i++) {
         const float px = pos[2 * i], py = pos[2 * i + 1];
         const float vx = vel[2 * i], vy = vel[2 * i + 1];
@@ -23,8 +23,9 @@ void agv_collide_shelves(int64_t n, float *pos, float *vel, int64_t K, const flo
             const float hx = rects[4 * k + 2], hy = rects[4 * k + 3];
             const float cx = fminf(fmaxf(px, lx), hx), cy = fminf(fmaxf(py, ly), hy);
             const float dx = px - cx, dy = py - cy;
-            /* torch.linalg.vector_norm of a float32 pair: sqrt(fma(dy, dy, dx * dx)). */
-            const float dist = sqrtf(fmaf(dy, dy, dx * dx));
+            /* torch.linalg.vector_norm of a float32 pair: sqrt(fma(dy, dy, dx * dx)) or
+             * sqrt(dx * dx + dy * dy), as the caller found torch to round. */
+            const float dist = fused ? sqrtf(fmaf(dy, dy, dx * dx)) : sqrtf(dx * dx + dy * dy);
             if (dist >= radius) continue;  /* depth <= 0: no contact */
             float nx, ny, depth;
             if (dist <= 1e-9f) {
