@@ -92,6 +92,16 @@ def _lib():  # noqa: ANN202
     return lib
 
 
+def _sizes(tensor: object, dtype: torch.dtype, shape: tuple[int, ...], name: str
+           ) -> tuple[int, ...]:
+    """The sizes of a tensor with ``len(shape)`` dimensions (``native.pointer``'s message
+    otherwise); the exact check comes with the call's :func:`sim.native.pointer`."""
+    if not (type(tensor) is torch.Tensor and tensor.dim() == len(shape)):
+        native.pointer(tensor, dtype, shape, name)  # raises, naming the argument
+    assert isinstance(tensor, Tensor)
+    return tuple(tensor.shape)
+
+
 def _count(value: object, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
         raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
@@ -114,10 +124,8 @@ def _observe(agent_pos: Tensor, agent_vel: Tensor, status: Tensor, service_left:
              active: Tensor | None, agent_radius: float | None
              ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
     lib = _lib()
-    native.pointer(agent_pos, _F32, (-1, -1, 2), "agent_pos")
-    B, N = agent_pos.shape[:2]
-    native.pointer(pickup, _F32, (B, -1, 2), "pickup")
-    Q = pickup.shape[1]
+    B, N, _ = _sizes(agent_pos, _F32, (-1, -1, 2), "agent_pos")
+    Q = _sizes(pickup, _F32, (B, -1, 2), "pickup")[1]
     kp = _count(k_pickups, "k_pickups")
     ka = _count(k_agents, "k_agents")
     rng = _real(sensing_range, "sensing_range", finite=False)
@@ -282,10 +290,8 @@ def remaining_work(agent_pos: Tensor, order_status: Tensor, pickup: Tensor, drop
         As :func:`lifelong_observe`.
     """
     lib = _lib()
-    native.pointer(agent_pos, _F32, (-1, -1, 2), "agent_pos")
-    B, N = agent_pos.shape[:2]
-    native.pointer(order_status, _I8, (B, -1), "order_status")
-    Q = order_status.shape[1]
+    B, N, _ = _sizes(agent_pos, _F32, (-1, -1, 2), "agent_pos")
+    Q = _sizes(order_status, _I8, (B, -1), "order_status")[1]
     if N == 0 and Q > 0:
         raise ValueError("agent_pos: remaining_work needs at least one AGV (N >= 1)")
     fused_norm, fused_cdist = torch_norm_rounding()

@@ -199,7 +199,8 @@ def test_torch_rounding_found_without_fma() -> None:
         "from sim import lifelong_native as ln\n"
         "print(ln.torch_norm_rounding())\n"
         "t.test_range_boundary_rounds_as_torch()\n"
-        "t.test_remaining_work_each_order_exact()\n"
+        "t.test_remaining_work_each_order_exact(7)\n"
+        "t.test_remaining_work_each_order_exact(60)\n"
         "print('ok')\n")
     env = {**os.environ, "ATEN_CPU_CAPABILITY": "default"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
@@ -263,9 +264,10 @@ def test_remaining_work_when_no_agv_is_available() -> None:
     _check_work(s)
 
 
-def test_remaining_work_each_order_exact() -> None:
+@pytest.mark.parametrize("N", [7, 60])
+def test_remaining_work_each_order_exact(N: int) -> None:
     # One order per floor: the sum is the order's own term, which must be the same float32.
-    s = _state(400, 7, 1, 4, open_p=0.3)
+    s = _state(400, N, 1, 4, open_p=0.3)
     s["status"][:100] = torch.where(s["status"][:100] < 2, 2, s["status"][:100])
     s["order_status"][200:300] = LOADED
     s["active"] = torch.ones(400, dtype=torch.bool)
@@ -325,7 +327,8 @@ def _bad_cases() -> list[tuple[str, dict, str]]:
         ("target", dict(target=torch.zeros(2, 3, 2).transpose(0, 1).contiguous()
                         .transpose(0, 1)), "target.*non-contiguous"),
         ("has_target", dict(has_target=s["has_target"].to(torch.uint8)), "has_target.*bool"),
-        ("pickup", dict(pickup=torch.zeros(3, 4, 2)), r"pickup.*shape \(2, -1, 2\)"),
+        ("pickup", dict(pickup=torch.zeros(3, 4, 2)),
+         r"pickup.*shape \(2, 4, 2\), got.*\(3, 4, 2\)"),
         ("order_status", dict(order_status=torch.zeros(2, 5, dtype=torch.int8)),
          r"order_status.*shape \(2, 4\)"),
         ("status code", dict(status=torch.tensor([[0, 1, 2], [3, 4, 0]], dtype=torch.int8)),
