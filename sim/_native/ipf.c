@@ -266,3 +266,55 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
     }
     return status;
 }
+
+/* Entries of the Green's function from the separator tree (sim/ipf/hierarchy.py,
+ * SeparatorTree.entries, the torch reference): out[b, j, k] = G[rows[b, j], cols[b, k]].
+ *
+ * Per cell c (a free index in [0, F]; F reads 0) the tree keeps ycat[c] (W doubles: every
+ * level's vector side by side, level l in [offsets[l], offsets[l + 1])) and path[c] (L ids:
+ * its domain per level, a number of its own where it lies in none). Two cells share the
+ * first `s` levels (their common ancestors) and G adds y . y over exactly those: one dot
+ * product of length offsets[s] (the levels are stored in order). Cells in one leaf add the
+ * leaf's dense block: leaf_values[leaf_offset[l] + local[a] * leaf_size[l] + local[c]].
+ * sym != 0: rows and cols are the same cells (J == K) and only j <= k is computed. */
+int agv_ipf_tree_entries(int64_t B, int64_t J, int64_t K, const int64_t *rows,
+                         const int64_t *cols, int64_t sym, const double *ycat, int64_t W,
+                         const int64_t *path, int64_t L, const int64_t *offsets,
+                         const int64_t *leaf_id, const int64_t *leaf_local,
+                         const int64_t *leaf_size, const int64_t *leaf_offset,
+                         const double *leaf_values, double *out) {
+    for (int64_t b = 0; b < B; b++) {
+        const int64_t *rb = rows + b * J, *cb = (sym ? rows + b * J : cols + b * K);
+        double *ob = out + b * J * K;
+        for (int64_t j = 0; j < J; j++) {
+            const int64_t a = rb[j];
+            const double *ya = ycat + a * W;
+            const int64_t *pa = path + a * L;
+            const int64_t la = leaf_id[a];
+            for (int64_t k = sym ? j : 0; k < K; k++) {
+                const int64_t c = cb[k];
+                const int64_t *pc = path + c * L;
+                int64_t s = 0;
+                while (s < L && pa[s] == pc[s]) s++;
+                const int64_t n = offsets[s];
+                const double *yc = ycat + c * W;
+                double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+                int64_t q = 0;
+                for (; q + 4 <= n; q += 4) {
+                    s0 += ya[q] * yc[q];
+                    s1 += ya[q + 1] * yc[q + 1];
+                    s2 += ya[q + 2] * yc[q + 2];
+                    s3 += ya[q + 3] * yc[q + 3];
+                }
+                for (; q < n; q++) s0 += ya[q] * yc[q];
+                double g = (s0 + s1) + (s2 + s3);
+                if (la >= 0 && la == leaf_id[c])
+                    g += leaf_values[leaf_offset[la] + leaf_local[a] * leaf_size[la]
+                                     + leaf_local[c]];
+                ob[j * K + k] = g;
+                if (sym) ob[k * K + j] = g;
+            }
+        }
+    }
+    return 0;
+}

@@ -48,6 +48,25 @@ that holds a task) receives that task's value, ``+5``, since it stands on it (ot
 claiming, which removes the task's ``+5`` from the field, would pay less than hovering just
 outside the capture radius). Plots of a field are in :mod:`sim.render`.
 
+Large floors
+------------
+Where the dense ``G`` would exceed :data:`MAX_GREEN_BYTES` (``F^2 * 8`` bytes; 50v50 at 0.05
+needs 1.2 GiB, warehouse-100 24 GiB) the grid uses a separator tree instead
+(``IPFGrid.method == "tree"``, :mod:`sim.ipf.hierarchy`): a nested dissection of the free cells
+by straight lines through shelves and aisles, each separator's Schur complement factored once,
+and per cell a vector per level such that ``G(s, t)`` is a sum of short dot products over the
+domains holding both cells plus a dense leaf block. It is exact (direct, float64) and takes
+``O(F sqrt(F))`` memory; every formula above runs on it unchanged (the fused C kernel needs the
+dense ``G`` and is used only where it exists). Rows of ``G`` at cells that recur (pickups,
+stations) are kept after their first use.
+
+Lifelong floors
+---------------
+:meth:`IPFGrid.lifelong_potentials`: an AGV that is not loaded sees every open pickup at
+``+5``, a loaded one only its own drop-off; both see the other AGVs at ``-3``. One Schur
+complement per environment serves the unloaded AGVs, one inverse of ``G[agents, agents]`` with
+a rank-one border per loaded AGV (its drop-off) serves the loaded ones.
+
 Colliding sources
 -----------------
 Sources that share a cell with the same value merge exactly (a Dirichlet value is a value, not a
@@ -66,13 +85,16 @@ from sim.ipf.field import IPFField, check_scene, ipf_field
 from sim.ipf.grid import (
     AGENT_VALUE,
     DEFAULT_RESOLUTION,
+    MAX_COLUMN_BYTES,
     MAX_GREEN_BYTES,
+    MAX_TREE_BYTES,
     TASK_VALUE,
     IPFGrid,
     TaskBlockCache,
     check_resolution,
     ipf_grid,
 )
+from sim.ipf.hierarchy import SeparatorTree
 from sim.ipf.jacobi import jacobi_field
 
 __all__ = [
@@ -80,7 +102,10 @@ __all__ = [
     "AGENT_VALUE",
     "DEFAULT_RESOLUTION",
     "MAX_GREEN_BYTES",
+    "MAX_TREE_BYTES",
+    "MAX_COLUMN_BYTES",
     "IPFGrid",
+    "SeparatorTree",
     "IPFField",
     "TaskBlockCache",
     "check_resolution",

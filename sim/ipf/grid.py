@@ -662,9 +662,11 @@ class IPFGrid:
         ca, cp, cd = self._cells(agent_pos), self._cells(pickup_pos), self._cells(dropoff_pos)
         fa, fp, fd = index[ca], index[cp], index[cd]
         a_cand = fa < F
-        a_kept = _dedupe(ca, a_cand)
+        same_aa = ca.unsqueeze(-1) == ca.unsqueeze(-2)  # (B, N, N)
+        same_pa = cp.unsqueeze(-1) == ca.unsqueeze(-2)  # (B, Q, N)
+        a_kept = _dedupe(ca, a_cand, same_aa)
         # the AGV wins a shared cell: pickups and drop-offs there are not sources
-        on_agent_p = ((cp.unsqueeze(-1) == ca.unsqueeze(-2)) & a_cand.unsqueeze(-2)).any(-1)
+        on_agent_p = (same_pa & a_cand.unsqueeze(-2)).any(-1)
         on_agent_d = ((cd.unsqueeze(-1) == ca.unsqueeze(-2)) & a_cand.unsqueeze(-2)).any(-1)
         p_open = pickup_open.to(device) & (fp < F)
         p_kept = _dedupe(cp, p_open & ~on_agent_p)
@@ -688,24 +690,29 @@ class IPFGrid:
             phi = v_a - p_r / p_ii
         if bool(loaded.any()):
             f_d = torch.where(d_src, fd, F)
+            # Q = G_AA^{-1} = Y^T Y with Y = C^{-1}, G_AA = C C^T; w_i = Y G[A, d_i], e = Y v_A:
+            # g^T Q g = |w_i|^2, h_i = (Q g)_i = Y[:, i] . w_i, h . v_A = w_i . e,
+            # Q_ii = |Y[:, i]|^2, (Q v_A)_i = Y[:, i] . e
             chol, _ = torch.linalg.cholesky_ex(g_aa)
-            q_aa = torch.cholesky_inverse(chol)
-            g_da = self._pair_block(f_d, f_a)  # (B, N_i, N_j): G[d_i, a_j]
+            eye = self._eye(N, device)
+            inv_chol = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+            g_ad = self._pair_block(f_d, f_a).mT  # (B, N_j, N_i): column i is G[A, d_i]
+            w = inv_chol @ g_ad  # column i: w_i
+            e = (inv_chol @ v_a.unsqueeze(-1)).squeeze(-1)  # (B, N)
             gamma = self._pair_block(f_d.reshape(B * N, 1), f_d.reshape(B * N, 1)).view(B, N)
-            h = g_da @ q_aa  # row i: (Q G[A, d_i])^T (Q symmetric)
-            s = torch.where(d_src, gamma - (h * g_da).sum(-1), 1.0)
+            s = torch.where(d_src, gamma - (w * w).sum(-2), 1.0)
             v_d = d_src.to(torch.float64) * task_value
-            h_ii = h.diagonal(dim1=-2, dim2=-1)
-            p_ii = q_aa.diagonal(dim1=-2, dim2=-1) + h_ii * h_ii / s
-            qv = (q_aa @ v_a.unsqueeze(-1)).squeeze(-1)
-            hv = (h @ v_a.unsqueeze(-1)).squeeze(-1)
+            h_ii = (inv_chol * w).sum(-2)
+            hv = (w * e.unsqueeze(-1)).sum(-2)
+            q_ii = (inv_chol * inv_chol).sum(-2)
+            qv = (inv_chol * e.unsqueeze(-1)).sum(-2)
+            p_ii = q_ii + h_ii * h_ii / s
             phi_l = v_a - (qv + h_ii * (hv - v_d) / s) / p_ii
             phi = torch.where(loaded, phi_l, phi)
         # coinciding cells, then fixed cells and inactive environments
         not_self = ~self._eye(N, device, torch.bool)
-        on_other = ((ca.unsqueeze(-1) == ca.unsqueeze(-2)) & a_cand.unsqueeze(-2)
-                    & not_self).any(-1)
-        on_pickup = ((ca.unsqueeze(-1) == cp.unsqueeze(-2)) & p_open.unsqueeze(-2)).any(-1)
+        on_other = (same_aa & a_cand.unsqueeze(-2) & not_self).any(-1)
+        on_pickup = (same_pa & p_open.unsqueeze(-1)).any(-2)
         on_own = torch.where(loaded, (cd == ca) & (fd < F), on_pickup)
         phi = torch.where(on_own, task_value, phi)
         phi = torch.where(on_other, agent_value, phi)
@@ -786,9 +793,11 @@ class IPFGrid:
         from the separator tree on large grids."""
         if self.method != "dense":
             assert self.tree is not None
+            # the fused kernel where the kernels load (AGV_NATIVE=0 or no compiler: torch)
+            kernels = sim_native.library()
             if rows.device.type == "cpu":
-                return self.tree.entries(rows, cols)
-            return self.tree.entries(rows.cpu(), cols.cpu()).to(rows.device)
+                return self.tree.entries(rows, rows if cols is rows else cols, kernels)
+            return self.tree.entries(rows.cpu(), cols.cpu(), kernels).to(rows.device)
         green, _ = self._tables(rows.device)
         F1 = self.num_free + 1
         flat = (rows.unsqueeze(-1) * F1 + cols.unsqueeze(-2)).view(-1)

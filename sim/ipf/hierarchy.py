@@ -27,6 +27,7 @@ exact up to rounding.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,7 +35,7 @@ from torch import Tensor
 
 __all__ = ["LEAF_CELLS", "SeparatorTree", "free_laplacian"]
 
-LEAF_CELLS = 320
+LEAF_CELLS = 1024
 """Domains of at most this many free cells are leaves (a dense Green's function each)."""
 _BALANCE = 0.2
 """A separator line must leave at least this fraction of the domain's cells on each side."""
@@ -169,6 +170,7 @@ class SeparatorTree:
         self.nbytes = int((F + 1) * (8 * sum(self.separator_widths) + 8 * self.depth + 24)
                           + leaf_bytes)
         self._built = False
+        self._native: tuple[Any, ...] | None = None
 
     # ------------------------------------------------------------------ numerics
     def build(self) -> SeparatorTree:
@@ -181,10 +183,15 @@ class SeparatorTree:
         lap = free_laplacian(self.fixed).tocsr()
         self._y: list[Tensor] = []
         self._node_id: list[Tensor] = []
-        self._multi: list[bool] = []
+        widths = self.separator_widths
+        self._offsets = np.concatenate([[0], np.cumsum(widths)]).astype(int).tolist()
+        ycat = np.zeros((F + 1, self._offsets[-1]))  # every level's vectors side by side
+        # path[c, l]: c's domain at level l, or a negative number of c's own where c lies in
+        # none (so that two cells share exactly the levels of their common ancestors)
+        path = np.empty((F + 1, self.depth), dtype=np.int64)
+        path[:] = -2 - np.arange(F + 1)[:, None]
         for lev, nodes in enumerate(self.levels):
-            width = self.separator_widths[lev]
-            y = np.zeros((F + 1, width))
+            y = ycat[:, self._offsets[lev]: self._offsets[lev + 1]]
             node_id = np.full(F + 1, -1, dtype=np.int64)
             for k, node in enumerate(nodes):
                 sep = node.sep
@@ -207,9 +214,12 @@ class SeparatorTree:
                 y[sep, :s] = torch.linalg.solve_triangular(
                     chol, torch.eye(s, dtype=torch.float64), upper=False).T.numpy()
                 node_id[node.cells] = k
-            self._y.append(torch.from_numpy(y))
             self._node_id.append(torch.from_numpy(node_id))
-            self._multi.append(len(nodes) > 1)
+            path[:F, lev] = np.where(node_id[:F] >= 0, node_id[:F], path[:F, lev])
+        self._ycat = torch.from_numpy(ycat)
+        self._y = [self._ycat[:, a:b] for a, b in zip(self._offsets[:-1], self._offsets[1:],
+                                                       strict=True)]
+        self._path = torch.from_numpy(path)
         # leaves: dense inverses, packed; per cell its leaf, its place in it
         leaf_id = np.full(F + 1, -1, dtype=np.int64)
         local = np.zeros(F + 1, dtype=np.int64)
@@ -240,21 +250,28 @@ class SeparatorTree:
         return self
 
     # ------------------------------------------------------------------ queries
-    def entries(self, rows: Tensor, cols: Tensor) -> Tensor:
+    def entries(self, rows: Tensor, cols: Tensor, kernels: Any = None) -> Tensor:
         """``G[rows[..., j], cols[..., k]]`` as ``(..., J, K)`` float64; index ``F`` reads 0.
 
         Parameters
         ----------
         rows : Tensor of int64, shape (..., J)
-            Free-cell indices in ``[0, F]`` (F: no cell).
+            Free-cell indices in ``[0, F]`` (F: no cell), on the CPU.
         cols : Tensor of int64, shape (..., K)
-            The same, batch dimensions equal to ``rows``'.
+            The same, batch dimensions equal to ``rows``'. Passing ``rows`` itself (the same
+            object) computes only one triangle.
+        kernels : ctypes.CDLL, optional
+            The fused kernels of :mod:`sim.native`: ``agv_ipf_tree_entries`` computes each
+            pair's dot product over only the levels the pair shares (the torch path below
+            masks full products), about 2-3 times less work. None: the torch path.
         """
         self.build()
         sym = rows is cols
         batch, J, K = rows.shape[:-1], rows.shape[-1], cols.shape[-1]
         r = rows.reshape(-1, J).contiguous()
         c = r if sym else cols.reshape(-1, K).contiguous()
+        if kernels is not None:
+            return self._entries_native(kernels, r, c, sym).view(*batch, J, K)
         rf, cf = r.view(-1), c.view(-1)
 
         def take(table: Tensor, flat: Tensor, like: Tensor) -> Tensor:
@@ -272,17 +289,53 @@ class SeparatorTree:
         flat = (base.unsqueeze(-1) + loc_c.unsqueeze(-2)).masked_fill_(~same, 0)
         out = self._leaf_values.index_select(0, flat.view(-1)).view(flat.shape)
         out.masked_fill_(~same, 0.0)
-        for y, node, multi in zip(self._y, self._node_id, self._multi, strict=True):
-            # rows of y are zero where the node id is -1, so -1 == -1 pairs add nothing
-            yr = take(y, rf, r)
-            yc = yr if sym else take(y, cf, c)
-            nr = take(node, rf, r)
-            nc = nr if sym else take(node, cf, c)
-            prod = torch.matmul(yr, yc.mT)
-            if multi:  # else one domain at this level: every pair shares it
-                prod.mul_(nr.unsqueeze(-1) == nc.unsqueeze(-2))
-            out += prod
+        if self.depth:
+            yr = take(self._ycat, rf, r)  # (., J, sum of widths)
+            yc = yr if sym else take(self._ycat, cf, c)
+            pr = take(self._path, rf, r)  # (., J, depth)
+            pc = pr if sym else take(self._path, cf, c)
+            # levels a pair shares = its common ancestors; G adds y . y over exactly those
+            shared = (pr.unsqueeze(-2) == pc.unsqueeze(-3)).sum(-1)  # (., J, K)
+            cum = torch.empty((self.depth,) + out.shape, dtype=torch.float64)
+            running = torch.zeros_like(out)
+            for lev in range(self.depth):
+                a, b = self._offsets[lev], self._offsets[lev + 1]
+                running = torch.baddbmm(running, yr[..., a:b], yc[..., a:b].mT)
+                cum[lev] = running
+            pick = (shared - 1).clamp_min_(0).unsqueeze(0)
+            out += cum.gather(0, pick).squeeze(0)
         return out.view(*batch, J, K)
+
+    def _entries_native(self, kernels: Any, r: Tensor, c: Tensor, sym: bool) -> Tensor:
+        """:meth:`entries` through ``agv_ipf_tree_entries`` (every pointer checked)."""
+        from sim.native import pointer
+
+        Bf, J = r.shape
+        K = c.shape[1]
+        F1 = self.num_free + 1
+        if self._native is None:
+            W, L, nl = self._ycat.shape[1], self.depth, len(self.leaves) + 1
+            self._offsets_t = torch.tensor(self._offsets, dtype=torch.int64)
+            self._native = (
+                pointer(self._ycat, torch.float64, (F1, W), "tree vectors"), W,
+                pointer(self._path, torch.int64, (F1, L), "tree paths"), L,
+                pointer(self._offsets_t, torch.int64, (L + 1,), "tree offsets"),
+                pointer(self._leaf_id, torch.int64, (F1,), "leaf ids"),
+                pointer(self._leaf_local, torch.int64, (F1,), "leaf places"),
+                pointer(self._leaf_size, torch.int64, (nl,), "leaf sizes"),
+                pointer(self._leaf_offset, torch.int64, (nl,), "leaf offsets"),
+                pointer(self._leaf_values, torch.float64, (int(self._leaf_values.shape[0]),),
+                        "leaf blocks"),
+            )
+        for name, t in (("rows", r), ("cols", c)):
+            if t.numel() and (int(t.min()) < 0 or int(t.max()) >= F1):
+                raise ValueError(f"{name} must be free-cell indices in [0, {F1 - 1}]")
+        out = torch.empty(Bf, J, K, dtype=torch.float64)
+        kernels.agv_ipf_tree_entries(
+            Bf, J, K, pointer(r, torch.int64, (Bf, J), "rows"),
+            pointer(c, torch.int64, (Bf, K), "cols"), int(sym), *self._native,
+            out.data_ptr())
+        return out
 
     def rows(self, cells: Tensor) -> Tensor:
         """Whole rows ``G[cells[k], :]`` as ``(S, F + 1)`` float64 (column ``F`` is 0).

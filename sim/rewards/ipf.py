@@ -45,9 +45,11 @@ class IPFReward:
     Parameters
     ----------
     resolution : float
-        Grid cell size (default 0.05). Large floors may need a coarser one: the grid refuses
-        a Green's function over :data:`sim.ipf.MAX_GREEN_BYTES` and names a resolution that
-        fits, to be passed as ``make_env(..., reward=IPFReward(resolution=...))``.
+        Grid cell size (default 0.05, on every shipped floor: grids whose dense Green's
+        function would exceed :data:`sim.ipf.MAX_GREEN_BYTES` use the exact separator tree of
+        :mod:`sim.ipf.hierarchy`, built on the first step). Only a grid whose tree would exceed
+        :data:`sim.ipf.MAX_TREE_BYTES` is refused, with a resolution that fits named, to be
+        passed as ``make_env(..., reward=IPFReward(resolution=...))``.
     task_value, agent_value : float
         The fixed potentials (+5, -3 in the paper).
 
