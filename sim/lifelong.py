@@ -26,9 +26,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sim import lifelong_native, physics, streams, tasks
 from sim import native as native_kernels
 from sim import orders as rules
-from sim import physics, streams, tasks
 from sim.checks import check_count, check_device, check_env_ids, check_seed, real_array
 from sim.observations import LifelongObsLayout, lifelong_global_state, observe_lifelong
 from sim.orders import (
@@ -308,7 +308,7 @@ class LifelongEnv:
         self._keys = zeros.clone()
         self._done = torch.zeros(B, dtype=torch.bool, device=dev)
         self._events = Events.none(B, self._orders.capacity, N, dev)
-        self._prev_target: tuple[Tensor, Tensor] | None = None
+        self._pair: Tensor | None = None
         setup = getattr(self.reward_fn, "setup", None)
         if setup is not None:
             setup(self.world, None)
@@ -467,7 +467,7 @@ class LifelongEnv:
         events.arrived = arrived
         self._events = self._merge_events(events, rows)
         self._fleet.status = rules.agent_status(self._fleet, self._orders)
-        self._prev_target = None
+        self._pair = None
 
     def _merge_events(self, new: Events, rows: Tensor) -> Events:
         """Events of the environments in ``rows`` from ``new``, the others' kept."""
@@ -639,7 +639,7 @@ class LifelongEnv:
             (:class:`sim.orders.Events`), ``delivered_now`` (B,) int64.
         """
         actions, active = self._prepare(actions)
-        B, N, dev = self.num_envs, self.num_agents, self.device
+        B, N = self.num_envs, self.num_agents
         prev_pos, prev_orders, prev_fleet = self._agent_pos, self._orders, self._fleet
         f = self._fleet
         working = ~f.broken
@@ -648,6 +648,7 @@ class LifelongEnv:
         self._agent_pos, self._agent_vel = physics.mpe_step(
             self._agent_pos, self._agent_vel, actions, movable, self.world, self._obstacles,
             pair, self._eye, shelves=self._shelves)
+        self._pair = None
         self._steps = self._steps + active.long()
         o = self._orders
         # Rows delivered in the last step are freed.
@@ -655,8 +656,6 @@ class LifelongEnv:
         if bool(was_delivered.any()):
             o = replace(o, status=torch.where(was_delivered, FREE, o.status).to(torch.int8),
                         id=torch.where(was_delivered, -1, o.id))
-        Q = o.capacity
-        arange_q = torch.arange(Q, device=dev)
         # Service and repair countdowns.
         serving = active.unsqueeze(1) & working & (f.service_left > 0)
         service_left = f.service_left - serving.long()
@@ -666,28 +665,23 @@ class LifelongEnv:
         repaired = repairing & (repair_left == 0)
         fleet = replace(f, service_left=service_left, repair_left=repair_left,
                         serving_dropoff=f.serving_dropoff & (service_left > 0))
-        # Pickups and drop-offs.
-        pick_dist = torch.cdist(self._agent_pos, o.pickup,
-                                compute_mode="donot_use_mm_for_euclid_dist")  # (B, N, Q)
+        # Pickups (the fused kernel or the torch reference, sim.orders.pickups).
         cap = self.world.capture_radius
         ready = active.unsqueeze(1) & ~fleet.broken & (fleet.service_left == 0) \
             & ~finish_dropoff
-        idle = ready & (fleet.order < 0)
-        mine = torch.zeros(B, N, Q, dtype=torch.bool, device=dev)
-        mine.scatter_(2, fleet.order.clamp_min(0).unsqueeze(2), (fleet.order >= 0).unsqueeze(2))
-        eligible = (pick_dist <= cap) & (
-            (idle.unsqueeze(2) & (o.status == OPEN).unsqueeze(1))
-            | (ready.unsqueeze(2) & mine & (o.status == ASSIGNED).unsqueeze(1)))
+        if self._native is not None:
+            takes, slot = lifelong_native.lifelong_pickups(
+                self._agent_pos, ready, fleet.order, o.pickup, o.status, rules.tie_key(o), cap)
+        else:
+            takes, slot = rules.pickups(self._agent_pos, ready, fleet.order, o, cap)
         picked_up = torch.zeros_like(o.status, dtype=torch.bool)
         service = self.scenario.service_steps
-        if bool(eligible.any()):
-            takes, slot = rules.match(pick_dist, eligible, rules.tie_key(o))
-            onehot = (slot.unsqueeze(2) == arange_q) & takes.unsqueeze(2)  # (B, N, Q)
-            picked_up = onehot.any(1)
-            agent_ids = torch.arange(N, device=dev).view(1, -1, 1)
-            carrier = torch.where(onehot, agent_ids, -1).max(1).values
+        if bool(takes.any()):
+            env_i, agent_i = takes.nonzero(as_tuple=True)
+            slot_i = slot[env_i, agent_i]  # distinct within an environment
+            picked_up = picked_up.index_put((env_i, slot_i), torch.ones_like(slot_i, dtype=bool))
             o = replace(o, status=torch.where(picked_up, LOADED, o.status).to(torch.int8),
-                        agent=torch.where(picked_up, carrier, o.agent),
+                        agent=o.agent.index_put((env_i, slot_i), agent_i),
                         picked=torch.where(picked_up, self._steps.unsqueeze(1), o.picked))
             fleet.order = torch.where(takes, slot, fleet.order)
             if service:
@@ -709,7 +703,9 @@ class LifelongEnv:
             delivering = at_drop | finish_dropoff
         delivered = torch.zeros_like(picked_up)
         if bool(delivering.any()):
-            delivered = ((slot.unsqueeze(2) == arange_q) & delivering.unsqueeze(2)).any(1)
+            env_i, agent_i = delivering.nonzero(as_tuple=True)
+            delivered = delivered.index_put((env_i, slot[env_i, agent_i]),
+                                            torch.ones_like(env_i, dtype=torch.bool))
             delivered &= o.status == LOADED
             o = replace(o, status=torch.where(delivered, DELIVERED, o.status).to(torch.int8),
                         finished=torch.where(delivered, self._steps.unsqueeze(1), o.finished))
@@ -726,7 +722,9 @@ class LifelongEnv:
             self._agent_vel = self._agent_vel * (~breakdown).unsqueeze(-1)
             slot = fleet.order.clamp_min(0)
             to_pickup = breakdown & (fleet.order >= 0) & (o.status.gather(1, slot) == ASSIGNED)
-            returned = ((slot.unsqueeze(2) == arange_q) & to_pickup.unsqueeze(2)).any(1)
+            env_i, agent_i = to_pickup.nonzero(as_tuple=True)
+            returned = returned.index_put((env_i, slot[env_i, agent_i]),
+                                          torch.ones_like(env_i, dtype=torch.bool))
             returned &= o.status == ASSIGNED
             o = replace(o, status=torch.where(returned, OPEN, o.status).to(torch.int8),
                         agent=torch.where(returned, -1, o.agent))
@@ -740,14 +738,26 @@ class LifelongEnv:
             returned=_pad(returned, Q), breakdown=breakdown, repaired=repaired)
         self._fleet.status = rules.agent_status(self._fleet, self._orders)
         self._done = self._done | (self._steps >= self.max_steps)
-        # Collisions, the team reward and the rewards.
-        pair = self._pair_distances()
-        per_agent, pairs = physics.collisions(pair, active, self.world.agent_radius, self._eye,
-                                              self._triu)
-        work = tasks.remaining_work(self._agent_pos, self._orders, self._fleet.status, active)
+        # Collisions, the team reward and the observations: fused kernels or torch.
+        target, has_target = self.targets()
+        o, f = self._orders, self._fleet
+        obs = None
+        if self._native is not None:
+            obs, pair, per_agent, pairs = lifelong_native.lifelong_observe_collisions(
+                self._agent_pos, self._agent_vel, f.status, f.service_left, target,
+                has_target, o.pickup, o.status, self.obs_layout.k_pickups,
+                self.obs_layout.k_agents, self.scenario.sensing_range, active,
+                self.world.agent_radius)
+            work = lifelong_native.remaining_work(self._agent_pos, o.status, o.pickup,
+                                                  o.dropoff, o.agent, f.status, active)
+            self._pair = pair
+        else:
+            pair = self._pair_distances()
+            per_agent, pairs = physics.collisions(pair, active, self.world.agent_radius,
+                                                  self._eye, self._triu)
+            work = tasks.remaining_work(self._agent_pos, o, f.status, active)
         team = torch.where(active, -work - pairs, torch.zeros_like(pairs))
         shape = (-1, N)
-        target, has_target = self.targets()
         ctx = LifelongContext(
             prev_agent_pos=prev_pos, prev_orders=prev_orders, prev_fleet=prev_fleet,
             active=active, events=self._events, collisions_per_agent=per_agent,
@@ -772,10 +782,13 @@ class LifelongEnv:
             "events": self._events,
             "delivered_now": self._events.delivered.sum(1),
         }
-        return self.observe(), reward, self._done.clone(), info
+        return (self.observe() if obs is None else obs), reward, self._done.clone(), info
 
     def _pair_distances(self) -> Tensor:
-        return physics.pair_distances(self._agent_pos)
+        """Pairwise AGV distances (B, N, N), cached until the AGVs move."""
+        if self._pair is None:
+            self._pair = physics.pair_distances(self._agent_pos)
+        return self._pair
 
     def _breakdowns(self, active: Tensor, fleet: Fleet) -> Tensor:
         """AGVs that break down in this step, (B, N) bool."""
@@ -823,6 +836,13 @@ class LifelongEnv:
         """Lifelong observations (B, N, O), O = ``obs_layout.size`` at any N (see
         :class:`sim.observations.LifelongObsLayout`)."""
         target, has = self.targets()
+        if self._native is not None:
+            f, o = self._fleet, self._orders
+            obs, self._pair = lifelong_native.lifelong_observe(
+                self._agent_pos, self._agent_vel, f.status, f.service_left, target, has,
+                o.pickup, o.status, self.obs_layout.k_pickups, self.obs_layout.k_agents,
+                self.scenario.sensing_range)
+            return obs
         return observe_lifelong(self._agent_pos, self._agent_vel, self._fleet, self._orders,
                                 target, has, self.obs_layout, self.scenario.sensing_range,
                                 self._pair_distances() if self.obs_layout.k_agents else None,

@@ -30,7 +30,8 @@ from torch import Tensor
 
 from sim import native
 
-__all__ = ["lifelong_observe", "lifelong_observe_collisions", "obs_size", "remaining_work",
+__all__ = ["lifelong_observe", "lifelong_observe_collisions", "lifelong_pickups", "obs_size",
+           "remaining_work",
            "torch_norm_rounding"]
 
 _F32, _I64, _I8, _BOOL = torch.float32, torch.int64, torch.int8, torch.bool
@@ -311,3 +312,51 @@ def remaining_work(agent_pos: Tensor, order_status: Tensor, pickup: Tensor, drop
         raise ValueError(f"order_agent must hold AGV indices < N = {N} (or -1), got "
                          f"{int(order_agent[bad[0], bad[1]])} at (env {bad[0]}, slot {bad[1]})")
     return out
+
+
+def lifelong_pickups(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, pickup: Tensor,
+                     order_status: Tensor, key: Tensor, capture_radius: float
+                     ) -> tuple[Tensor, Tensor]:
+    """The step's pickups (``sim/_native/orders.h``), as :func:`sim.orders.match` on the
+    eligibility of :meth:`sim.lifelong.LifelongEnv.step`.
+
+    Parameters
+    ----------
+    agent_pos : Tensor, float32, shape (B, N, 2)
+    ready : Tensor, bool, shape (B, N)
+        AGVs that may pick up in this step.
+    agent_order : Tensor, int64, shape (B, N)
+        Each AGV's order slot, -1 for none (an AGV with one may pick up only that one).
+    pickup : Tensor, float32, shape (B, Q, 2)
+    order_status : Tensor, int8, shape (B, Q)
+    key : Tensor, int64, shape (B, Q)
+        :func:`sim.orders.tie_key`.
+    capture_radius : float
+
+    Returns
+    -------
+    takes : Tensor of bool, shape (B, N)
+    slot : Tensor of int64, shape (B, N)
+        The slot each AGV that takes picks up (0 elsewhere).
+    """
+    lib = _lib()
+    B, N, _ = _sizes(agent_pos, _F32, (-1, -1, 2), "agent_pos")
+    Q = _sizes(order_status, _I8, (B, -1), "order_status")[1]
+    _sizes(agent_order, _I64, (B, N), "agent_order")
+    if agent_order.numel() and int(agent_order.max()) >= Q:
+        raise ValueError(f"agent_order must hold slots < Q = {Q} (or -1), got "
+                         f"{int(agent_order.max())}")
+    _, fused_cdist = torch_norm_rounding()
+    takes = torch.empty(B, N, dtype=_BOOL)
+    slot = torch.empty(B, N, dtype=_I64)
+    rc = lib.agv_lifelong_pickups(
+        B, N, Q, _real(capture_radius, "capture_radius", finite=True), int(fused_cdist),
+        native.pointer(agent_pos, _F32, (B, N, 2), "agent_pos"),
+        native.pointer(ready, _BOOL, (B, N), "ready"),
+        native.pointer(agent_order, _I64, (B, N), "agent_order"),
+        native.pointer(pickup, _F32, (B, Q, 2), "pickup"),
+        native.pointer(order_status, _I8, (B, Q), "order_status"),
+        native.pointer(key, _I64, (B, Q), "key"), takes.data_ptr(), slot.data_ptr())
+    if rc:
+        raise MemoryError("the pickup kernel could not allocate its scratch space")
+    return takes, slot

@@ -743,6 +743,44 @@ def match(dist: Tensor, eligible: Tensor, key: Tensor) -> tuple[Tensor, Tensor]:
     return takes, ranked.argmax(dim=2)
 
 
+def pickups(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, orders: Orders,
+            capture_radius: float) -> tuple[Tensor, Tensor]:
+    """Which AGV picks which order up in this step (the torch reference of the fused kernel
+    in ``sim/_native/orders.h``).
+
+    A ready AGV may pick up its own assigned order or, when it has none, any open order, within
+    the capture radius; then :func:`match`.
+
+    Parameters
+    ----------
+    agent_pos : Tensor, shape (B, N, 2)
+    ready : Tensor of bool, shape (B, N)
+        AGVs that may pick up (running, working, not in service, not finishing a drop-off).
+    agent_order : Tensor of int64, shape (B, N)
+        Each AGV's order slot, -1 for none.
+    orders : Orders
+    capture_radius : float
+
+    Returns
+    -------
+    takes : Tensor of bool, shape (B, N)
+    slot : Tensor of int64, shape (B, N)
+    """
+    B, N = ready.shape
+    Q = orders.capacity
+    dist = torch.cdist(agent_pos, orders.pickup, compute_mode="donot_use_mm_for_euclid_dist")
+    idle = ready & (agent_order < 0)
+    mine = torch.zeros(B, N, Q, dtype=torch.bool, device=ready.device)
+    mine.scatter_(2, agent_order.clamp_min(0).unsqueeze(2), (agent_order >= 0).unsqueeze(2))
+    eligible = (dist <= capture_radius) & (
+        (idle.unsqueeze(2) & (orders.status == OPEN).unsqueeze(1))
+        | (ready.unsqueeze(2) & mine & (orders.status == ASSIGNED).unsqueeze(1)))
+    if not bool(eligible.any()):
+        return torch.zeros_like(ready), torch.zeros_like(agent_order)
+    takes, slot = match(dist, eligible, tie_key(orders))
+    return takes, torch.where(takes, slot, 0)
+
+
 def poisson_counts(table: Tensor, key: Tensor, step: Tensor) -> Tensor:
     """Per-environment arrival counts of one step, (B,) int64, from the streams."""
     u = streams.uniform(key, streams.ARRIVALS, step)

@@ -17,6 +17,7 @@
 #include "tasks.h"
 #include "lifelong.h"
 #include "shelves.h"
+#include "orders.h"
 
 #include "step.c"
 #include "ipf.c"

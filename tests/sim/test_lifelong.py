@@ -521,3 +521,54 @@ def test_bad_lifelong_env_arguments() -> None:
         env.step(torch.full((2, 20, 2), float("nan")))
     with pytest.raises(ValueError, match="lifelong"):
         sim.AGVEnv(sim.get_scenario("warehouse-20"))
+
+
+@pytest.mark.parametrize("reward", ["minidist", "greedy"])
+def test_the_kernels_and_the_torch_path_agree(reward) -> None:
+    from sim import native
+
+    if not native.available():
+        pytest.skip("no C compiler here")
+    runs = []
+    for use in (True, False):
+        env = sim.make_env("warehouse-20", num_envs=3, seed=5, reward=reward, native=use,
+                           faults=Breakdowns(0.01, 10), arrivals=Poisson(0.4))
+        assert env.native is use
+        ctl = NearestTaskController()
+        ctl.reset(env)
+        obs = env.observe()
+        trace = []
+        for _ in range(60):
+            obs, r, _, info = env.step(ctl.act(obs))
+            trace.append((obs.clone(), r.clone(), info["collision_pairs"].clone(),
+                          env.agent_pos.clone(), env.orders.status.clone()))
+        runs.append(trace)
+    for (o1, r1, c1, p1, s1), (o2, r2, c2, p2, s2) in zip(*runs, strict=True):
+        assert torch.equal(o1, o2) and torch.equal(p1, p2) and torch.equal(s1, s2)
+        assert torch.equal(c1, c2)
+        torch.testing.assert_close(r1, r2, rtol=1e-5, atol=1e-4)  # sums in another order
+
+
+def test_pickup_kernel_is_the_torch_rule() -> None:
+    from sim import lifelong_native, native, orders
+
+    if not native.available():
+        pytest.skip("no C compiler here")
+    g = torch.Generator().manual_seed(0)
+    for trial in range(30):
+        B, N, Q = 4, 7, 9
+        # A coarse grid of points so that AGVs reach several orders at once, with ties.
+        pos = torch.randint(0, 4, (B, N, 2), generator=g).float() * 0.05
+        o = orders.Orders.empty(B, Q, torch.device("cpu"))
+        o.pickup = torch.randint(0, 4, (B, Q, 2), generator=g).float() * 0.05
+        o.status = torch.randint(0, 5, (B, Q), generator=g).to(torch.int8)
+        o.id = torch.randperm(B * Q, generator=g).view(B, Q)
+        o.priority = torch.randint(0, 2, (B, Q), generator=g)
+        ready = torch.rand(B, N, generator=g) > 0.2
+        own = torch.where(torch.rand(B, N, generator=g) > 0.6,
+                          torch.randint(0, Q, (B, N), generator=g), -1)
+        want = orders.pickups(pos, ready, own, o, 0.1)
+        got = lifelong_native.lifelong_pickups(pos, ready, own, o.pickup, o.status,
+                                               orders.tie_key(o), 0.1)
+        assert torch.equal(want[0], got[0]), trial
+        assert torch.equal(torch.where(want[0], want[1], 0), got[1]), trial
