@@ -102,6 +102,9 @@ class LifelongIPF:
         self.task_value = float(task_value)
         self.agent_value = float(agent_value)
         self._grid: Any = None
+        from sim.ipf import TaskBlockCache
+
+        self._cache = TaskBlockCache()  # the open pickups' factors, kept between steps
 
     def setup(self, world: World, kernels: Any = None) -> None:
         """Make the floor's grid (refused with a ValueError if it does not fit)."""
@@ -120,7 +123,7 @@ class LifelongIPF:
         potential = self._grid.lifelong_potentials(
             state.agent_pos, o.pickup, o.status == OPEN, ctx.target, ctx.has_target,
             ctx.active, task_value=self.task_value, agent_value=self.agent_value,
-            dtype=state.agent_pos.dtype)
+            cache=self._cache, dtype=state.agent_pos.dtype)
         potential = torch.where(state.fleet.status == BROKEN, 0.0, potential)
         collision = -ctx.collisions_per_agent.clamp_max(1.0)
         return zero_inactive({"ipf": potential, "goal": ctx.team_distance,

@@ -572,3 +572,36 @@ def test_pickup_kernel_is_the_torch_rule() -> None:
                                                orders.tie_key(o), 0.1)
         assert torch.equal(want[0], got[0]), trial
         assert torch.equal(torch.where(want[0], want[1], 0), got[1]), trial
+
+
+def test_lifelong_ipf_is_the_converged_jacobi_field(tmp_path) -> None:
+    from sim.ipf import ipf_grid
+    from sim.ipf.jacobi import jacobi_field
+    from sim.rewards import LifelongIPF
+
+    world = World(bounds=(-1.0, -1.0, 1.0, 1.0), obstacles=np.array([[-0.2, -0.1, 0.2, 0.1]]),
+                  pickups=np.array([[-0.6, 0.5], [0.6, 0.5], [0.0, 0.6]]),
+                  stations=np.array([[0.0, -0.8]]))
+    path = tmp_path / "t.csv"
+    path.write_text("release,pickup_x,pickup_y,dropoff_x,dropoff_y,priority,deadline\n"
+                    "0,0.0,0.6,0.0,-0.8,0,\n0,-0.6,0.5,0.0,-0.8,0,\n0,0.6,0.5,0.0,-0.8,0,\n")
+    sc = LifelongScenario(name="ipf", world=world, num_agents=3, arrivals=read_trace(path))
+    env = LifelongEnv(sc, num_envs=1, seed=0, reward=LifelongIPF(resolution=0.1))
+    # Positions inside grid cells, not on their edges (x = -0.6 is one at resolution 0.1).
+    env.set_state(np.array([[[-0.57, -0.43], [0.63, -0.37], [0.02, 0.62]]]))
+    _, _, _, info = env.step(still(env))  # AGV 2 picks order 0 up
+    assert env.agent_status[0].tolist() == [IDLE, IDLE, CARRYING]
+    grid = ipf_grid(world, 0.1)
+    cell = grid.cell_of(env.agent_pos[0].double().numpy()).tolist()
+    o = env.orders  # the float32 points the env holds
+    pickups = grid.cell_of(o.pickup[0][o.status[0] == OPEN].double().numpy()).tolist()
+    drop = grid.cell_of(o.dropoff[0, :1].double().numpy()).tolist()
+    assert len(pickups) == 2
+    for i in range(3):
+        others = [c for j, c in enumerate(cell) if j != i]
+        targets = drop if i == 2 else pickups
+        field = jacobi_field(grid, np.array(targets + others),
+                             np.array([5.0] * len(targets) + [-3.0] * len(others)), tol=1e-9)
+        want = field.ravel()[cell[i]]
+        got = float(info["reward_terms"]["ipf"][0, i])
+        assert abs(got - want) < 1e-5, (i, got, want)  # float32 result
