@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import hashlib
 import io
 import itertools
 import json
@@ -64,7 +65,9 @@ __all__ = [
     "load_spec",
     "parse_spec",
     "ray_available",
+    "run_evaluation_trial",
     "run_sweep",
+    "run_training_trial",
     "write_tables",
 ]
 
@@ -587,26 +590,54 @@ def _report(metrics: Mapping[str, Any]) -> None:
     tune.report({k: v for k, v in metrics.items() if isinstance(v, (int, float))})
 
 
-def _train_trial(config: dict[str, Any]) -> None:
-    """The Tune trainable of a training trial (runs in a Ray worker)."""
+def run_training_trial(trial: Trial, results: str | os.PathLike[str],
+                       report: Callable[[dict[str, Any]], None] | None = None
+                       ) -> dict[str, Any]:
+    """Run (or resume, or skip) one training trial in ``results/trials/<trial id>/``.
+
+    What every Tune trial of a training sweep runs; usable alone (without Ray).
+
+    Parameters
+    ----------
+    trial : Trial
+        From a training :class:`SweepSpec`.
+    results : path-like
+        The sweep's results folder.
+    report : callable, optional
+        Called with the metrics after every checkpoint and at the end (Tune's ``report``).
+
+    Returns
+    -------
+    dict
+        The trial's record, also written to ``result.json``: settings, seed, ``metrics`` (the
+        last evaluation; NaN as None), ``counters``, ``train_seconds``, ``wall_seconds``,
+        ``attempts``. A trial that already has a ``result.json`` is not run again: its record
+        is returned.
+
+    Raises
+    ------
+    RuntimeError
+        If a signal stopped the training (it resumes from its checkpoint on the next try).
+    """
     import torch
 
     from learners.train import TrainConfig, train
 
-    trial = Trial(**config["trial"])
-    folder = _trial_dir(Path(config["results"]), trial)
-    if (folder / "result.json").is_file():  # finished meanwhile (a retried driver)
-        _report(json.loads((folder / "result.json").read_text())["metrics"])
-        return
-    checkpoint = folder / "checkpoint.safetensors"
-    resume = checkpoint.is_file()
+    folder = _trial_dir(Path(results), trial)
+    if (folder / "result.json").is_file():  # finished before (a retried or resumed driver)
+        record = json.loads((folder / "result.json").read_text(encoding="utf-8"))
+        if report is not None:
+            report(record["metrics"])
+        return record
+    resume = (folder / "checkpoint.safetensors").is_file()
     start = time.perf_counter()
     attempts = _log_attempt(folder, "resume from checkpoint.safetensors" if resume
                             else "start")
     torch.set_num_threads(int(trial.settings.get("threads", 1)))
 
     def on_checkpoint(counters: dict[str, Any]) -> None:
-        _report({"episodes_done": counters["episodes"], **counters.get("last_eval", {})})
+        if report is not None:
+            report({"episodes_done": counters["episodes"], **counters.get("last_eval", {})})
 
     train_config = TrainConfig(**trial.train_fields(), run_dir=str(folder), progress=False)
     result = train(train_config, trial.learner_fields(), resume=resume,
@@ -623,7 +654,9 @@ def _train_trial(config: dict[str, Any]) -> None:
               "train_seconds": result.seconds,
               "wall_seconds": time.perf_counter() - start, "attempts": attempts}
     atomic_write_text(folder / "result.json", json.dumps(record, indent=2) + "\n")
-    _report({"episodes_done": result.episodes, **metrics})
+    if report is not None:
+        report({"episodes_done": result.episodes, **metrics})
+    return record
 
 
 def _controller_options(name: str, scenario: str) -> dict[str, Any]:
@@ -632,15 +665,36 @@ def _controller_options(name: str, scenario: str) -> dict[str, Any]:
     return {"scenario": scenario} if algo in ALGORITHMS and reward in REWARD_NAMES else {}
 
 
-def _evaluate_trial(config: dict[str, Any], make_controller: Callable[..., Any]) -> None:
-    """The Tune trainable of an evaluation trial (runs in a Ray worker)."""
+def run_evaluation_trial(trial: Trial, results: str | os.PathLike[str],
+                         make_controller: Callable[..., Any],
+                         report: Callable[[dict[str, Any]], None] | None = None
+                         ) -> dict[str, Any]:
+    """Run (or skip) one evaluation trial: ``sim.evaluate`` of one controller, scenario, seed.
+
+    Parameters
+    ----------
+    trial : Trial
+        From an evaluation :class:`SweepSpec`.
+    results : path-like
+        The sweep's results folder.
+    make_controller : callable
+        ``make_controller(name, **options)``; learned names get ``scenario=``.
+    report : callable, optional
+        Called with the metrics at the end.
+
+    Returns
+    -------
+    dict
+        The record written to ``results/trials/<trial id>/result.json``.
+    """
     import torch
 
-    trial = Trial(**config["trial"])
-    folder = _trial_dir(Path(config["results"]), trial)
+    folder = _trial_dir(Path(results), trial)
     if (folder / "result.json").is_file():
-        _report(json.loads((folder / "result.json").read_text())["metrics"])
-        return
+        record = json.loads((folder / "result.json").read_text(encoding="utf-8"))
+        if report is not None:
+            report(record["metrics"])
+        return record
     start = time.perf_counter()
     attempts = _log_attempt(folder, "start")
     torch.set_num_threads(1)
@@ -653,7 +707,19 @@ def _evaluate_trial(config: dict[str, Any], make_controller: Callable[..., Any])
               "metrics": _finite(metrics), "wall_seconds": time.perf_counter() - start,
               "attempts": attempts}
     atomic_write_text(folder / "result.json", json.dumps(record, indent=2) + "\n")
-    _report(metrics)
+    if report is not None:
+        report(metrics)
+    return record
+
+
+def _train_trial(config: dict[str, Any]) -> None:
+    """The Tune trainable of a training trial (runs in a Ray worker)."""
+    run_training_trial(Trial(**config["trial"]), config["results"], _report)
+
+
+def _evaluate_trial(config: dict[str, Any], make_controller: Callable[..., Any]) -> None:
+    """The Tune trainable of an evaluation trial (runs in a Ray worker)."""
+    run_evaluation_trial(Trial(**config["trial"]), config["results"], make_controller, _report)
 
 
 # --------------------------------------------------------------------------- the driver
@@ -752,7 +818,8 @@ def run_sweep(
         command passes ``allocator.make``; learned names get ``scenario=``).
     ray_temp_dir : path-like, optional
         Ray's session folder for a local Ray (default ``results/ray`` when that path is short
-        enough for Ray's sockets, else a fresh folder in the system's temporary folder).
+        enough for Ray's sockets, else ``agv-ray-<digest of results>`` in the system's
+        temporary folder, removed when the sweep ends).
     verbose : int
         Tune's verbosity (0 silent, 1 status, 2 trial results).
 
@@ -814,8 +881,9 @@ def _run_on_ray(spec: SweepSpec, pending: list[Trial], results: Path, address: s
             temp_dir = Path(ray_temp_dir).absolute()
         elif len(str(results / "ray")) <= 60:  # Ray's socket paths must stay short
             temp_dir = results / "ray"
-        else:
-            temp_dir = own_temp = Path(tempfile.mkdtemp(prefix="agv-ray-"))
+        else:  # one folder per results folder: a resumed sweep reuses and removes it
+            digest = hashlib.sha1(str(results).encode()).hexdigest()[:12]
+            temp_dir = own_temp = Path(tempfile.gettempdir()) / f"agv-ray-{digest}"
     saved_env = {k: os.environ.get(k) for k in ("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER",
                                                 "RAY_USAGE_STATS_ENABLED")}
     ray = _start_ray(address, cpus, temp_dir)
@@ -842,6 +910,7 @@ def _run_on_ray(spec: SweepSpec, pending: list[Trial], results: Path, address: s
             trainable,
             param_space=param_space,
             tune_config=tune.TuneConfig(
+                reuse_actors=True,  # a trial's worker runs the next trial: no new imports
                 trial_dirname_creator=lambda t: t.config["trial"]["trial_id"]),
             run_config=tune.RunConfig(
                 name=f"{spec.name}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}",

@@ -215,25 +215,31 @@ def _read_csv(path: Path, drop: tuple[str, ...] = ()) -> list[dict[str, str]]:
         return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(fh)]
 
 
-def test_evaluation_sweep_on_a_local_ray_retries_a_failed_trial(tmp_path: Path,
-                                                                monkeypatch) -> None:
+def test_agv_sweep_evaluate_on_a_local_ray_retries_a_failed_trial(tmp_path: Path,
+                                                                  monkeypatch) -> None:
     pytest.importorskip("ray.tune")
+    import argparse
+
     import ray.cloudpickle
 
     import allocator
     import sim
+    from learners.sweep_cli import add_sweep_parser
 
-    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray's workers need it
     monkeypatch.setenv("AGV_SWEEP_TEST_CALLS", str(tmp_path / "calls.txt"))
-    spec = parse_spec({"sweep": {"name": "matrix", "seeds": [0, 1], "retries": 1},
-                       "evaluate": {"allocators": ["greedy", "maddpg-ipf"],
-                                    "scenarios": ["3v3"], "episodes": 4}}, mode="evaluate")
+    spec_path = tmp_path / "matrix.toml"
+    spec_path.write_text('[sweep]\nname = "matrix"\nseeds = [0, 1]\nretries = 1\n'
+                         '[evaluate]\nallocators = ["greedy", "maddpg-ipf"]\n'
+                         'scenarios = ["3v3"]\nepisodes = 4\n')
+    spec = load_spec(spec_path, mode="evaluate")
     results = tmp_path / "results"
-    out = sweep.run_sweep(spec, results, cpus=1, make_controller=flaky_make,
-                          ray_temp_dir=Path("/tmp") / f"agv-sweep-test-{os.getpid()}",
-                          verbose=0)
-    assert out.failed == [] and out.finished == 4 and len(out.ran) == 4
-    rows = _read_csv(out.trials_csv)
+    parser = argparse.ArgumentParser(prog="agv")  # as allocator/cli.py registers it
+    add_sweep_parser(parser.add_subparsers(dest="command"), make_controller=flaky_make)
+    args = parser.parse_args(["sweep", "--evaluate", str(spec_path), "--results", str(results),
+                              "--cpus", "1", "--quiet"])
+    assert args.func(args) == 0
+    rows = _read_csv(results / "trials.csv")
     assert [r["trial"] for r in rows] == [t.trial_id for t in spec.trials]
     # each row is sim.evaluate of that controller, scenario and seed
     for row, trial in zip(rows, spec.trials, strict=True):
@@ -244,14 +250,15 @@ def test_evaluation_sweep_on_a_local_ray_retries_a_failed_trial(tmp_path: Path,
         assert float(row["avg_reward"]) == pytest.approx(m.avg_reward, rel=1e-12)
     attempts = {r["trial"]: int(r["attempts"]) for r in rows}
     assert sorted(attempts.values()) == [1, 1, 1, 2]  # the failed greedy trial ran twice
-    summary = _read_csv(out.summary_csv)
+    summary = _read_csv(results / "summary.csv")
     assert [(r["allocator"], r["seeds"]) for r in summary] == [("greedy", "2"),
                                                                ("maddpg-ipf", "2")]
     mean = (float(rows[0]["response_rate"]) + float(rows[1]["response_rate"])) / 2
     assert float(summary[0]["response_rate_mean"]) == pytest.approx(mean, abs=1e-15)
-    # resuming a finished sweep runs nothing
+    # resuming a finished sweep runs nothing; running it again without --resume is refused
     again = sweep.run_sweep(spec, results, resume=True, make_controller=flaky_make)
     assert again.ran == [] and _read_csv(again.trials_csv) == rows
+    assert args.func(args) == 2
 
 
 def _pids(results: Path) -> set[int]:
@@ -312,3 +319,51 @@ def test_tiny_sweep_killed_and_resumed_equals_an_uninterrupted_one(tmp_path: Pat
     timing = sweep.TIMING_COLUMNS
     assert _read_csv(cut / "trials.csv", timing) == _read_csv(whole / "trials.csv", timing)
     assert (cut / "summary.csv").read_bytes() == (whole / "summary.csv").read_bytes()
+
+
+# --------------------------------------------------------------------------- without Ray
+
+
+def _load_ship():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("sweep_ship", SWEEPS / "ship.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_training_trial_runs_once_and_its_best_seed_ships(tmp_path: Path) -> None:
+    spec = parse_spec({"sweep": {"name": "mini", "seeds": [0, 1]},
+                       "fixed": {"scenario": "3v3", "reward": "ipf", "episodes": 32,
+                                 "eval_every": 0, "eval_episodes": 5, "checkpoint_every": 16,
+                                 "hidden": 16, "batch_size": 32, "buffer_size": 1000,
+                                 "learning_starts": 64},
+                       "grid": {"algo": ["maddpg"]}})
+    results = tmp_path / "r"
+    (results).mkdir()
+    (results / "sweep.json").write_text(json.dumps(spec.as_dict()))
+    reports: list[dict] = []
+    records = [sweep.run_training_trial(t, results, reports.append) for t in spec.trials]
+    assert [r["counters"]["episodes_done"] for r in records] == [32, 32]
+    assert reports[-1]["response_rate"] == records[-1]["metrics"]["response_rate"]
+    # a finished trial is not run again: same record, no new attempt
+    again = sweep.run_training_trial(spec.trials[0], results)
+    assert again == records[0]
+    log = results / "trials" / spec.trials[0].trial_id / "attempts.log"
+    assert len(log.read_text().splitlines()) == 1
+    trials_csv, summary_csv, finished = sweep.write_tables(spec, results)
+    assert finished == 2 and [r["seed"] for r in _read_csv(trials_csv)] == ["0", "1"]
+    (summary,) = _read_csv(summary_csv)
+    assert summary["seeds"] == "2" and summary["algo"] == "maddpg"
+
+    ship = _load_ship()
+    weights, training = tmp_path / "weights", tmp_path / "training"
+    (record,) = ship.ship([results], weights, training)
+    scores = {int(s): v["response_rate"] for s, v in record["seeds"].items()}
+    assert scores == pytest.approx(  # progress.csv keeps 6 digits
+        {r["seed"]: r["metrics"]["response_rate"] for r in records}, abs=1e-6)
+    assert scores[record["shipped_seed"]] == max(scores.values())
+    assert (weights / "3v3" / "maddpg-ipf.safetensors").is_file()
+    assert (weights / "3v3" / "seeds" / "maddpg-ipf-s1.json").is_file()
+    assert (training / "3v3" / "maddpg-ipf-s0.csv").is_file()
