@@ -814,7 +814,11 @@ class IPFGrid:
         if cache is None:
             cache = TaskBlockCache()
         inv_chol_d, u_tasks = cache.update(self, f_tasks, task_value)  # L_D^{-1}, L_D^{-1} v_T
-        rows = self._gather(f_agents, torch.cat([f_tasks, f_agents], dim=1))  # G[A, T ++ A]
+        if self.method == "dense":
+            rows = self._gather(f_agents, torch.cat([f_tasks, f_agents], dim=1))  # G[A, T ++ A]
+        else:  # the tree computes the symmetric G[A, A] once per pair
+            rows = torch.cat([self._gather(f_agents, f_tasks), self._gather(f_agents, f_agents)],
+                             dim=-1)
         x_t = rows[..., : f_tasks.shape[1]] @ inv_chol_d.mT  # X^T = G[A, T] L_D^{-T}, (B, N, M)
         schur = rows[..., f_tasks.shape[1]:] - x_t @ x_t.mT  # S = G[A, A] - X^T X, (B, N, N)
         dropped = f_agents == F
