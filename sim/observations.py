@@ -18,7 +18,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["AGENT_FEATURES", "HOLDING", "LifelongObsLayout", "ObsLayout", "TASK_FEATURES",
-           "global_state", "lifelong_global_state", "nearest", "observe", "observe_lifelong"]
+           "global_state", "lifelong_global_state", "nearest", "nearest_index", "observe",
+           "observe_lifelong"]
 
 TASK_FEATURES = ("rel_x", "rel_y", "mask")
 """The features of one task slot, in order."""
@@ -131,6 +132,48 @@ def nearest(feats: Tensor, dist: Tensor, k: int) -> Tensor:
     if kk < k:
         picked = torch.cat([picked, picked.new_zeros(B, N, k - kk, F)], dim=2)
     return picked.reshape(B, N, k * F)
+
+
+def nearest_index(dist: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """Indices of the k nearest entries, nearest first, and whether each is finite.
+
+    ``k`` rounds of ``argmin`` (which returns the first minimum: ties go to the lower index,
+    as with the stable sort of :func:`nearest`); each round hides its pick with ``inf``.
+
+    Parameters
+    ----------
+    dist : Tensor, shape (B, N, C)
+        Candidate distances, ``inf`` for hidden candidates; overwritten (pass a fresh one).
+    k : int
+
+    Returns
+    -------
+    idx : Tensor of int64, shape (B, N, min(k, C))
+    finite : Tensor of bool, shape (B, N, min(k, C))
+    """
+    kk = min(k, dist.shape[-1])
+    if kk == 0:
+        shape = (*dist.shape[:-1], 0)
+        return (torch.zeros(shape, dtype=torch.int64, device=dist.device),
+                torch.zeros(shape, dtype=torch.bool, device=dist.device))
+    idx, fin = [], []
+    for r in range(kk):
+        i = dist.argmin(-1, keepdim=True)
+        idx.append(i)
+        fin.append(torch.isfinite(dist.gather(-1, i)))
+        if r + 1 < kk:
+            dist.scatter_(-1, i, float("inf"))
+    return torch.cat(idx, -1), torch.cat(fin, -1)
+
+
+def _slots(feats: Tensor, finite: Tensor, k: int) -> Tensor:
+    """(B, N, kk, F) picked features, zeroed where missing and padded to k slots, as
+    (B, N, k F)."""
+    B, N, kk, F = feats.shape
+    feats = feats * finite.unsqueeze(-1)
+    if kk < k:
+        feats = torch.cat([feats, feats.new_zeros(B, N, k - kk, F)], dim=2)
+    return feats.reshape(B, N, k * F)
 
 
 def observe(
@@ -304,21 +347,32 @@ def observe_lifelong(
     rel_target = (target - agent_pos) * has_target.unsqueeze(-1)
     parts = [agent_vel, agent_pos, status, service, rel_target,
              has_target.to(dtype).unsqueeze(-1)]
+    B, N = agent_pos.shape[:2]
+    # The k nearest first (nearest_index), then the features of those k only: no
+    # (B, N, C, F) feature tensor and no sort over all C candidates.
     if layout.k_pickups:
-        rel = orders.pickup.unsqueeze(1) - agent_pos.unsqueeze(2)  # (B, N, Q, 2)
-        d = torch.linalg.vector_norm(rel, dim=-1)
+        # vector_norm, as the kernel in sim/_native/lifelong.h rounds (cdist may round the
+        # other way on some CPUs: sim.lifelong_native.torch_norm_rounding).
+        d = torch.linalg.vector_norm(orders.pickup.unsqueeze(1) - agent_pos.unsqueeze(2), dim=-1)
         hidden = (orders.status != OPEN).unsqueeze(1) | (d > sensing_range)
-        feats = torch.cat([rel, torch.ones_like(d).unsqueeze(-1)], dim=-1)
-        parts.append(nearest(feats, d.masked_fill(hidden, float("inf")), layout.k_pickups))
+        idx, fin = nearest_index(d.masked_fill_(hidden, float("inf")), layout.k_pickups)
+        kk = idx.shape[-1]
+        pts = orders.pickup.gather(1, idx.reshape(B, -1, 1).expand(B, N * kk, 2))
+        rel = pts.view(B, N, kk, 2) - agent_pos.unsqueeze(2)
+        feats = torch.cat([rel, torch.ones_like(rel[..., :1])], dim=-1)
+        parts.append(_slots(feats, fin, layout.k_pickups))
     if layout.k_agents:
         if pair is None:
             raise ValueError("observe_lifelong: pair is needed when layout.k_agents > 0")
-        B, N = agent_pos.shape[:2]
-        delta = agent_pos.unsqueeze(2) - agent_pos.unsqueeze(1)
-        vel_j = agent_vel.unsqueeze(1).expand(B, N, N, 2)
-        feats = torch.cat([-delta, vel_j, torch.ones_like(pair).unsqueeze(-1)], dim=-1)
         d_a = pair.masked_fill(eye | (pair > sensing_range), float("inf"))
-        parts.append(nearest(feats, d_a, layout.k_agents))
+        idx, fin = nearest_index(d_a, layout.k_agents)
+        kk = idx.shape[-1]
+        at = idx.reshape(B, -1, 1).expand(B, N * kk, 2)
+        pos_j = agent_pos.gather(1, at).view(B, N, kk, 2)
+        vel_j = agent_vel.gather(1, at).view(B, N, kk, 2)
+        delta = agent_pos.unsqueeze(2) - pos_j
+        feats = torch.cat([-delta, vel_j, torch.ones_like(delta[..., :1])], dim=-1)
+        parts.append(_slots(feats, fin, layout.k_agents))
     return torch.cat(parts, dim=-1)
 
 

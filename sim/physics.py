@@ -32,8 +32,10 @@ def pair_distances(agent_pos: Tensor) -> Tensor:
     ----------
     agent_pos : Tensor, shape (B, N, 2)
     """
-    d = agent_pos.unsqueeze(2) - agent_pos.unsqueeze(1)
-    return d.mul_(d).sum(dim=-1).double().sqrt_().float()
+    x, y = agent_pos[..., 0], agent_pos[..., 1]
+    dx = x.unsqueeze(2) - x.unsqueeze(1)  # (B, N, N) planes: no (B, N, N, 2) tensor and
+    dy = y.unsqueeze(2) - y.unsqueeze(1)  # no reduction over a last dimension of 2
+    return dx.mul_(dx).add_(dy.mul_(dy)).double().sqrt_().float()
 
 
 def contact_forces(agent_pos: Tensor, dist: Tensor, world: World, eye: Tensor) -> Tensor:
@@ -61,6 +63,38 @@ def contact_forces(agent_pos: Tensor, dist: Tensor, world: World, eye: Tensor) -
 def collide_obstacles(pos: Tensor, vel: Tensor, obstacles: Tensor,
                       radius: float) -> tuple[Tensor, Tensor]:
     """Push discs out of shelves and cancel the velocity into them.
+
+    Only the discs that touch a shelf (centre closer than ``radius`` to it, or inside it)
+    go through :func:`_collide_obstacles_dense`; the others are left as they are, which is
+    what it does to them, so the result is the same bit for bit.
+
+    Parameters
+    ----------
+    pos, vel : Tensor, shape (B, N, 2)
+    obstacles : Tensor, shape (K, 4)
+        Shelves as ``(xmin, ymin, xmax, ymax)`` rows.
+    radius : float
+        AGV radius.
+
+    Returns
+    -------
+    pos, vel : Tensor, shape (B, N, 2)
+    """
+    p = pos.unsqueeze(2)  # (B, N, 1, 2)
+    closest = torch.minimum(torch.maximum(p, obstacles[:, :2]), obstacles[:, 2:])
+    dist = torch.linalg.vector_norm(p - closest, dim=-1)  # (B, N, K)
+    touch = (dist < radius).any(-1).flatten().nonzero().squeeze(1)
+    if not touch.numel():
+        return pos, vel
+    flat_p, flat_v = pos.reshape(-1, 1, 2), vel.reshape(-1, 1, 2)
+    sub_p, sub_v = _collide_obstacles_dense(flat_p[touch], flat_v[touch], obstacles, radius)
+    return (flat_p.index_put((touch,), sub_p).view_as(pos),
+            flat_v.index_put((touch,), sub_v).view_as(vel))
+
+
+def _collide_obstacles_dense(pos: Tensor, vel: Tensor, obstacles: Tensor,
+                             radius: float) -> tuple[Tensor, Tensor]:
+    """:func:`collide_obstacles` computed for every disc and shelf.
 
     Parameters
     ----------
