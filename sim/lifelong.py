@@ -496,7 +496,8 @@ class LifelongEnv:
             counts = torch.where(rows, (due - self._next_id).clamp_min(0), 0)
             counts = counts.clamp_max(T)
         elif isinstance(arr, Poisson):
-            counts = rules.poisson_counts(self._poisson_table, self._keys, self._steps)
+            counts = rules.poisson_counts(self._poisson_table, self._keys, self._steps,
+                                          kernels=self._native)
             counts = torch.where(rows, counts, 0)
         else:
             open_now = o.count(OPEN) + o.count(ASSIGNED)
@@ -515,7 +516,8 @@ class LifelongEnv:
 
             def make(ids: Tensor, env: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
                 pickup, dropoff = rules.generated_points(self._pickups, self._stations,
-                                                         self._keys, ids, env)
+                                                         self._keys, ids, env,
+                                                         kernels=self._native)
                 prio = torch.zeros_like(ids)
                 due = steps[env] + deadline_after if deadline_after > 0 \
                     else torch.full_like(ids, -1)
@@ -800,7 +802,7 @@ class LifelongEnv:
         if isinstance(faults, Breakdowns):
             agents = torch.arange(N, device=self.device).view(1, -1)
             u = streams.uniform(self._keys.view(-1, 1), streams.FAULTS,
-                                self._steps.view(-1, 1), agents)
+                                self._steps.view(-1, 1), agents, kernels=self._native)
             return can & (u < faults.rate)
         step, agent, _ = self._schedule
         hit = step.view(1, 1, -1) == self._steps.view(-1, 1, 1)  # (B, 1, F)

@@ -781,19 +781,22 @@ def pickups(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, orders: Order
     return takes, torch.where(takes, slot, 0)
 
 
-def poisson_counts(table: Tensor, key: Tensor, step: Tensor) -> Tensor:
+def poisson_counts(table: Tensor, key: Tensor, step: Tensor, kernels: Any = None) -> Tensor:
     """Per-environment arrival counts of one step, (B,) int64, from the streams."""
-    u = streams.uniform(key, streams.ARRIVALS, step)
+    u = streams.uniform(key, streams.ARRIVALS, step, kernels=kernels)
     counts = torch.searchsorted(table.to(u.device), u.contiguous(), right=True)
     return counts.clamp_max(table.numel() - 1)
 
 
 def generated_points(world_pickups: Tensor, world_stations: Tensor, key: Tensor, ids: Tensor,
-                     env: Tensor) -> tuple[Tensor, Tensor]:
+                     env: Tensor, kernels: Any = None) -> tuple[Tensor, Tensor]:
     """Pickup and drop-off of generated orders: uniform among the floor's points, drawn from
     each order's own stream (so an order's points depend only on its id)."""
     k = key[env]
     P, S = len(world_pickups), len(world_stations)
-    i = (streams.uniform(k, streams.ORDER_POINTS, ids, 0) * P).long().clamp_max(P - 1)
-    j = (streams.uniform(k, streams.ORDER_POINTS, ids, 1) * S).long().clamp_max(S - 1)
+    # Both draws in one call: the last counter is 0 for the pickup, 1 for the drop-off.
+    u = streams.uniform(k.unsqueeze(1), streams.ORDER_POINTS, ids.unsqueeze(1),
+                        torch.arange(2, device=ids.device), kernels=kernels)  # (K, 2)
+    i = (u[:, 0] * P).long().clamp_max(P - 1)
+    j = (u[:, 1] * S).long().clamp_max(S - 1)
     return world_pickups[i], world_stations[j]

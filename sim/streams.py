@@ -12,8 +12,12 @@ arithmetic in torch, batched over every environment and AGV at once.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
+
+from sim.native import pointer
 
 __all__ = ["ARRIVALS", "FAULTS", "ORDER_POINTS", "derive_key", "mix", "uniform"]
 
@@ -61,7 +65,7 @@ def derive_key(key: Tensor | int, *counters: Tensor | int) -> Tensor:
     return mix(z)
 
 
-def uniform(key: Tensor | int, *counters: Tensor | int) -> Tensor:
+def uniform(key: Tensor | int, *counters: Tensor | int, kernels: Any = None) -> Tensor:
     """Uniform draws in [0, 1) (float64, 53 random bits), one per broadcast element.
 
     Parameters
@@ -69,10 +73,30 @@ def uniform(key: Tensor | int, *counters: Tensor | int) -> Tensor:
     key : Tensor of int64 or int
         The environment's key, e.g. shape (B, 1) against counters of shape (B, N).
     *counters : Tensor of int64 or int
+    kernels : ctypes.CDLL, optional
+        The fused kernels (:mod:`sim.native`): the same draws from ``sim/_native/streams.h``
+        (one C loop instead of some thirty small int64 tensor operations); CPU tensors only.
 
     Returns
     -------
     Tensor of float64, the broadcast shape.
     """
+    if kernels is not None:
+        return _uniform_native(kernels, key, counters)
     bits = _shift(derive_key(key, *counters), 11)
     return bits.to(torch.float64) * (1.0 / (1 << 53))
+
+
+def _uniform_native(lib: Any, key: Tensor | int, counters: tuple[Tensor | int, ...]) -> Tensor:
+    parts = [torch.as_tensor(key, dtype=torch.int64)]
+    parts += [torch.as_tensor(c, dtype=torch.int64) for c in counters]
+    shape = torch.broadcast_shapes(*(p.shape for p in parts))
+    k = parts[0].expand(shape).contiguous()
+    cs = (torch.stack([p.expand(shape) for p in parts[1:]]) if counters
+          else torch.zeros((0, *shape), dtype=torch.int64)).contiguous()
+    out = torch.empty(shape, dtype=torch.float64)
+    n = k.numel()
+    lib.agv_uniform(n, len(counters), pointer(k, torch.int64, tuple(shape), "key"),
+                    pointer(cs, torch.int64, (len(counters), *shape), "counters"),
+                    out.data_ptr())
+    return out

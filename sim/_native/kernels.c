@@ -18,6 +18,7 @@
 #include "lifelong.h"
 #include "shelves.h"
 #include "orders.h"
+#include "streams.h"
 
 #include "step.c"
 #include "ipf.c"

@@ -605,3 +605,20 @@ def test_lifelong_ipf_is_the_converged_jacobi_field(tmp_path) -> None:
         want = field.ravel()[cell[i]]
         got = float(info["reward_terms"]["ipf"][0, i])
         assert abs(got - want) < 1e-5, (i, got, want)  # float32 result
+
+
+def test_stream_kernel_gives_the_reference_draws() -> None:
+    from sim import native, streams
+
+    if not native.available():
+        pytest.skip("no C compiler here")
+    lib = native.library()
+    g = torch.Generator().manual_seed(0)
+    key = torch.randint(0, 2**62, (6, 1), generator=g)
+    for counters in [(), (3,), (streams.FAULTS, torch.arange(9).view(1, -1)),
+                     (1, torch.arange(4).view(1, -1), torch.tensor([[7]]), 2)]:
+        want = streams.uniform(key, *counters)
+        assert torch.equal(streams.uniform(key, *counters, kernels=lib), want)
+    # Negative keys and counters wrap as the reference does.
+    assert torch.equal(streams.uniform(torch.tensor([-5]), -2, kernels=lib),
+                       streams.uniform(torch.tensor([-5]), -2))

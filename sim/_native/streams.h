@@ -1,0 +1,27 @@
+/* The counter-based random streams of lifelong operation (the reference: sim/streams.py
+ * uniform): SplitMix64's finaliser, in wrapping uint64 arithmetic (the reference's wrapping
+ * int64 with logical shifts), the same float64 draws. */
+#ifndef AGV_STREAMS_H
+#define AGV_STREAMS_H
+
+#include "common.h"
+
+static inline uint64_t stream_mix(uint64_t z) {
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
+    return z ^ (z >> 31);
+}
+
+/* out[k] = uniform(key[k], counters[0][k], ..., counters[nc - 1][k]), k < K. */
+void agv_uniform(int64_t K, int64_t nc, const int64_t *key, const int64_t *counters,
+                 double *out) {
+    for (int64_t k = 0; k < K; k++) {
+        uint64_t z = (uint64_t)key[k];
+        for (int64_t c = 0; c < nc; c++)
+            z = stream_mix(z + ((uint64_t)counters[c * K + k] + 1) * 0x9E3779B97F4A7C15ULL);
+        z = stream_mix(z);
+        out[k] = (double)(z >> 11) * (1.0 / 9007199254740992.0);
+    }
+}
+
+#endif
