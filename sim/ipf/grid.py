@@ -66,7 +66,9 @@ class IPFGrid:
         ``H = round(height / resolution)`` cells, so the actual sizes ``dx``, ``dy`` tile the
         world exactly.
     max_bytes : int
-        Refuse (``ValueError``) grids whose dense Green's function ``F^2 * 8`` bytes exceeds this.
+        Largest dense Green's function (``F^2 * 8`` bytes) to build; larger grids use the
+        separator tree (:mod:`sim.ipf.hierarchy`, exact as well), and grids whose tree would
+        exceed :data:`MAX_TREE_BYTES` are refused (``ValueError`` naming a resolution).
 
     Attributes
     ----------
@@ -84,6 +86,11 @@ class IPFGrid:
         Index of each cell among the F free (not fixed) cells, ``-1`` for fixed cells.
     num_free : int
         F.
+    method : str
+        ``"dense"`` (the dense ``G`` and the fused episodic kernel) or ``"tree"`` (entries of
+        ``G`` from :attr:`tree`).
+    tree : SeparatorTree or None
+        The separator tree of ``"tree"`` grids (its numerics built on first use).
     """
 
     def __init__(
