@@ -9,7 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["check_count", "check_device", "check_env_ids", "check_seed", "real_array"]
+__all__ = ["as_actions", "check_count", "check_device", "check_env_ids", "check_seed",
+           "real_array"]
 
 
 def check_count(name: str, value: Any) -> int:
@@ -90,3 +91,23 @@ def check_env_ids(env_ids: Any, num_envs: int, device: torch.device) -> Tensor:
     if idx.numel() > 1 and torch.unique(idx).numel() != idx.numel():
         raise ValueError(f"env_ids must not repeat an environment, got {idx.tolist()}")
     return idx
+
+
+def as_actions(actions: Any, shape: tuple[int, int, int], dtype: torch.dtype,
+               device: torch.device) -> Tensor:
+    """``actions`` as a detached tensor of ``dtype`` on ``device`` with exactly ``shape``
+    (B, N, 2); finiteness is the caller's check (the episodes do it in their fused kernel).
+
+    Raises
+    ------
+    ValueError
+        For values that are not real numbers or another shape.
+    """
+    a = actions
+    if not (type(a) is Tensor and a.dtype == dtype and a.device == device
+            and not a.requires_grad):
+        # The simulator is not differentiable: a policy's output is taken as numbers.
+        a = torch.as_tensor(real_array(actions, "actions"), device=device, dtype=dtype).detach()
+    if tuple(a.shape) != shape:
+        raise ValueError(f"actions must have shape (B, N, 2) = {shape}, got {tuple(a.shape)}")
+    return a

@@ -19,7 +19,14 @@ from torch import Tensor
 
 from sim import native as native_kernels
 from sim import physics, tasks
-from sim.checks import check_count, check_device, check_env_ids, check_seed, real_array
+from sim.checks import (
+    as_actions,
+    check_count,
+    check_device,
+    check_env_ids,
+    check_seed,
+    real_array,
+)
 from sim.lifelong import LifelongEnv, LifelongScenario
 from sim.observations import ObsLayout, global_state, observe
 from sim.rewards import RewardFn, make_reward
@@ -367,17 +374,8 @@ class AGVEnv:
     def _prepare(self, actions: Any) -> tuple[Tensor, Tensor, Tensor]:
         """Checked actions clipped to [-1, 1] (B, N, 2), the AGVs that move (B, N) bool and the
         running environments (B,) bool."""
-        a = actions
-        if not (type(a) is Tensor and a.dtype == self.dtype and a.device == self.device
-                and not a.requires_grad):
-            # The simulator is not differentiable: a policy's output is taken as numbers.
-            a = torch.as_tensor(real_array(actions, "actions"), device=self.device,
-                                dtype=self.dtype).detach()
         B, N = self.num_envs, self.num_agents
-        if tuple(a.shape) != (B, N, 2):
-            raise ValueError(
-                f"actions must have shape (B, N, 2) = {(B, N, 2)}, got {tuple(a.shape)}"
-            )
+        a = as_actions(actions, (B, N, 2), self.dtype, self.device)
         if self._native is not None:
             a = a.contiguous()
             movable, active = self._movable, torch.empty_like(self._done)

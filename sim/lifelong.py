@@ -29,7 +29,14 @@ from torch import Tensor
 from sim import lifelong_native, physics, streams, tasks
 from sim import native as native_kernels
 from sim import orders as rules
-from sim.checks import check_count, check_device, check_env_ids, check_seed, real_array
+from sim.checks import (
+    as_actions,
+    check_count,
+    check_device,
+    check_env_ids,
+    check_seed,
+    real_array,
+)
 from sim.observations import LifelongObsLayout, lifelong_global_state, observe_lifelong
 from sim.orders import (
     ASSIGNED,
@@ -602,15 +609,7 @@ class LifelongEnv:
 
     # ------------------------------------------------------------------ step
     def _prepare(self, actions: Any) -> tuple[Tensor, Tensor]:
-        a = actions
-        if not (type(a) is Tensor and a.dtype == self.dtype and a.device == self.device
-                and not a.requires_grad):
-            a = torch.as_tensor(real_array(actions, "actions"), device=self.device,
-                                dtype=self.dtype).detach()
-        B, N = self.num_envs, self.num_agents
-        if tuple(a.shape) != (B, N, 2):
-            raise ValueError(f"actions must have shape (B, N, 2) = {(B, N, 2)}, got "
-                             f"{tuple(a.shape)}")
+        a = as_actions(actions, (self.num_envs, self.num_agents, 2), self.dtype, self.device)
         if not bool(torch.isfinite(a).all()):
             raise ValueError("actions contain NaN or infinite values; expected finite values")
         return a.clamp(-1.0, 1.0), ~self._done
