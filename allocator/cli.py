@@ -35,6 +35,7 @@ from learners.cli import (
     scenario_name,
     seed,
 )
+from learners.sweep_cli import add_sweep_parser
 
 __all__ = ["main", "build_parser", "read_scene", "read_floor"]
 
@@ -619,6 +620,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in (_add_assign, _add_demo, _add_train, _add_evaluate, _add_bench, _add_render):
         add(sub)
+    # Sweeps on Ray Tune (learners/sweep_cli.py); evaluation sweeps build allocators by name.
+    add_sweep_parser(sub, make_controller=allocator.make)
     return parser
 
 

@@ -23,7 +23,7 @@ _DESCRIPTION = ("Run a training sweep (a grid or random search over algorithm x 
                 "scenario x seed x any training or learner setting) or, with --evaluate, the "
                 "benchmark matrix (allocator x scenario x seed), in parallel on Ray Tune: on "
                 "this machine by default, on a Ray cluster with --address. Writes one CSV row "
-                "per trial (trials.csv) and the mean and 95%% interval over the seeds per "
+                "per trial (trials.csv) and the mean and 95% interval over the seeds per "
                 "configuration (summary.csv) to the results folder.")
 
 
