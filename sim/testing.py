@@ -70,7 +70,7 @@ def _close(check: str, where: str, name: str, got: Tensor, expected: Tensor,
 
 
 def _factory(target: Any, reward: Any, native: bool | None) -> EnvFactory:
-    if isinstance(target, (str, sim.Scenario)):
+    if isinstance(target, (str, sim.Scenario, sim.LifelongScenario)):
         scenario = sim.get_scenario(target)
         chosen = "minidist" if reward is None else reward
 
@@ -94,7 +94,10 @@ def _factory(target: Any, reward: Any, native: bool | None) -> EnvFactory:
 
 def _make(factory: EnvFactory, num_envs: int, seed: int) -> Any:
     env = factory(num_envs=num_envs, seed=seed)
-    for attr in ("num_envs", "num_agents", "num_tasks", "obs_dim", "step", "reset", "set_state"):
+    needed = ("num_envs", "num_agents", "obs_dim", "step", "reset", "set_state")
+    if not getattr(env, "lifelong", False):
+        needed += ("num_tasks",)
+    for attr in needed:
         if not hasattr(env, attr):
             raise _fail("conformance", "factory", f"the environment it made has no {attr!r}; "
                         "expected an AGVEnv")
@@ -275,10 +278,13 @@ def check_env(
 
     Parameters
     ----------
-    scenario_or_env_factory : str, Scenario or callable
-        A scenario (registry name or :class:`sim.Scenario`), whose environments
-        :func:`sim.make_env` builds, or a factory ``factory(num_envs=B, seed=s) -> AGVEnv``
-        for environments built some other way.
+    scenario_or_env_factory : str, Scenario, LifelongScenario or callable
+        A scenario (registry name, :class:`sim.Scenario` or a lifelong one such as
+        ``"warehouse-20"``), whose environments :func:`sim.make_env` builds, or a factory
+        ``factory(num_envs=B, seed=s) -> AGVEnv or LifelongEnv`` for environments built some
+        other way. Lifelong environments get the same three checks, with lifelong rules: no
+        order lost at any step, statuses valid, ``done`` only at the horizon, and B floors
+        stepped together equal to each stepped alone from the same fleet and stream key.
     reward : str or reward callable, optional
         The reward of a scenario's environments (default ``"minidist"``); a callable is
         shared by every environment the check makes, so it must keep no per-environment state.
@@ -287,7 +293,7 @@ def check_env(
         Environments B stepped together (and then one by one).
     steps : int, optional
         Steps per rollout; default the scenario's step limit + 1, so every episode ends and a
-        finished environment is stepped once more.
+        finished environment is stepped once more (lifelong: 60).
     seed : int
         Seed of the environments and of the actions.
     native : bool, optional
@@ -316,6 +322,9 @@ def check_env(
     B, seed = int(num_envs), int(seed)
 
     first = _make(factory, B, seed)
+    if getattr(first, "lifelong", False):
+        _check_lifelong(factory, first, 60 if steps is None else int(steps), seed)
+        return
     T = first.max_steps + 1 if steps is None else int(steps)
     one = _make(factory, 1, seed)
     if one.obs_dim != first.obs_dim:
@@ -362,3 +371,95 @@ def check_env(
                          conform=False)
         _compare("batch against loop", f"environment {b} of {B} stepped alone", alone,
                  reference, rows)
+
+
+# ---------------------------------------------------------------------- lifelong mode
+def _lifelong_actions(env: Any, obs: Tensor, generator: torch.Generator) -> Tensor:
+    """Towards each AGV's target, else its nearest open pickup, plus noise, (B, N, 2)."""
+    lay = env.obs_layout
+    rel = obs[..., lay.target_rel]
+    if lay.k_pickups:
+        near = obs[..., lay.pickup_rel(0)] * obs[..., lay.pickup_mask(0)]
+        rel = torch.where(obs[..., lay.target_mask] > 0, rel, near)
+    noise = torch.rand(rel.shape, generator=generator) * 2.0 - 1.0
+    return ((3.0 * rel.cpu()).clamp(-1.0, 1.0) + 0.6 * noise).clamp(-1.2, 1.2).to(obs.device)
+
+
+def _lifelong_step(env: Any, actions: Tensor, where: str, conform: bool) -> dict[str, Any]:
+    """One checked lifelong step as a record of clones."""
+    done_before = env.done.clone()
+    steps_before = env.steps.clone()
+    obs, reward, done, info = env.step(actions)
+    B, N = env.num_envs, env.num_agents
+    if conform:
+        _check_types(where, "obs", obs, (B, N, env.obs_dim), torch.float32)
+        _check_types(where, "reward", reward, (B, N), reward.dtype)
+        if not reward.dtype.is_floating_point:
+            raise _fail("conformance", where, f"reward has dtype {reward.dtype}")
+        _check_types(where, "done", done, (B,), torch.bool)
+        if bool((done_before & ~done).any()):
+            raise _fail("conformance", where, "done was undone")
+        want_steps = steps_before + (~done_before).long()
+        if not torch.equal(env.steps, want_steps):
+            raise _fail("conformance", where, f"steps {env.steps.tolist()}, expected "
+                        f"{want_steps.tolist()}")
+        terms = info["reward_terms"]
+        if terms:
+            total = sum(terms.values())
+            _close("conformance", where, "the sum of the reward terms", reward, total)
+        balance = env.order_balance()
+        if bool((balance != 0).any()):
+            b = int(balance.ne(0).nonzero()[0])
+            raise _fail("conformance", where, f"environment {b} lost orders: released - "
+                        f"(delivered + open + assigned + loaded) = {int(balance[b])}")
+        status = env.agent_status
+        if bool(((status < 0) | (status > 3)).any()):
+            raise _fail("conformance", where, "an AGV status outside the four codes")
+        inside = env.world.wall_distance(env.agent_pos.double().cpu().numpy())
+        if np.any(inside < env.world.agent_radius - 1e-4):
+            raise _fail("conformance", where, "an AGV left the walls")
+    return {"obs": obs.clone(), "reward": reward.clone(), "done": done.clone(),
+            "pos": env.agent_pos.clone(), "status": env.orders.status.clone(),
+            "delivered": env.delivered.clone(), "fleet": env.agent_status.clone()}
+
+
+def _check_lifelong(factory: EnvFactory, first: Any, T: int, seed: int) -> None:
+    B = first.num_envs
+    one = _make(factory, 1, seed)
+    if one.obs_dim != first.obs_dim:
+        raise _fail("conformance", "observation size", f"{one.obs_dim} with one environment, "
+                    f"{first.obs_dim} with {B}; it must not depend on the batch size")
+    start_obs = first.observe()
+    start_pos, keys = first.agent_pos.clone(), first.keys.clone()
+    generator = torch.Generator().manual_seed(seed)
+    actions, reference = [], []
+    obs = start_obs
+    for t in range(T):
+        actions.append(_lifelong_actions(first, obs, generator))
+        reference.append(_lifelong_step(first, actions[-1], f"{B} floors, step {t}", True))
+        obs = reference[-1]["obs"]
+
+    def replay(env: Any, rows: slice, label: str, check: str) -> None:
+        for t, a in enumerate(actions):
+            got = _lifelong_step(env, a[rows], f"{label}, step {t}", False)
+            for name in ("obs", "reward", "pos"):
+                _close(check, f"{label}, step {t}", name, got[name], reference[t][name][rows])
+            for name in ("done", "delivered", "fleet"):
+                _close(check, f"{label}, step {t}", name, got[name], reference[t][name][rows],
+                       exact=True)
+
+    # Determinism: the same seed, the same fleets and keys and trajectory.
+    second = _make(factory, B, seed)
+    _close("determinism", "the start of two environments made with the same seed",
+           "agent_pos", second.agent_pos, start_pos, exact=True)
+    _close("determinism", "the start of two environments made with the same seed", "keys",
+           second.keys, keys, exact=True)
+    replay(second, slice(None), "a second environment made with the same seed", "determinism")
+    # Batch against loop: each floor alone from the same fleet and stream key.
+    for b in range(B):
+        single = _make(factory, 1, seed + 1 + b)
+        rows = slice(b, b + 1)
+        single.set_state(start_pos[rows], keys[rows])
+        _close("batch against loop", f"floor {b} of {B} alone, after set_state", "obs",
+               single.observe(), start_obs[rows])
+        replay(single, rows, f"floor {b} of {B} stepped alone", "batch against loop")

@@ -112,3 +112,17 @@ def test_check_env_fails_on_a_partial_reset_that_resets_everything() -> None:
     with pytest.raises(AssertionError, match=r"\[conformance\] reset\(env_ids=\[0\]\): .*not "
                                              r"reset"):
         check_env(lambda num_envs, seed: _ResetsEveryEnvironment("3v3", num_envs, seed=seed))
+
+
+def test_check_env_passes_a_lifelong_floor() -> None:
+    check_env("warehouse-20", num_envs=2, steps=30)
+    check_env("warehouse-20", reward="greedy", num_envs=2, steps=20, native=False)
+
+
+def test_check_env_catches_a_lifelong_reward_that_reads_other_floors() -> None:
+    def leaky(state, ctx):  # every floor's reward depends on the whole batch
+        return {"x": ctx.team_distance.mean(dim=0, keepdim=True).expand_as(ctx.team_distance)
+                .contiguous()}
+
+    with pytest.raises(AssertionError, match="batch against loop"):
+        check_env("warehouse-20", reward=leaky, num_envs=2, steps=10)
