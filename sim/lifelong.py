@@ -643,8 +643,16 @@ class LifelongEnv:
         B, N = self.num_envs, self.num_agents
         prev_pos, prev_orders, prev_fleet = self._agent_pos, self._orders, self._fleet
         f = self._fleet
-        working = ~f.broken
-        movable = active.unsqueeze(1) & working & (f.service_left == 0)
+        # Floors without service steps or breakdowns skip those rules' tensor work.
+        has_service = self.scenario.service_steps > 0
+        has_faults = self.scenario.faults is not None
+        running = active.unsqueeze(1).expand(B, N)
+        working = ~f.broken if has_faults else None
+        movable = running
+        if has_faults:
+            movable = movable & working
+        if has_service:
+            movable = movable & (f.service_left == 0)
         pair = self._pair_distances() if self._contacts else None
         self._agent_pos, self._agent_vel = physics.mpe_step(
             self._agent_pos, self._agent_vel, actions, movable, self.world, self._obstacles,
@@ -658,21 +666,30 @@ class LifelongEnv:
             o = replace(o, status=torch.where(was_delivered, FREE, o.status).to(torch.int8),
                         id=torch.where(was_delivered, -1, o.id))
         # Service and repair countdowns.
-        serving = active.unsqueeze(1) & working & (f.service_left > 0)
-        service_left = f.service_left - serving.long()
-        finish_dropoff = serving & (service_left == 0) & f.serving_dropoff
-        repairing = active.unsqueeze(1) & f.broken
-        repair_left = f.repair_left - repairing.long()
-        repaired = repairing & (repair_left == 0)
-        fleet = replace(f, service_left=service_left, repair_left=repair_left,
-                        serving_dropoff=f.serving_dropoff & (service_left > 0))
+        fleet = replace(f)
+        finish_dropoff = None
+        ready = running
+        if has_service:
+            serving = running & (f.service_left > 0)
+            if has_faults:
+                serving = serving & working
+            fleet.service_left = f.service_left - serving.long()
+            finish_dropoff = serving & (fleet.service_left == 0) & f.serving_dropoff
+            fleet.serving_dropoff = f.serving_dropoff & (fleet.service_left > 0)
+            ready = ready & (fleet.service_left == 0) & ~finish_dropoff
+        if has_faults:
+            repairing = running & f.broken
+            fleet.repair_left = f.repair_left - repairing.long()
+            repaired = repairing & (fleet.repair_left == 0)
+            ready = ready & ~fleet.broken
+        else:
+            repaired = torch.zeros_like(running)
         # Pickups (the fused kernel or the torch reference, sim.orders.pickups).
         cap = self.world.capture_radius
-        ready = active.unsqueeze(1) & ~fleet.broken & (fleet.service_left == 0) \
-            & ~finish_dropoff
         if self._native is not None:
             takes, slot = lifelong_native.lifelong_pickups(
-                self._agent_pos, ready, fleet.order, o.pickup, o.status, rules.tie_key(o), cap)
+                self._agent_pos, ready.contiguous(), fleet.order, o.pickup, o.status,
+                rules.tie_key(o), cap)
         else:
             takes, slot = rules.pickups(self._agent_pos, ready, fleet.order, o, cap)
         picked_up = torch.zeros_like(o.status, dtype=torch.bool)
@@ -701,7 +718,7 @@ class LifelongEnv:
             self._agent_vel = self._agent_vel * (~at_drop).unsqueeze(-1)
             delivering = finish_dropoff
         else:
-            delivering = at_drop | finish_dropoff
+            delivering = at_drop
         delivered = torch.zeros_like(picked_up)
         if bool(delivering.any()):
             env_i, agent_i = delivering.nonzero(as_tuple=True)
