@@ -16,8 +16,8 @@ whole fleet:
    (one copy to one neighbour) is counted.
 
 The auction stops when a round has no bid and no message. On a connected graph it then solves
-the assignment problem within ``min(N, M) * eps`` of the optimum, and exactly when the benefits
-are integers and ``eps < 1 / min(N, M)`` (Bertsekas's bound: prices in consensus satisfy
+the assignment problem within ``N * eps`` of the optimum, and exactly when the benefits
+are integers and ``eps < 1 / N`` (Bertsekas's bound: prices in consensus satisfy
 eps-complementary slackness). With more AGVs than tasks, ``N - M`` idle slots of benefit 0
 are added, so that every AGV ends with a task or an idle slot. On a disconnected graph every
 component runs its own auction: the assignment is conflict-free within each component, and
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["AuctionResult", "auction", "communication_graph"]
+__all__ = ["AuctionResult", "auction", "communication_graph", "default_eps"]
 
 
 @dataclass(frozen=True)
@@ -124,9 +124,9 @@ def _check(benefit: object, positions: object, comm_range: object, eps: object,
 
 
 def default_eps(benefit: np.ndarray) -> float:
-    """``1 / (min(N, M) + 1)`` for integer benefits (the exact optimum); otherwise the spread of
-    the benefits over ``50 (min(N, M) + 1)`` (within 2% of the spread of the optimum)."""
-    k = min(benefit.shape) + 1
+    """``1 / (N + 1)`` for integer benefits (the exact optimum); otherwise the spread of the
+    benefits over ``50 (N + 1)`` (within 2% of the spread of the optimum)."""
+    k = benefit.shape[0] + 1
     if np.array_equal(benefit, np.round(benefit)):
         return 1.0 / k
     spread = float(benefit.max() - benefit.min()) if benefit.size else 0.0
@@ -154,7 +154,7 @@ def auction(
         Radio range, > 0 (``inf``: a complete graph).
     eps : float, optional
         Bid increment; default :func:`default_eps`. Smaller is closer to the optimum (within
-        ``min(N, M) * eps`` on a connected graph) and takes more rounds.
+        ``N * eps`` on a connected graph) and takes more rounds.
     max_rounds : int
         Stop after this many rounds even if bids are still going (``converged`` False).
 

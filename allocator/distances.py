@@ -342,7 +342,9 @@ class FloorDistances:
         The floor; its ``pickups`` and ``stations`` (may be empty) get precomputed fields.
     resolution : float, optional
         Cell side in world units, default ``agent_radius / 2`` (coarsened on very large floors
-        so that the grid stays under 16 million cells). At most ``agent_radius``.
+        so that the grid stays under 16 million cells). At most ``2 * agent_radius``: a floor
+        loaded from a ``.map`` grid with ``cell_size`` (at least an AGV diameter) is exact at
+        ``resolution=cell_size``, the map's own cells (a free cell's centre holds an AGV).
     connectivity : {16, 8}
         Grid moves: 8 neighbours, or 8 neighbours and 8 knight moves (default).
     table_bytes : int
@@ -376,9 +378,9 @@ class FloorDistances:
             width, height = world.size
             resolution = max(r / 2, math.sqrt(width * height / _MAX_CELLS) * 1.001)
         if isinstance(resolution, bool) or not isinstance(resolution, (int, float)) or \
-                not (math.isfinite(resolution) and 0 < resolution <= r + 1e-12):
-            raise ValueError(f"resolution must be a number in (0, agent_radius = {r:g}], got "
-                             f"{resolution!r}")
+                not (math.isfinite(resolution) and 0 < resolution <= 2 * r + 1e-12):
+            raise ValueError(f"resolution must be a number in (0, 2 * agent_radius = {2 * r:g}]"
+                             f", got {resolution!r}")
         if connectivity not in (8, 16):
             raise ValueError(f"connectivity must be 8 or 16, got {connectivity!r}")
         self.world = world
