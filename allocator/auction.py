@@ -15,6 +15,11 @@ whole fleet:
    idempotent, so AGVs whose copy did not change need not send anything; every message sent
    (one copy to one neighbour) is counted.
 
+With more AGVs than tasks or as many, the auction runs in phases of decreasing ``eps``
+(Bertsekas's epsilon scaling): the early phases settle the prices coarsely in few rounds, the
+last runs at ``eps`` from those prices; between phases every AGV drops its task and keeps its
+prices (a phase ends when the fleet is quiet, the same detection as the end of the auction).
+
 The auction stops when a round has no bid and no message. On a connected graph it then solves
 the assignment problem within ``N * eps`` of the optimum, and exactly when the benefits
 are integers and ``eps < 1 / N`` (Bertsekas's bound: prices in consensus satisfy
@@ -92,7 +97,7 @@ def _components(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def _check(benefit: object, positions: object, comm_range: object, eps: object,
-           max_rounds: object) -> tuple[np.ndarray, np.ndarray, float]:
+           max_rounds: object, scaling: object) -> tuple[np.ndarray, np.ndarray, float]:
     raw = np.asarray(benefit)
     if raw.dtype.kind not in "iuf":
         raise ValueError(f"benefit must hold real numbers, got dtype {raw.dtype}")
@@ -117,10 +122,23 @@ def _check(benefit: object, positions: object, comm_range: object, eps: object,
     if eps is not None and (isinstance(eps, bool) or not isinstance(eps, (int, float, np.number))
                             or not (math.isfinite(eps) and eps > 0)):
         raise ValueError(f"eps must be a positive finite number or None, got {eps!r}")
+    if scaling is not None and (isinstance(scaling, bool) or not isinstance(
+            scaling, (int, float, np.number)) or not (math.isfinite(scaling) and scaling >= 1)):
+        raise ValueError(f"scaling must be a number >= 1 or None, got {scaling!r}")
     if isinstance(max_rounds, bool) or not isinstance(max_rounds, (int, np.integer)) \
             or max_rounds < 1:
         raise ValueError(f"max_rounds must be an int >= 1, got {max_rounds!r}")
     return b, pos, float(comm_range)
+
+
+def _schedule(value: np.ndarray, eps: float, scaling: float | None) -> list[float]:
+    """The phases' increments, largest first, ending at ``eps``."""
+    phases = [eps]
+    if scaling is not None and scaling > 1:
+        spread = float(value.max() - value.min()) if value.size else 0.0
+        while phases[-1] * scaling < spread / 4 and len(phases) < 30:
+            phases.append(phases[-1] * scaling)
+    return phases[::-1]
 
 
 def default_eps(benefit: np.ndarray) -> float:
@@ -139,6 +157,7 @@ def auction(
     comm_range: float,
     eps: float | None = None,
     max_rounds: int = 20_000,
+    scaling: float | None = 5.0,
 ) -> AuctionResult:
     """Assign N AGVs to M tasks by a decentralized epsilon-auction (maximising benefit).
 
@@ -156,7 +175,13 @@ def auction(
         Bid increment; default :func:`default_eps`. Smaller is closer to the optimum (within
         ``N * eps`` on a connected graph) and takes more rounds.
     max_rounds : int
-        Stop after this many rounds even if bids are still going (``converged`` False).
+        Stop after this many rounds in all even if bids are still going (``converged`` False).
+    scaling : float or None
+        Epsilon scaling (N >= M only): phases with ``eps`` times ``scaling ** k``, from about a
+        quarter of the benefits' spread down to ``eps``, each run until the fleet is quiet, the
+        AGVs dropping their tasks but keeping their prices between phases. None or 1: one phase
+        at ``eps``. (With N < M one phase always: prices left on tasks that end unassigned
+        would void the optimality bound.)
 
     Returns
     -------
@@ -170,7 +195,7 @@ def auction(
         Naming ``benefit`` (wrong shape, not real, NaN or infinite), ``positions``,
         ``comm_range`` (not positive), ``eps`` or ``max_rounds``.
     """
-    b, pos, comm_range = _check(benefit, positions, comm_range, eps, max_rounds)
+    b, pos, comm_range = _check(benefit, positions, comm_range, eps, max_rounds, scaling)
     n, m = b.shape
     eps = default_eps(b) if eps is None else float(eps)
     # With more AGVs than tasks: idle slots of benefit 0, so every AGV can end assigned.
@@ -191,50 +216,59 @@ def auction(
     task = np.full(n, -1, dtype=np.int64)
     agents = np.arange(n)
     rounds = messages = 0
-    converged = False
+    quiet = False
     updated = np.zeros(n, dtype=bool)  # copies changed by what an AGV heard last round
-    while rounds < max_rounds:
-        rounds += 1
-        # 1. Bid: AGVs without a task by their own copy.
-        held = task >= 0
-        held[held] = holder[agents[held], task[held]] == agents[held]
-        bidders = np.flatnonzero(~held)
-        changed = updated.copy()
-        if bidders.size:
-            net = value[bidders] - price[bidders]  # (K, cols)
-            best = np.argmax(net, axis=1)
-            top = net[np.arange(bidders.size), best]
-            if cols > 1:
-                net[np.arange(bidders.size), best] = -np.inf
-                second = net.max(axis=1)
-            else:
-                second = top
-            price[bidders, best] += top - second + eps
-            holder[bidders, best] = bidders
-            task[bidders] = best
-            changed[bidders] = True
-        # 2. Talk: changed AGVs send their copies; receivers keep the (price, holder) maximum.
-        sel = np.flatnonzero(changed[src])
-        messages += int(sel.size)
-        if not bidders.size and not sel.size:
-            converged = True
+    for phase_eps in _schedule(value, eps, scaling if n >= m else None):
+        # A new phase: every AGV drops its task and holders and keeps its prices.
+        holder[:] = -1
+        task[:] = -1
+        updated[:] = False
+        quiet = False
+        while rounds < max_rounds:
+            rounds += 1
+            # 1. Bid: AGVs without a task by their own copy.
+            held = task >= 0
+            held[held] = holder[agents[held], task[held]] == agents[held]
+            bidders = np.flatnonzero(~held)
+            changed = updated.copy()
+            if bidders.size:
+                net = value[bidders] - price[bidders]  # (K, cols)
+                best = np.argmax(net, axis=1)
+                top = net[np.arange(bidders.size), best]
+                if cols > 1:
+                    net[np.arange(bidders.size), best] = -np.inf
+                    second = net.max(axis=1)
+                else:
+                    second = top
+                price[bidders, best] += top - second + phase_eps
+                holder[bidders, best] = bidders
+                task[bidders] = best
+                changed[bidders] = True
+            # 2. Talk: changed AGVs send their copies; receivers keep the (price, holder) maximum.
+            sel = np.flatnonzero(changed[src])
+            messages += int(sel.size)
+            if not bidders.size and not sel.size:
+                quiet = True
+                break
+            updated = np.zeros(n, dtype=bool)
+            if sel.size:
+                s, d = src[sel], dst[sel]
+                starts = np.flatnonzero(np.r_[True, d[1:] != d[:-1]])
+                recv = d[starts]
+                heard_p = price[s]  # (E', cols)
+                heard_h = holder[s]
+                top_p = np.maximum.reduceat(heard_p, starts, axis=0)  # (R, cols)
+                group = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(s)]))
+                top_h = np.maximum.reduceat(np.where(heard_p == top_p[group], heard_h, -1), starts,
+                                            axis=0)
+                own_p, own_h = price[recv], holder[recv]
+                better = (top_p > own_p) | ((top_p == own_p) & (top_h > own_h))
+                price[recv] = np.where(better, top_p, own_p)
+                holder[recv] = np.where(better, top_h, own_h)
+                updated[recv] = better.any(axis=1)
+        if not quiet:
             break
-        updated = np.zeros(n, dtype=bool)
-        if sel.size:
-            s, d = src[sel], dst[sel]
-            starts = np.flatnonzero(np.r_[True, d[1:] != d[:-1]])
-            recv = d[starts]
-            heard_p = price[s]  # (E', cols)
-            heard_h = holder[s]
-            top_p = np.maximum.reduceat(heard_p, starts, axis=0)  # (R, cols)
-            group = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(s)]))
-            top_h = np.maximum.reduceat(np.where(heard_p == top_p[group], heard_h, -1), starts,
-                                        axis=0)
-            own_p, own_h = price[recv], holder[recv]
-            better = (top_p > own_p) | ((top_p == own_p) & (top_h > own_h))
-            price[recv] = np.where(better, top_p, own_p)
-            holder[recv] = np.where(better, top_h, own_h)
-            updated[recv] = better.any(axis=1)
+    converged = quiet
     # Each AGV's own claim, then clashes between components resolved by (price, index).
     held = task >= 0
     held[held] = holder[agents[held], task[held]] == agents[held]

@@ -58,6 +58,16 @@ def test_real_benefits_within_n_eps(seed: int) -> None:
     assert -1e-9 <= gap <= n * eps
 
 
+@pytest.mark.parametrize("scaling", [None, 3.0, 10.0])
+def test_epsilon_scaling_keeps_the_optimum(scaling: float | None) -> None:
+    rng = np.random.default_rng(11)
+    benefit = rng.integers(0, 1000, size=(25, 20)).astype(float)
+    positions = rng.uniform(0, 5, size=(25, 2))
+    result = auction(benefit, positions, comm_range=2.5, scaling=scaling)
+    assert result.converged and np.all(result.component == 0)
+    assert _total(benefit, result.task_of_agent) == _optimum(benefit)
+
+
 def test_disconnected_graph_conflict_free_within_components() -> None:
     rng = np.random.default_rng(3)
     # Two clusters far apart, each connected inside; both like the same few tasks.
@@ -131,5 +141,7 @@ def test_positions_and_eps_validated() -> None:
         auction(np.ones((2, 2)), np.zeros((3, 2)), comm_range=1.0)
     with pytest.raises(ValueError, match="^eps"):
         auction(np.ones((2, 2)), np.zeros((2, 2)), comm_range=1.0, eps=0.0)
+    with pytest.raises(ValueError, match="^scaling"):
+        auction(np.ones((2, 2)), np.zeros((2, 2)), comm_range=1.0, scaling=0.5)
     with pytest.raises(ValueError, match="^max_rounds"):
         auction(np.ones((2, 2)), np.zeros((2, 2)), comm_range=1.0, max_rounds=0)
