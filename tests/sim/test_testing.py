@@ -11,11 +11,21 @@ import sim
 from sim.testing import check_env
 
 
-@pytest.mark.parametrize(("scenario", "reward"),
-                         list(itertools.product(sorted(sim.SCENARIOS), sorted(sim.REWARDS))))
+def _cases() -> list:
+    """Every registered scenario with every reward; the IPF fields of the two large lifelong
+    floors (a separator tree built first, seconds per step at B = 3) run with ``-m slow``."""
+    cases = []
+    for scenario, reward in itertools.product(sorted(sim.SCENARIOS), sorted(sim.REWARDS)):
+        slow = reward == "ipf" and scenario in ("warehouse-50", "warehouse-100")
+        cases.append(pytest.param(scenario, reward, marks=[pytest.mark.slow] if slow else []))
+    return cases
+
+
+@pytest.mark.parametrize(("scenario", "reward"), _cases())
 def test_check_env_passes_on_every_registered_scenario_and_reward(scenario: str,
                                                                   reward: str) -> None:
-    check_env(scenario, reward=reward, num_envs=3)
+    lifelong = getattr(sim.get_scenario(scenario), "lifelong", False)
+    check_env(scenario, reward=reward, num_envs=3, steps=20 if lifelong else None)
 
 
 def test_check_env_passes_on_the_torch_path() -> None:
