@@ -8,15 +8,21 @@ Measures, in one process so the ratios are fair on a shared machine:
    at N = 3 and N = 6;
 2. one BiCNet update over the same batch;
 3. end-to-end training throughput (environment steps and gradient updates per second) of
-   ``learners.train.train`` with each learner's default config, IPF reward.
+   ``learners.train.train`` with each learner's ``default`` and ``fast`` presets
+   (:data:`learners.algorithms.PRESETS`), IPF reward, run back to back and compared by
+   process CPU time as well as wall-clock;
+4. with ``--quality``: whether the fast preset reaches the default's response, from short
+   3v3 IPF trainings with both presets and the same number of episodes, seeds 0 and 1,
+   scored on the validation scenes (``eval_seed`` 12345, 300 episodes).
 
 Run: ``python benchmarks/learner_speed.py [--threads 1] [--repeats 30]``; writes
-``benchmarks/results/learner_speed.md``.
+``benchmarks/results/learner_speed.md`` (``--quality``: ``learner_speed_quality.md``).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import statistics
@@ -27,6 +33,7 @@ from pathlib import Path
 import torch
 
 import sim
+from learners.algorithms import make_config, preset_overrides
 from learners.bicnet import BiCNet, BiCNetConfig
 from learners.buffer import Batch
 from learners.maddpg import MADDPG, MADDPGConfig
@@ -35,6 +42,7 @@ from learners.train import TrainConfig, train
 from sim.io import atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results" / "learner_speed.md"
+QUALITY = RESULTS.with_name("learner_speed_quality.md")
 
 
 def _batch(n: int, size: int = 1024) -> Batch:
@@ -83,16 +91,90 @@ def update_costs(n: int, repeats: int, hidden: int) -> dict[str, float]:
     return out
 
 
-def training_throughput(algo: str, n: int, episodes: int) -> dict[str, float]:
-    """Env steps and updates per second of the real training loop (default config, ipf)."""
+def training_throughput(algo: str, n: int, episodes: int,
+                        preset: str = "default") -> dict[str, float]:
+    """Env steps and updates per second of the real training loop (IPF reward), per second
+    of wall-clock and per second of this process's CPU time (evaluation excluded)."""
     with tempfile.TemporaryDirectory() as tmp:
         cfg = TrainConfig(algo=algo, reward="ipf", scenario=f"{n}v{n}", episodes=episodes,
                           seed=0, run_dir=tmp, eval_every=0, eval_episodes=10,
-                          checkpoint_every=10**9, progress=False,
+                          checkpoint_every=10**9, progress=False, tensorboard=False,
                           threads=torch.get_num_threads())
-        r = train(cfg)
+        cpu = time.process_time()
+        r = train(cfg, preset_overrides(algo, preset))
+        cpu = time.process_time() - cpu
+    # the final evaluation (10 episodes) and the final checkpoint fall in the CPU time but
+    # not in r.seconds; both are small next to the training
     return {"env_steps_per_s": r.env_steps / r.seconds, "updates_per_s": r.updates / r.seconds,
-            "agent_steps_per_s": n * r.env_steps / r.seconds, "seconds": r.seconds}
+            "agent_steps_per_s": n * r.env_steps / r.seconds, "seconds": r.seconds,
+            "env_steps_per_cpu_s": r.env_steps / cpu, "env_steps": r.env_steps,
+            "updates": r.updates}
+
+
+def quality_run(algo: str, n: int, preset: str, seed: int, episodes: int) -> dict:
+    """One short training with a preset; its validation responses (300 scenes, eval seed
+    12345) at a third, two thirds and the end of ``episodes``."""
+    import csv
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = TrainConfig(algo=algo, reward="ipf", scenario=f"{n}v{n}", episodes=episodes,
+                          seed=seed, run_dir=tmp, eval_every=episodes // 3, eval_episodes=300,
+                          checkpoint_every=10**9, progress=False, tensorboard=False,
+                          threads=torch.get_num_threads())
+        cpu = time.process_time()
+        r = train(cfg, preset_overrides(algo, preset))
+        cpu = time.process_time() - cpu
+        with open(Path(tmp) / "progress.csv", newline="") as f:
+            curve = [(int(row["episode"]), int(row["env_steps"]),
+                      float(row["eval_response_rate"]))
+                     for row in csv.DictReader(f) if row.get("eval_response_rate")]
+    return {"algo": algo, "n": n, "preset": preset, "seed": seed, "episodes": r.episodes,
+            "env_steps": r.env_steps, "updates": r.updates, "cpu": cpu,
+            "final": r.last_eval["response_rate"], "curve": curve}
+
+
+def quality_table(records: list[dict]) -> list[str]:
+    """Markdown rows of :func:`quality_run` records, and the per-algorithm means."""
+    lines = ["| learner | N | preset | seed | env steps | updates | CPU s | validation "
+             "response at 1/3, 2/3, end |", "|---|---|---|---|---|---|---|---|"]
+    for r in records:
+        curve = ", ".join(f"{c[2]:.3f}" for c in r["curve"])
+        lines.append(f"| {r['algo']} | {r['n']} | {r['preset']} | {r['seed']} | "
+                     f"{r['env_steps']} | {r['updates']} | {r['cpu']:.0f} | {curve} |")
+    lines += ["", "| learner | preset | mean final response over seeds | mean CPU s |",
+              "|---|---|---|---|"]
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in records:
+        groups.setdefault((r["algo"], r["preset"]), []).append(r)
+    for (algo, preset), rs in groups.items():
+        finals = ", ".join(f"{r['final']:.3f}" for r in rs)
+        lines.append(f"| {algo} | {preset} | {statistics.mean(r['final'] for r in rs):.3f} "
+                     f"({finals}) | {statistics.mean(r['cpu'] for r in rs):.0f} |")
+    return lines
+
+
+def main_quality(episodes: int, threads: int) -> None:
+    """Write ``learner_speed_quality.md``: both presets, both learners, 3v3 IPF, seeds 0, 1."""
+    records = []
+    for algo in ("maddpg", "bicnet"):
+        for seed in (0, 1):
+            for preset in ("default", "fast"):
+                records.append(quality_run(algo, 3, preset, seed, episodes))
+                print(records[-1], flush=True)
+    write_quality(records, f"`python benchmarks/learner_speed.py --quality --quality-episodes "
+                           f"{episodes} --threads {threads}`")
+
+
+def write_quality(records: list[dict], command: str) -> None:
+    """Write the records of :func:`quality_run` to ``learner_speed_quality.md``."""
+    lines = ["# Learner speed: does the fast preset learn as well?", "", command + "; torch "
+             f"{torch.__version__}, one thread per run, a shared 2-core machine.", "",
+             "3v3, IPF reward, the same number of training episodes for both presets; "
+             "validation response: `sim.evaluate` on 300 scenes of eval seed 12345 (not the "
+             "test seeds).", "", *quality_table(records), ""]
+    QUALITY.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(QUALITY, "\n".join(lines))
+    print(f"wrote {QUALITY}")
 
 
 def main() -> None:
@@ -101,8 +183,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--episodes", type=int, default=600,
                         help="training episodes per throughput measurement")
+    parser.add_argument("--quality", action="store_true",
+                        help="instead: the equal-response check of the fast preset (3v3 IPF, "
+                             "both presets, seeds 0 and 1; about 10 CPU minutes)")
+    parser.add_argument("--quality-episodes", type=int, default=3000)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.quality:
+        main_quality(args.quality_episodes, args.threads)
+        return
     load_before = os.getloadavg()
     lines = [
         "# Learner speed",
@@ -138,23 +227,42 @@ def main() -> None:
         "back to back; a BiCNet update runs after every other pair. Issue 5 asks for 1.4x.",
         "BiCNet uses its default config (hidden 64, 2 + 2 shared layers around a BiGRU).",
         "",
-        "## Training throughput (default configs, IPF reward, evaluation excluded)",
+        "## Training throughput (IPF reward, evaluation excluded)",
         "",
-        "| learner | N | env steps/s | agent steps/s | updates/s |",
-        "|---|---|---|---|---|",
+        "Each learner and N: the `default` preset (the config defaults, the shipped weights'",
+        "settings), then the `fast` preset (`learners.algorithms.PRESETS`), back to back, seed 0,",
+        "the same number of episodes. CPU: env steps per second of this process's CPU time",
+        "(less sensitive to the other users than wall-clock).",
+        "",
+        "| learner | N | preset | transitions per update | env steps/s | env steps/CPU s | "
+        "agent steps/s | updates/s |",
+        "|---|---|---|---|---|---|---|---|",
     ]
+    ratios = []
     for algo in ("maddpg", "bicnet"):
         for n in (3, 6):
-            t = training_throughput(algo, n, args.episodes)
-            lines.append(f"| {algo} | {n} | {t['env_steps_per_s']:.0f} | "
-                         f"{t['agent_steps_per_s']:.0f} | {t['updates_per_s']:.1f} |")
-            print(lines[-1], flush=True)
+            got = {}
+            for preset in ("default", "fast"):
+                t = got[preset] = training_throughput(algo, n, args.episodes, preset)
+                cfg = {**dataclasses.asdict(make_config(algo)), **preset_overrides(algo, preset)}
+                per = cfg["num_envs"] / cfg["updates_per_step"]
+                lines.append(f"| {algo} | {n} | {preset} | {per:.0f} | "
+                             f"{t['env_steps_per_s']:.0f} | {t['env_steps_per_cpu_s']:.0f} | "
+                             f"{t['agent_steps_per_s']:.0f} | {t['updates_per_s']:.1f} |")
+                print(lines[-1], flush=True)
+            wall, cpu = (got["fast"][k] / got["default"][k]
+                         for k in ("env_steps_per_s", "env_steps_per_cpu_s"))
+            ratios.append(f"| {algo} | {n} | {wall:.2f}x | {cpu:.2f}x |")
+    lines += ["", "| learner | N | fast / default, wall-clock | fast / default, CPU time |",
+              "|---|---|---|---|", *ratios]
     lines += [
         "",
         "An env step here is one joint step of one environment (N agent-steps). Training runs",
         "B = num_envs environments in parallel and does updates_per_step updates per batched",
         "step, so updates/s x (B / updates_per_step) = env steps/s once learning has started;",
-        "the first learning_starts transitions are collected without updates.",
+        "the first learning_starts transitions are collected without updates (the same 4096",
+        "for both presets). Whether the fast preset learns as well: `--quality`, written to",
+        "`benchmarks/results/learner_speed_quality.md`.",
         "",
     ]
     load_after = os.getloadavg()

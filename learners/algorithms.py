@@ -9,7 +9,8 @@ from learners.bicnet import BiCNet, BiCNetConfig
 from learners.common import ActorCritic
 from learners.maddpg import MADDPG, MADDPGConfig
 
-__all__ = ["ALGORITHMS", "REWARD_NAMES", "check_algo", "make_config", "make_learner"]
+__all__ = ["ALGORITHMS", "PRESETS", "REWARD_NAMES", "check_algo", "make_config", "make_learner",
+           "preset_overrides"]
 
 ALGORITHMS: dict[str, tuple[type[ActorCritic], type]] = {
     "maddpg": (MADDPG, MADDPGConfig),
@@ -19,6 +20,47 @@ ALGORITHMS: dict[str, tuple[type[ActorCritic], type]] = {
 
 REWARD_NAMES = ("minidist", "greedy", "ipf")
 """The paper's rewards, as named in ``sim.make_env``."""
+
+
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "default": {"maddpg": {}, "bicnet": {}},
+    "fast": {
+        "maddpg": {"num_envs": 64, "updates_per_step": 2, "batch_size": 512,
+                   "actor_lr": 3e-3, "critic_lr": 3e-3, "tau": 0.03},
+        "bicnet": {"num_envs": 128, "updates_per_step": 1, "actor_lr": 3e-3, "critic_lr": 3e-3,
+                   "tau": 0.05},
+    },
+}
+"""Named learner settings: preset -> algorithm -> config overrides.
+
+``default`` is the config dataclass's defaults (what the shipped weights were trained with).
+``fast`` does fewer, cheaper gradient updates per environment step, which is what makes
+training about 5x faster in environment steps per second on a CPU (one update is
+compute-bound there, see ``docs/learners.md``), and takes larger steps to make up for it:
+
+* MADDPG: 64 environments and 2 updates per vectorized step (32 transitions per update
+  instead of 8), batches of 512 instead of 1024, learning rates 3e-3 instead of 1e-3, target
+  rate tau 0.03 instead of 0.01;
+* BiCNet: 128 environments and 1 update per step (128 transitions per update instead of 16),
+  learning rates 3e-3, tau 0.05.
+
+``benchmarks/learner_speed.py`` measures both presets' speed, and with ``--quality`` their
+validation response after the same number of episodes.
+"""
+
+
+def preset_overrides(algo: str, preset: str) -> dict[str, Any]:
+    """The config overrides of a named preset for one algorithm (a fresh dict).
+
+    Raises
+    ------
+    ValueError
+        For an unknown algorithm or preset.
+    """
+    check_algo(algo)
+    if not isinstance(preset, str) or preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
+    return dict(PRESETS[preset][algo])
 
 
 def check_algo(algo: str) -> None:

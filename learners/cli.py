@@ -136,7 +136,7 @@ def _names(items: Sequence[str]) -> str:
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``agv train`` options to ``parser``."""
     import sim
-    from learners.algorithms import ALGORITHMS, REWARD_NAMES
+    from learners.algorithms import ALGORITHMS, PRESETS, REWARD_NAMES
 
     algos = sorted(ALGORITHMS)
     parser.add_argument("--algo", choices=algos, default=None,
@@ -173,6 +173,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "[0, 1] (default: never)")
     parser.add_argument("--threads", type=positive_int, default=None,
                         help="torch threads (default 1)")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
+                        help="named learner settings applied before --set: 'default' (the "
+                             "config defaults) or 'fast' (more environments per update, larger "
+                             "steps; about 5x the env steps/s, see docs/learners.md)")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE",
                         help="override a learner hyperparameter, e.g. --set batch_size=512 "
@@ -210,6 +214,14 @@ def _parse_overrides(algo: str, items: list[str]) -> dict[str, Any]:
     return out
 
 
+def _preset(algo: str, args: argparse.Namespace) -> dict[str, Any]:
+    """The overrides of ``--preset`` (none without it)."""
+    from learners.algorithms import preset_overrides
+
+    preset = getattr(args, "preset", None)
+    return preset_overrides(algo, preset) if preset else {}
+
+
 def run_train(args: argparse.Namespace) -> int:
     """Run ``agv train``; returns the exit status (0 done, 130 interrupted, 2 bad input)."""
     from learners.train import TrainConfig, load_run_config, train
@@ -223,15 +235,17 @@ def run_train(args: argparse.Namespace) -> int:
                     raise ValueError(f"cannot resume {args.resume}: it was trained with {key}="
                                      f"{getattr(config, key)!r}, --{key} asks for {given!r}")
             learner_config: Any = None
-            if args.overrides:
-                learner_config = {**saved, **_parse_overrides(config.algo, args.overrides)}
+            if args.overrides or getattr(args, "preset", None):
+                learner_config = {**saved, **_preset(config.algo, args),
+                                  **_parse_overrides(config.algo, args.overrides)}
         else:
             config = TrainConfig()
             for key in ("algo", "reward", "scenario", "seed"):
                 if getattr(args, key) is not None:
                     setattr(config, key, getattr(args, key))
             config.run_dir = args.run_dir
-            learner_config = _parse_overrides(config.algo, args.overrides)
+            learner_config = {**_preset(config.algo, args),
+                              **_parse_overrides(config.algo, args.overrides)}
         for key in ("episodes", "eval_every", "eval_episodes", "eval_seed", "checkpoint_every",
                     "stop_response", "threads"):
             if getattr(args, key) is not None:

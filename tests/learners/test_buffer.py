@@ -48,3 +48,30 @@ def test_state_dict_round_trip_and_shape_check():
         wrong.load_state_dict(buf.state_dict())
     with pytest.raises(ValueError, match="empty"):
         ReplayBuffer(5, 1, 2, 2).sample(1, torch.Generator())
+
+
+def test_one_gather_of_rows_equals_a_gather_per_field():
+    """The packed table's sample is exactly the textbook per-field indexing, after a wrap."""
+    env, batch = make_batch(num_envs=24)
+    buf = ReplayBuffer(40, env.num_agents, env.obs_dim, env.state_dim)
+    buf.add(batch)
+    buf.add(_rows(batch, 3, 23))  # 20 rows from slot 24: the block wraps to slots 0..3
+    assert len(buf) == 40 and buf.pos == 4
+    torch.testing.assert_close(buf.data["next_state"][:4], batch.next_state[19:23],
+                               rtol=0, atol=0)
+    torch.testing.assert_close(buf.data["action"][24:40], batch.action[3:19], rtol=0, atol=0)
+    idx = torch.randint(buf.size, (16,), generator=torch.Generator().manual_seed(7))
+    got = buf.sample(16, torch.Generator().manual_seed(7))
+    for name, value in buf.data.items():
+        want = value[idx]
+        assert getattr(got, name).shape == want.shape, name
+        assert torch.equal(getattr(got, name), want), name
+
+
+def test_add_names_a_field_of_the_wrong_shape():
+    env, batch = make_batch(num_envs=4)
+    buf = ReplayBuffer(10, env.num_agents, env.obs_dim, env.state_dim)
+    bad = Batch(**{**vars(batch), "reward": batch.reward[:, :1]})
+    with pytest.raises(ValueError, match="reward"):
+        buf.add(bad)
+    assert len(buf) == 0
