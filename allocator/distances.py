@@ -8,7 +8,7 @@ One grid of the whole floor is built once per floor and shared by every query:
   cell centre, computed shelf by shelf on that shelf's neighbourhood only).
 - Free cells are joined by moves to their 8 neighbours (a diagonal move only if both side cells
   are free) and, with ``connectivity=16`` (the default), by the 8 knight moves (2, 1) as well
-  (only if the two cells the move crosses are free). The 16-neighbourhood bounds the grid's
+  (only if the whole 2 x 3 box of cells is free). The 16-neighbourhood bounds the grid's
   overestimate of a straight run at 2.7% (8 neighbours: 8.2%).
 - Distance fields (the grid distance from one cell to every cell) come from
   :func:`scipy.sparse.csgraph.dijkstra`. The fields of the floor's fixed points (its pickups and
@@ -20,9 +20,11 @@ joined to that cell's centre by a straight connector, whose length is added. Pat
 from a distance field by steepest descent and string-pulled with an exact test of the disc
 against every shelf (:func:`segments_clear`), so a smoothed segment never leaves free space.
 
-Grid edges between free cells are assumed collision-free: this holds when every shelf is at
-least one cell thick in x and y (true of :func:`sim.warehouse_floor` and of floors loaded from
-``.map`` grids, whose shelves are whole map cells at least an AGV diameter wide).
+Grid moves keep the disc off the shelves when every shelf is at least one cell thick in x and y
+(true of :func:`sim.warehouse_floor` and of ``.map`` floors): at resolutions up to the AGV
+radius a free cell clears by a small margin (``resolution ** 2 / (4 * agent_radius)``, 0.009
+at the default), see ``_free_raster``; at coarser resolutions only when the shelves are aligned
+with the cells, as on a ``.map`` floor at ``resolution=cell_size``.
 """
 
 from __future__ import annotations
@@ -51,11 +53,11 @@ _DEFAULT_CACHE_BYTES = 256 * 2**20
 
 # Moves (drow, dcol), and for each the cells (drow, dcol) it crosses that must be free too.
 _MOVES_8 = [((0, 1), ()), ((1, 0), ()), ((1, 1), ((0, 1), (1, 0))), ((1, -1), ((0, -1), (1, 0)))]
-_MOVES_16 = _MOVES_8 + [
-    ((1, 2), ((0, 1), (1, 1))),
-    ((2, 1), ((1, 0), (1, 1))),
-    ((1, -2), ((0, -1), (1, -1))),
-    ((2, -1), ((1, 0), (1, -1))),
+_MOVES_16 = _MOVES_8 + [  # a knight move needs its whole 2 x 3 box of cells free
+    ((1, 2), ((0, 1), (0, 2), (1, 0), (1, 1))),
+    ((2, 1), ((1, 0), (2, 0), (0, 1), (1, 1))),
+    ((1, -2), ((0, -1), (0, -2), (1, 0), (1, -1))),
+    ((2, -1), ((1, 0), (2, 0), (0, -1), (1, -1))),
 ]
 
 
@@ -197,15 +199,23 @@ class _FloorGrid:
     def nbytes(self) -> int:
         """Memory held: raster, graph, nearest-cell map, table and cached fields."""
         g = self.graph
-        total = self.free.nbytes + self.nearest_free.nbytes
+        total = self.free.nbytes + self.nearest_free.nbytes + self.move_ok.nbytes
         total += g.data.nbytes + g.indices.nbytes + g.indptr.nbytes
         total += 0 if self.table is None else self.table.nbytes
         return total + sum(row.nbytes for row in self._cache.values())
 
     def _free_raster(self) -> np.ndarray:
-        """Cells whose centre holds an AGV disc, shelf by shelf on its neighbourhood only."""
+        """Cells whose centre holds an AGV disc, shelf by shelf on its neighbourhood only.
+
+        At a resolution h up to the AGV radius r the disc must clear by a margin h^2 / (4 r)
+        more: a move joins centres whose whole box of cells is free, and a shelf's rounded
+        corner (radius r) poking between two free centres h apart reaches at most that far
+        past them, so with the margin every grid move keeps the disc off the shelves.
+        """
         world = self.world
-        r = world.agent_radius
+        h = max(self.dx, self.dy)
+        r = world.agent_radius + (h * h / (4 * world.agent_radius)
+                                  if h <= world.agent_radius + 1e-12 else 0.0)
         xmin, ymin, xmax, ymax = world.bounds
         x, y = self.x, self.y
         free = np.ones(self.shape, dtype=bool)
@@ -222,13 +232,14 @@ class _FloorGrid:
         return free
 
     def _graph(self) -> sp.csr_matrix:
+        """The graph of the moves, and per move the cells it may leave from (``move_ok``)."""
         h, w = self.shape
         idx = np.arange(h * w).reshape(h, w)
         free = self.free
+        self.move_ok = np.zeros((len(self.moves), h * w), dtype=bool)
+        self.move_step = np.array([di * w + dj for (di, dj), _ in self.moves], dtype=np.int64)
         rows, cols, vals = [], [], []
-        for (di, dj), side in self.moves:
-            if di < 0 or (di == 0 and dj < 0):
-                continue  # the reverse moves come from the symmetric matrix
+        for k, ((di, dj), side) in enumerate(self.moves):
             i0, i1 = max(0, -di), h - max(0, di)
             j0, j1 = max(0, -dj), w - max(0, dj)
             if i0 >= i1 or j0 >= j1:
@@ -236,6 +247,9 @@ class _FloorGrid:
             ok = free[i0:i1, j0:j1] & free[i0 + di:i1 + di, j0 + dj:j1 + dj]
             for si, sj in side:
                 ok &= free[i0 + si:i1 + si, j0 + sj:j1 + sj]
+            self.move_ok[k, idx[i0:i1, j0:j1][ok]] = True
+            if di < 0 or (di == 0 and dj < 0):
+                continue  # the reverse moves come from the symmetric matrix
             rows.append(idx[i0:i1, j0:j1][ok])
             cols.append(idx[i0 + di:i1 + di, j0 + dj:j1 + dj][ok])
             vals.append(np.full(rows[-1].size, math.hypot(di * self.dy, dj * self.dx)))
@@ -285,18 +299,11 @@ class _FloorGrid:
                 row_of: np.ndarray) -> np.ndarray:
         """One steepest-descent step from each cell on its field (the next cell of a shortest
         path); a cell at its target (or cut off) stays."""
-        h, w = self.shape
-        ci, cj = cells // w, cells % w
         best = field_rows[row_of, cells]
         nxt = cells.copy()
-        for (di, dj), side in self.moves:
-            ni, nj = ci + di, cj + dj
-            ok = (ni >= 0) & (ni < h) & (nj >= 0) & (nj < w)
-            for si, sj in side:
-                ok &= self.free[np.clip(ci + si, 0, h - 1), np.clip(cj + sj, 0, w - 1)]
-            n = np.clip(ni, 0, h - 1) * w + np.clip(nj, 0, w - 1)
-            ok &= self.free.ravel()[n]
-            val = np.where(ok, field_rows[row_of, n], np.inf)
+        for k, step in enumerate(self.move_step):
+            n = np.where(self.move_ok[k, cells], cells + step, cells)
+            val = field_rows[row_of, n]
             better = val < best - 1e-12
             best = np.where(better, val, best)
             nxt = np.where(better, n, nxt)
@@ -502,6 +509,7 @@ class FloorDistances:
         field = g.fields(np.array([sb]))
         if not np.isfinite(field[0, sa]):
             return None
+        sa = self._entry_cell(a[0], sa, field[0])
         cells = [sa]
         zero = np.zeros(1, dtype=np.int64)
         cur = np.array([sa])
@@ -512,6 +520,27 @@ class FloorDistances:
             cells.append(int(cur[0]))
         pts = np.concatenate([a, g.centres(np.array(cells)), b])
         return self._pull(pts)
+
+    def _entry_cell(self, point: np.ndarray, cell: int, field: np.ndarray,
+                    reach: int = 3) -> int:
+        """The free cell within ``reach`` cells of ``point``, in its line of sight, that is
+        nearest the target counting the connector (``cell`` if none beats it)."""
+        g = self._grid
+        h, w = g.shape
+        i, j = divmod(int(cell), w)
+        di, dj = np.mgrid[-reach:reach + 1, -reach:reach + 1]
+        ii, jj = (i + di).ravel(), (j + dj).ravel()
+        inside = (ii >= 0) & (ii < h) & (jj >= 0) & (jj < w)
+        near = ii[inside] * w + jj[inside]
+        near = near[g.free.ravel()[near] & np.isfinite(field[near])]
+        if not near.size:
+            return int(cell)
+        centres = g.centres(near)
+        cost = np.linalg.norm(centres - point, axis=1) + field[near]
+        order = np.argsort(cost)
+        seen = segments_clear(np.repeat(point[None], len(order), 0), centres[order], self.world)
+        best = near[order[np.flatnonzero(seen)[0]]] if seen.any() else cell
+        return int(best)
 
     def _pull(self, pts: np.ndarray) -> np.ndarray:
         """Greedy string pulling: from each kept point jump to the farthest visible one."""

@@ -105,7 +105,9 @@ def test_paths_are_collision_free_and_close_to_gridmap(floor: FloorDistances) ->
         assert _dense_free(world, p)
         assert segments_clear(p[:-1], p[1:], world).all()
         ref = reference.path(a, b)
-        assert abs(path_length(p) - path_length(ref)) <= 0.05 * path_length(ref)
+        # Waypoints sit on cell centres: a corner can cost up to about one cell more.
+        assert abs(path_length(p) - path_length(ref)) <= 0.05 * path_length(ref) \
+            + floor.resolution
         d = floor.distance(a[None], b[None])[0, 0]
         assert path_length(p) <= d + 1e-9  # pulling the string never lengthens the path
         assert d <= 1.05 * path_length(p) + 2 * floor.resolution
@@ -192,3 +194,21 @@ def test_segments_clear_exact_corner() -> None:
         start = np.array([[2.0 + off - 1.0, 2.0 + off + 1.0]])
         end = np.array([[2.0 + off + 1.0, 2.0 + off - 1.0]])
         assert segments_clear(start, end, world)[0] == expect
+
+
+def test_map_floor_at_its_own_cells(tmp_path) -> None:  # noqa: ANN001
+    rows = ["r..e......", ".@@@@@@@..", ".@@@@@@@e.", "..........", "r.@@@@@@@.",
+            "..@@@@@@@.", "...e......"]
+    text = f"type octile\nheight {len(rows)}\nwidth {len(rows[0])}\nmap\n" + "\n".join(rows)
+    path = tmp_path / "small.map"
+    path.write_text(text + "\n")
+    world = sim.load_floor(path, cell_size=0.3)
+    fd = FloorDistances(world, resolution=0.3)
+    assert fd.shape == (7, 10)
+    d = fd.distance(world.stations, world.pickups)
+    assert np.isfinite(d).all()
+    # Station (0.15, 1.95) to the pickup (2.55, 1.65) right of the upper block: the aisles only.
+    for a in world.stations:
+        for b in world.pickups:
+            p = fd.path(a, b)
+            assert p is not None and _dense_free(world, p)
