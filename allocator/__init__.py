@@ -32,7 +32,27 @@ __all__ = [
     "ClassicalAllocator",
     "HungarianAllocator",
     "GreedyAllocator",
+    "FloorDistances",
+    "segments_clear",
+    "AuctionResult",
+    "decentralized_auction",
 ]
+
+_LAZY = {  # imported on first use (scipy's graph and spatial modules)
+    "FloorDistances": ("allocator.distances", "FloorDistances"),
+    "segments_clear": ("allocator.distances", "segments_clear"),
+    "AuctionResult": ("allocator.auction", "AuctionResult"),
+    "decentralized_auction": ("allocator.auction", "auction"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(module), attr)
+    raise AttributeError(f"module 'allocator' has no attribute {name!r}")
 
 _register_learned(ALLOCATORS)
 
