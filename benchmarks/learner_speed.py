@@ -97,18 +97,34 @@ def training_throughput(algo: str, n: int, episodes: int,
     of wall-clock and per second of this process's CPU time (evaluation excluded)."""
     with tempfile.TemporaryDirectory() as tmp:
         cfg = TrainConfig(algo=algo, reward="ipf", scenario=f"{n}v{n}", episodes=episodes,
-                          seed=0, run_dir=tmp, eval_every=0, eval_episodes=10,
+                          seed=0, run_dir=tmp, eval_every=0, eval_episodes=10, log_every=20,
                           checkpoint_every=10**9, progress=False, tensorboard=False,
                           threads=torch.get_num_threads())
         cpu = time.process_time()
         r = train(cfg, preset_overrides(algo, preset))
         cpu = time.process_time() - cpu
+        steady = _steady_rate(Path(tmp) / "progress.csv")
     # the final evaluation (10 episodes) and the final checkpoint fall in the CPU time but
     # not in r.seconds; both are small next to the training
     return {"env_steps_per_s": r.env_steps / r.seconds, "updates_per_s": r.updates / r.seconds,
+            "steady_env_steps_per_s": steady,
             "agent_steps_per_s": n * r.env_steps / r.seconds, "seconds": r.seconds,
             "env_steps_per_cpu_s": r.env_steps / cpu, "env_steps": r.env_steps,
             "updates": r.updates}
+
+
+def _steady_rate(progress: Path) -> float:
+    """Env steps per wall-clock second from the first CSV row with updates to the last (the
+    collection-only warm-up of ``learning_starts`` transitions left out)."""
+    import csv
+
+    with open(progress, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if int(r["updates"]) > 0]
+    if len(rows) < 2:
+        return float("nan")
+    first, last = rows[0], rows[-1]
+    return ((int(last["env_steps"]) - int(first["env_steps"]))
+            / (float(last["seconds"]) - float(first["seconds"])))
 
 
 def quality_run(algo: str, n: int, preset: str, seed: int, episodes: int) -> dict:
@@ -232,11 +248,15 @@ def main() -> None:
         "Each learner and N: the `default` preset (the config defaults, the shipped weights'",
         "settings), then the `fast` preset (`learners.algorithms.PRESETS`), back to back, seed 0,",
         "the same number of episodes. CPU: env steps per second of this process's CPU time",
-        "(less sensitive to the other users than wall-clock).",
+        "(less sensitive to the other users than wall-clock; it includes the run's fixed costs:",
+        "allocating the replay table, the final checkpoint). Once updating: wall-clock env steps",
+        "per second from the first progress row with updates to the last, i.e. without the",
+        "collection-only warm-up of the first 4096 transitions (a quarter of a 600-episode 3v3",
+        "run, a negligible part of a long one).",
         "",
         "| learner | N | preset | transitions per update | env steps/s | env steps/CPU s | "
-        "agent steps/s | updates/s |",
-        "|---|---|---|---|---|---|---|---|",
+        "env steps/s once updating | agent steps/s | updates/s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     ratios = []
     for algo in ("maddpg", "bicnet"):
@@ -248,13 +268,15 @@ def main() -> None:
                 per = cfg["num_envs"] / cfg["updates_per_step"]
                 lines.append(f"| {algo} | {n} | {preset} | {per:.0f} | "
                              f"{t['env_steps_per_s']:.0f} | {t['env_steps_per_cpu_s']:.0f} | "
+                             f"{t['steady_env_steps_per_s']:.0f} | "
                              f"{t['agent_steps_per_s']:.0f} | {t['updates_per_s']:.1f} |")
                 print(lines[-1], flush=True)
-            wall, cpu = (got["fast"][k] / got["default"][k]
-                         for k in ("env_steps_per_s", "env_steps_per_cpu_s"))
-            ratios.append(f"| {algo} | {n} | {wall:.2f}x | {cpu:.2f}x |")
-    lines += ["", "| learner | N | fast / default, wall-clock | fast / default, CPU time |",
-              "|---|---|---|---|", *ratios]
+            wall, cpu, steady = (got["fast"][k] / got["default"][k]
+                                 for k in ("env_steps_per_s", "env_steps_per_cpu_s",
+                                           "steady_env_steps_per_s"))
+            ratios.append(f"| {algo} | {n} | {wall:.2f}x | {cpu:.2f}x | {steady:.2f}x |")
+    lines += ["", "| learner | N | fast / default, wall-clock | fast / default, CPU time | "
+              "fast / default, once updating |", "|---|---|---|---|---|", *ratios]
     lines += [
         "",
         "An env step here is one joint step of one environment (N agent-steps). Training runs",
