@@ -157,14 +157,15 @@ def quality_table(records: list[dict]) -> list[str]:
         curve = ", ".join(f"{c[2]:.3f}" for c in r["curve"])
         lines.append(f"| {r['algo']} | {r['n']} | {r['preset']} | {r['seed']} | "
                      f"{r['env_steps']} | {r['updates']} | {r['cpu']:.0f} | {curve} |")
-    lines += ["", "| learner | preset | mean final response over seeds | mean CPU s |",
-              "|---|---|---|---|"]
-    groups: dict[tuple[str, str], list[dict]] = {}
+    lines += ["", "| learner | N | preset | mean final response over seeds | mean CPU s |",
+              "|---|---|---|---|---|"]
+    groups: dict[tuple[str, int, str], list[dict]] = {}
     for r in records:
-        groups.setdefault((r["algo"], r["preset"]), []).append(r)
-    for (algo, preset), rs in groups.items():
+        groups.setdefault((r["algo"], r["n"], r["preset"]), []).append(r)
+    for (algo, n, preset), rs in groups.items():
         finals = ", ".join(f"{r['final']:.3f}" for r in rs)
-        lines.append(f"| {algo} | {preset} | {statistics.mean(r['final'] for r in rs):.3f} "
+        lines.append(f"| {algo} | {n} | {preset} | "
+                     f"{statistics.mean(r['final'] for r in rs):.3f} "
                      f"({finals}) | {statistics.mean(r['cpu'] for r in rs):.0f} |")
     return lines
 
