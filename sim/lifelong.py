@@ -37,6 +37,7 @@ from sim.checks import (
     check_seed,
     real_array,
 )
+from sim.native import pointer
 from sim.observations import LifelongObsLayout, lifelong_global_state, observe_lifelong
 from sim.orders import (
     ASSIGNED,
@@ -686,12 +687,13 @@ class LifelongEnv:
             repaired = torch.zeros_like(running)
         # Pickups (the fused kernel or the torch reference, sim.orders.pickups).
         cap = self.world.capture_radius
-        if self._native is not None:
-            takes, slot = lifelong_native.lifelong_pickups(
-                self._agent_pos, ready.contiguous(), fleet.order, o.pickup, o.status,
-                rules.tie_key(o), cap)
+        if self._native is not None:  # pickups and drop-offs in one pass
+            takes, slot, at_drop = lifelong_native.lifelong_pickups(
+                self._agent_pos, ready.contiguous(), fleet.order, o.pickup, o.dropoff,
+                o.status, rules.tie_key(o), cap)
         else:
             takes, slot = rules.pickups(self._agent_pos, ready, fleet.order, o, cap)
+            at_drop = rules.dropoffs(self._agent_pos, ready, fleet.order, o, cap)
         picked_up = torch.zeros_like(o.status, dtype=torch.bool)
         service = self.scenario.service_steps
         if bool(takes.any()):
@@ -706,12 +708,9 @@ class LifelongEnv:
                 fleet.service_left = torch.where(takes, service, fleet.service_left)
                 self._agent_vel = self._agent_vel * (~takes).unsqueeze(-1)
             ready = ready & ~takes
-        # Drop-offs: a loaded AGV (not just picked up) within reach of its drop-off.
+        # Drop-offs: a loaded AGV (not one that just picked up: it had no loaded order before
+        # this step's pickups) within reach of its drop-off, found with the pickups.
         slot = fleet.order.clamp_min(0)
-        carrying = (fleet.order >= 0) & (o.status.gather(1, slot) == LOADED)
-        drop = o.dropoff.gather(1, slot.unsqueeze(-1).expand(B, N, 2))
-        at_drop = ready & carrying & (
-            torch.linalg.vector_norm(self._agent_pos - drop, dim=-1) <= cap)
         if service:
             fleet.service_left = torch.where(at_drop, service, fleet.service_left)
             fleet.serving_dropoff = fleet.serving_dropoff | at_drop
@@ -816,9 +815,17 @@ class LifelongEnv:
         if faults is None:
             return torch.zeros(B, N, dtype=torch.bool, device=self.device)
         if isinstance(faults, Breakdowns):
+            if self._native is not None:  # the same draws, compared in the same pass
+                out = torch.empty(B, N, dtype=torch.bool)
+                can = can.contiguous()
+                self._native.agv_fault_draws(
+                    B, N, pointer(self._keys, torch.int64, (B,), "keys"), streams.FAULTS,
+                    pointer(self._steps, torch.int64, (B,), "steps"), float(faults.rate),
+                    pointer(can, torch.bool, (B, N), "can"), out.data_ptr())
+                return out
             agents = torch.arange(N, device=self.device).view(1, -1)
             u = streams.uniform(self._keys.view(-1, 1), streams.FAULTS,
-                                self._steps.view(-1, 1), agents, kernels=self._native)
+                                self._steps.view(-1, 1), agents)
             return can & (u < faults.rate)
         step, agent, _ = self._schedule
         hit = step.view(1, 1, -1) == self._steps.view(-1, 1, 1)  # (B, 1, F)

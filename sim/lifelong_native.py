@@ -315,19 +315,19 @@ def remaining_work(agent_pos: Tensor, order_status: Tensor, pickup: Tensor, drop
 
 
 def lifelong_pickups(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, pickup: Tensor,
-                     order_status: Tensor, key: Tensor, capture_radius: float
-                     ) -> tuple[Tensor, Tensor]:
-    """The step's pickups (``sim/_native/orders.h``), as :func:`sim.orders.match` on the
-    eligibility of :meth:`sim.lifelong.LifelongEnv.step`.
+                     dropoff: Tensor, order_status: Tensor, key: Tensor, capture_radius: float
+                     ) -> tuple[Tensor, Tensor, Tensor]:
+    """The step's pickups and drop-offs (``sim/_native/orders.h``): :func:`sim.orders.pickups`
+    and :func:`sim.orders.dropoffs` in one pass.
 
     Parameters
     ----------
     agent_pos : Tensor, float32, shape (B, N, 2)
     ready : Tensor, bool, shape (B, N)
-        AGVs that may pick up in this step.
+        AGVs that may pick up or drop off in this step.
     agent_order : Tensor, int64, shape (B, N)
         Each AGV's order slot, -1 for none (an AGV with one may pick up only that one).
-    pickup : Tensor, float32, shape (B, Q, 2)
+    pickup, dropoff : Tensor, float32, shape (B, Q, 2)
     order_status : Tensor, int8, shape (B, Q)
     key : Tensor, int64, shape (B, Q)
         :func:`sim.orders.tie_key`.
@@ -338,6 +338,8 @@ def lifelong_pickups(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, pick
     takes : Tensor of bool, shape (B, N)
     slot : Tensor of int64, shape (B, N)
         The slot each AGV that takes picks up (0 elsewhere).
+    at_drop : Tensor of bool, shape (B, N)
+        Ready AGVs with a loaded order whose drop-off they reach.
     """
     lib = _lib()
     B, N, _ = _sizes(agent_pos, _F32, (-1, -1, 2), "agent_pos")
@@ -346,17 +348,21 @@ def lifelong_pickups(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, pick
     if agent_order.numel() and int(agent_order.max()) >= Q:
         raise ValueError(f"agent_order must hold slots < Q = {Q} (or -1), got "
                          f"{int(agent_order.max())}")
-    _, fused_cdist = torch_norm_rounding()
+    fused_norm, fused_cdist = torch_norm_rounding()
     takes = torch.empty(B, N, dtype=_BOOL)
     slot = torch.empty(B, N, dtype=_I64)
+    at_drop = torch.empty(B, N, dtype=_BOOL)
     rc = lib.agv_lifelong_pickups(
         B, N, Q, _real(capture_radius, "capture_radius", finite=True), int(fused_cdist),
+        int(fused_norm),
         native.pointer(agent_pos, _F32, (B, N, 2), "agent_pos"),
         native.pointer(ready, _BOOL, (B, N), "ready"),
         native.pointer(agent_order, _I64, (B, N), "agent_order"),
         native.pointer(pickup, _F32, (B, Q, 2), "pickup"),
+        native.pointer(dropoff, _F32, (B, Q, 2), "dropoff"),
         native.pointer(order_status, _I8, (B, Q), "order_status"),
-        native.pointer(key, _I64, (B, Q), "key"), takes.data_ptr(), slot.data_ptr())
+        native.pointer(key, _I64, (B, Q), "key"), takes.data_ptr(), slot.data_ptr(),
+        at_drop.data_ptr())
     if rc:
         raise MemoryError("the pickup kernel could not allocate its scratch space")
-    return takes, slot
+    return takes, slot, at_drop

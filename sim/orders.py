@@ -781,6 +781,18 @@ def pickups(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, orders: Order
     return takes, torch.where(takes, slot, 0)
 
 
+def dropoffs(agent_pos: Tensor, ready: Tensor, agent_order: Tensor, orders: Orders,
+             capture_radius: float) -> Tensor:
+    """Ready AGVs with a loaded order whose drop-off they reach (within the capture radius),
+    (B, N) bool: the torch reference of the drop-offs in ``sim/_native/orders.h``."""
+    B, N = ready.shape
+    slot = agent_order.clamp_min(0)
+    carrying = (agent_order >= 0) & (orders.status.gather(1, slot) == LOADED)
+    drop = orders.dropoff.gather(1, slot.unsqueeze(-1).expand(B, N, 2))
+    near = torch.linalg.vector_norm(agent_pos - drop, dim=-1) <= capture_radius
+    return ready & carrying & near
+
+
 def poisson_counts(table: Tensor, key: Tensor, step: Tensor, kernels: Any = None) -> Tensor:
     """Per-environment arrival counts of one step, (B,) int64, from the streams."""
     u = streams.uniform(key, streams.ARRIVALS, step, kernels=kernels)

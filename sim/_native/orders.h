@@ -5,7 +5,11 @@
  * up its own assigned order, or, when it has none, any open order, within the capture radius.
  * Each order goes to its nearest eligible AGV (ties: the lower index); an AGV that wins
  * several takes its nearest, equally near ones by the larger key (priority, then age), then
- * the lower slot. Distances are torch.cdist's (torch_norm in lifelong.h). */
+ * the lower slot. Distances are torch.cdist's (torch_norm in lifelong.h).
+ *
+ * In the same pass, the drop-offs (sim.orders.dropoffs): a ready AGV whose order is loaded
+ * and whose drop-off is within the capture radius (torch.linalg.vector_norm's rounding). An
+ * AGV that picks up in this step has no loaded order before it, so it is never among them. */
 #ifndef AGV_ORDERS_H
 #define AGV_ORDERS_H
 
@@ -14,9 +18,10 @@
 
 /* Returns 0, or -1 when the scratch space cannot be allocated. */
 int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
-                         const float *agent_pos, const uint8_t *ready, const int64_t *agent_order,
-                         const float *pickup, const int8_t *status, const int64_t *key,
-                         uint8_t *takes, int64_t *slot) {
+                         int norm_fused, const float *agent_pos, const uint8_t *ready,
+                         const int64_t *agent_order, const float *pickup, const float *dropoff,
+                         const int8_t *status, const int64_t *key, uint8_t *takes,
+                         int64_t *slot, uint8_t *at_drop) {
     unsigned char *scratch = arena_reserve((size_t)Q * (sizeof(float) + sizeof(int64_t))
                                            + (size_t)N * (sizeof(float) + sizeof(int64_t)));
     if (!scratch && (Q || N)) return -1;
@@ -27,6 +32,7 @@ int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
     for (int64_t b = 0; b < B; b++) {
         const float *ap = agent_pos + 2 * b * N;
         const float *pp = pickup + 2 * b * Q;
+        const float *dp = dropoff + 2 * b * Q;
         const int8_t *st = status + b * Q;
         const int64_t *ky = key + b * Q;
         uint8_t *tk = takes + b * N;
@@ -35,8 +41,15 @@ int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
         for (int64_t a = 0; a < N; a++) {
             tk[a] = 0;
             sl[a] = 0;
+            at_drop[b * N + a] = 0;
             if (!ready[b * N + a]) continue;
             const int64_t own = agent_order[b * N + a];
+            if (own >= 0 && st[own] == LL_LOADED) {
+                const float d = torch_norm(ap[2 * a] - dp[2 * own],
+                                           ap[2 * a + 1] - dp[2 * own + 1], norm_fused);
+                at_drop[b * N + a] = d <= cap;
+                continue;
+            }
             const int64_t q0 = own >= 0 ? own : 0, q1 = own >= 0 ? own + 1 : Q;
             const int8_t want = own >= 0 ? LL_ASSIGNED : LL_OPEN;
             for (int64_t q = q0; q < q1; q++) {

@@ -24,4 +24,20 @@ void agv_uniform(int64_t K, int64_t nc, const int64_t *key, const int64_t *count
     }
 }
 
+/* The breakdowns of one step (sim/lifelong.py LifelongEnv._breakdowns): out[b, i] = can[b, i]
+ * and uniform(key[b], stream, step[b], i) < rate, the same draws as agv_uniform. */
+void agv_fault_draws(int64_t B, int64_t N, const int64_t *key, int64_t stream,
+                     const int64_t *step, double rate, const uint8_t *can, uint8_t *out) {
+    for (int64_t b = 0; b < B; b++) {
+        uint64_t z0 = stream_mix((uint64_t)key[b] + ((uint64_t)stream + 1) * 0x9E3779B97F4A7C15ULL);
+        z0 = stream_mix(z0 + ((uint64_t)step[b] + 1) * 0x9E3779B97F4A7C15ULL);
+        for (int64_t i = 0; i < N; i++) {
+            uint64_t z = stream_mix(z0 + ((uint64_t)i + 1) * 0x9E3779B97F4A7C15ULL);
+            z = stream_mix(z);
+            const double u = (double)(z >> 11) * (1.0 / 9007199254740992.0);
+            out[b * N + i] = can[b * N + i] && u < rate;
+        }
+    }
+}
+
 #endif

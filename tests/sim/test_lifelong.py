@@ -549,12 +549,13 @@ def test_the_kernels_and_the_torch_path_agree(reward) -> None:
         torch.testing.assert_close(r1, r2, rtol=1e-5, atol=1e-4)  # sums in another order
 
 
-def test_pickup_kernel_is_the_torch_rule() -> None:
+def test_pickup_and_dropoff_kernel_is_the_torch_rule() -> None:
     from sim import lifelong_native, native, orders
 
     if not native.available():
         pytest.skip("no C compiler here")
     g = torch.Generator().manual_seed(0)
+    reached = 0
     for trial in range(30):
         B, N, Q = 4, 7, 9
         # A coarse grid of points so that AGVs reach several orders at once, with ties.
@@ -564,14 +565,19 @@ def test_pickup_kernel_is_the_torch_rule() -> None:
         o.status = torch.randint(0, 5, (B, Q), generator=g).to(torch.int8)
         o.id = torch.randperm(B * Q, generator=g).view(B, Q)
         o.priority = torch.randint(0, 2, (B, Q), generator=g)
+        o.dropoff = torch.randint(0, 4, (B, Q, 2), generator=g).float() * 0.05
         ready = torch.rand(B, N, generator=g) > 0.2
         own = torch.where(torch.rand(B, N, generator=g) > 0.6,
                           torch.randint(0, Q, (B, N), generator=g), -1)
         want = orders.pickups(pos, ready, own, o, 0.1)
-        got = lifelong_native.lifelong_pickups(pos, ready, own, o.pickup, o.status,
+        got = lifelong_native.lifelong_pickups(pos, ready, own, o.pickup, o.dropoff, o.status,
                                                orders.tie_key(o), 0.1)
         assert torch.equal(want[0], got[0]), trial
         assert torch.equal(torch.where(want[0], want[1], 0), got[1]), trial
+        drops = orders.dropoffs(pos, ready, own, o, 0.1)
+        assert torch.equal(drops, got[2]), trial
+        reached += int(drops.sum())
+    assert reached > 0  # the coarse grid makes drop-offs happen
 
 
 def test_lifelong_ipf_is_the_converged_jacobi_field(tmp_path) -> None:
@@ -622,3 +628,21 @@ def test_stream_kernel_gives_the_reference_draws() -> None:
     # Negative keys and counters wrap as the reference does.
     assert torch.equal(streams.uniform(torch.tensor([-5]), -2, kernels=lib),
                        streams.uniform(torch.tensor([-5]), -2))
+
+
+def test_fault_draw_kernel_gives_the_reference_breakdowns() -> None:
+    from sim import native, streams
+
+    if not native.available():
+        pytest.skip("no C compiler here")
+    g = torch.Generator().manual_seed(1)
+    B, N = 5, 11
+    keys = torch.randint(0, 2**62, (B,), generator=g)
+    steps = torch.randint(1, 10_000, (B,), generator=g)
+    can = torch.rand(B, N, generator=g) > 0.3
+    want = can & (streams.uniform(keys.view(-1, 1), streams.FAULTS, steps.view(-1, 1),
+                                  torch.arange(N).view(1, -1)) < 0.4)
+    out = torch.empty(B, N, dtype=torch.bool)
+    native.library().agv_fault_draws(B, N, keys.data_ptr(), streams.FAULTS, steps.data_ptr(),
+                                     0.4, can.data_ptr(), out.data_ptr())
+    assert torch.equal(out, want) and 0 < int(want.sum()) < B * N
