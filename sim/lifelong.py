@@ -317,6 +317,7 @@ class LifelongEnv:
         self._done = torch.zeros(B, dtype=torch.bool, device=dev)
         self._events = Events.none(B, self._orders.capacity, N, dev)
         self._pair: Tensor | None = None
+        self._targets: tuple[Tensor, Tensor] | None = None
         setup = getattr(self.reward_fn, "setup", None)
         if setup is not None:
             setup(self.world, None)
@@ -474,7 +475,7 @@ class LifelongEnv:
         self._orders, arrived = self._arrivals(rows)
         events.arrived = arrived
         self._events = self._merge_events(events, rows)
-        self._fleet.status = rules.agent_status(self._fleet, self._orders)
+        self._update_status()
         self._pair = None
 
     def _merge_events(self, new: Events, rows: Tensor) -> Events:
@@ -606,7 +607,7 @@ class LifelongEnv:
                              o.status)
         self._orders = replace(o, status=status, agent=new_agent)
         self._fleet = replace(f, order=want)
-        self._fleet.status = rules.agent_status(self._fleet, self._orders)
+        self._update_status()
 
     # ------------------------------------------------------------------ step
     def _prepare(self, actions: Any) -> tuple[Tensor, Tensor]:
@@ -753,7 +754,7 @@ class LifelongEnv:
         self._events = Events(
             arrived=arrived, picked_up=_pad(picked_up, Q), delivered=_pad(delivered, Q),
             returned=_pad(returned, Q), breakdown=breakdown, repaired=repaired)
-        self._fleet.status = rules.agent_status(self._fleet, self._orders)
+        self._update_status()
         self._done = self._done | (self._steps >= self.max_steps)
         # Collisions, the team reward and the observations: fused kernels or torch.
         target, has_target = self.targets()
@@ -844,9 +845,33 @@ class LifelongEnv:
         return longest
 
     # ------------------------------------------------------------------ observations
+    def _update_status(self) -> None:
+        """The AGVs' status codes (and, with the kernels, their targets) after the fleet or the
+        order table changed."""
+        f, o = self._fleet, self._orders
+        if self._native is None:
+            f.status = rules.agent_status(f, o)
+            self._targets = None
+            return
+        B, N, Q = self.num_envs, self.num_agents, o.capacity
+        status = torch.empty(B, N, dtype=torch.int8)
+        target = torch.empty(B, N, 2, dtype=self.dtype)
+        has = torch.empty(B, N, dtype=torch.bool)
+        self._native.agv_lifelong_status(
+            B, N, Q, pointer(f.order, torch.int64, (B, N), "order"),
+            pointer(f.repair_left, torch.int64, (B, N), "repair_left"),
+            pointer(o.status, torch.int8, (B, Q), "order status"),
+            pointer(o.pickup, torch.float32, (B, Q, 2), "pickup"),
+            pointer(o.dropoff, torch.float32, (B, Q, 2), "dropoff"),
+            status.data_ptr(), target.data_ptr(), has.data_ptr())
+        f.status = status
+        self._targets = (target, has)
+
     def targets(self) -> tuple[Tensor, Tensor]:
         """Each AGV's current target point and whether it has one, (B, N, 2) and (B, N) bool:
         a loaded AGV's drop-off, an assigned AGV's pickup; none for idle or broken AGVs."""
+        if self._targets is not None:
+            return self._targets
         o, f = self._orders, self._fleet
         B, N = self.num_envs, self.num_agents
         slot = f.order.clamp_min(0).unsqueeze(-1).expand(B, N, 2)

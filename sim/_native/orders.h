@@ -71,4 +71,31 @@ int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
     return 0;
 }
 
+/* Each AGV's status and target (sim/orders.py agent_status, sim/lifelong.py targets): broken
+ * while repair_left > 0, else loaded / to pickup by its order's status, else idle; the target
+ * is a loaded AGV's drop-off or an assigned AGV's pickup, times has (0 otherwise), with the
+ * order slot clamped to 0 as the torch gathers do. */
+void agv_lifelong_status(int64_t B, int64_t N, int64_t Q, const int64_t *order,
+                         const int64_t *repair_left, const int8_t *ostatus, const float *pickup,
+                         const float *dropoff, int8_t *status, float *target, uint8_t *has) {
+    for (int64_t b = 0; b < B; b++) {
+        for (int64_t a = 0; a < N; a++) {
+            const int64_t k = b * N + a, o = order[k];
+            const int64_t q = o > 0 ? o : 0;
+            const int8_t st = Q ? ostatus[b * Q + q] : 0;
+            int8_t code = 0;
+            if (repair_left[k] > 0) code = LL_BROKEN;
+            else if (o >= 0 && st == LL_LOADED) code = LL_CARRYING;
+            else if (o >= 0 && st == LL_ASSIGNED) code = 1;
+            status[k] = code;
+            const int h = code == 1 || code == LL_CARRYING;
+            has[k] = (uint8_t)h;
+            const float *src = (code == LL_CARRYING ? dropoff : pickup) + 2 * (b * Q + q);
+            const float scale = (float)h;
+            target[2 * k] = Q ? src[0] * scale : 0.0f;
+            target[2 * k + 1] = Q ? src[1] * scale : 0.0f;
+        }
+    }
+}
+
 #endif

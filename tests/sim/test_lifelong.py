@@ -541,10 +541,12 @@ def test_the_kernels_and_the_torch_path_agree(reward) -> None:
         for _ in range(60):
             obs, r, _, info = env.step(ctl.act(obs))
             trace.append((obs.clone(), r.clone(), info["collision_pairs"].clone(),
-                          env.agent_pos.clone(), env.orders.status.clone()))
+                          env.agent_pos.clone(), env.orders.status.clone(),
+                          env.agent_status.clone(), *env.targets()))
         runs.append(trace)
-    for (o1, r1, c1, p1, s1), (o2, r2, c2, p2, s2) in zip(*runs, strict=True):
+    for (o1, r1, c1, p1, s1, *st1), (o2, r2, c2, p2, s2, *st2) in zip(*runs, strict=True):
         assert torch.equal(o1, o2) and torch.equal(p1, p2) and torch.equal(s1, s2)
+        assert all(torch.equal(a, b) for a, b in zip(st1, st2, strict=True))
         assert torch.equal(c1, c2)
         torch.testing.assert_close(r1, r2, rtol=1e-5, atol=1e-4)  # sums in another order
 
