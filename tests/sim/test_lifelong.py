@@ -648,3 +648,25 @@ def test_fault_draw_kernel_gives_the_reference_breakdowns() -> None:
     native.library().agv_fault_draws(B, N, keys.data_ptr(), streams.FAULTS, steps.data_ptr(),
                                      0.4, can.data_ptr(), out.data_ptr())
     assert torch.equal(out, want) and 0 < int(want.sum()) < B * N
+
+
+def test_the_design_names_work_as_written(tmp_path) -> None:
+    """DESIGN.md, "Lifelong operation": the snippet's names, as written."""
+    controller = NearestTaskController()
+    m = sim.evaluate_lifelong(controller, "warehouse-50", steps=60, seed=0,
+                              arrival_rate=None, faults=None, trace=None)
+    for name in ("throughput", "throughput_bound", "wait_mean", "wait_p95", "lead_mean",
+                 "lead_p95", "deadline_miss_rate", "collisions_per_1000", "utilization",
+                 "reassignments"):
+        assert isinstance(getattr(m, name), float), name
+    assert m.lost == 0
+    path = tmp_path / "kiva.map"
+    path.write_text("type octile\nheight 4\nwidth 8\nmap\nr..e..e.\nr.@@@@@.\nr..e..e.\n"
+                    "........\n")
+    world = sim.load_floor(path, cell_size=0.8)
+    env = sim.make_env(world, num_agents=3, faults=sim.Breakdowns(rate=0.01, repair_steps=5))
+    env.step(torch.zeros(1, 3, 2))
+    assert env.events.arrived.shape == env.orders.status.shape
+    faulty = sim.make_env("warehouse-20", faults=[(1, 0, 3)])
+    faulty.step(torch.zeros(1, 20, 2))
+    assert bool(faulty.events.breakdown[0, 0])
