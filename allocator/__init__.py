@@ -36,13 +36,17 @@ __all__ = [
     "segments_clear",
     "AuctionResult",
     "decentralized_auction",
+    "FifoDispatcher",
+    "HungarianDispatcher",
 ]
 
-_LAZY = {  # imported on first use (scipy's graph and spatial modules)
+_LAZY = {  # imported on first use (scipy's graph and spatial modules, torch)
     "FloorDistances": ("allocator.distances", "FloorDistances"),
     "segments_clear": ("allocator.distances", "segments_clear"),
     "AuctionResult": ("allocator.auction", "AuctionResult"),
     "decentralized_auction": ("allocator.auction", "auction"),
+    "FifoDispatcher": ("allocator.dispatch", "FifoDispatcher"),
+    "HungarianDispatcher": ("allocator.dispatch", "HungarianDispatcher"),
 }
 
 
