@@ -462,12 +462,29 @@ class ClassicalAllocator:
             self._controller = AllocatorController(self, **self.controller_options)
         return self._controller
 
+    def lifelong_dispatcher(self) -> Any:
+        """The dispatcher that drives a lifelong env for this allocator
+        (:mod:`allocator.dispatch`); None where the allocator has none."""
+        return None
+
     def reset(self, env: Any) -> None:
-        """Plan for every environment of ``env`` (called by ``sim.evaluate`` after a reset)."""
+        """Plan for every environment of ``env`` (called by ``sim.evaluate`` after a reset, and
+        by ``sim.evaluate_lifelong`` once per batch of lifelong runs)."""
+        self._dispatcher = None
+        if getattr(env, "lifelong", False):
+            dispatcher = self.lifelong_dispatcher()
+            if dispatcher is None:
+                raise ValueError(f"{type(self).__name__} has no lifelong dispatcher; lifelong "
+                                 "floors are dispatched by 'hungarian' and 'greedy'")
+            dispatcher.reset(env)
+            self._dispatcher = dispatcher
+            return
         self.controller.reset(env)
 
     def act(self, obs: Tensor) -> Tensor:
         """Actions (B, N, 2) in [-1, 1] for the environment given to :meth:`reset`."""
+        if getattr(self, "_dispatcher", None) is not None:
+            return self._dispatcher.act(obs)
         return self.controller.act(obs)
 
     def __repr__(self) -> str:

@@ -30,7 +30,8 @@ from torch import Tensor
 
 from allocator.distances import FloorDistances
 
-__all__ = ["FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher", "WaypointDriver"]
+__all__ = ["FifoDispatcher", "GreedyDispatcher", "HungarianDispatcher", "LifelongDispatcher",
+           "MatchingDispatcher", "WaypointDriver"]
 
 _OPEN, _ASSIGNED = 1, 2
 _IDLE, _TO_PICKUP = 0, 1
@@ -179,11 +180,15 @@ class FifoDispatcher(LifelongDispatcher):
         return plan
 
 
-class HungarianDispatcher(LifelongDispatcher):
-    """Min-sum travel over the free and to-pickup AGVs and the orders not yet picked up.
+class MatchingDispatcher(LifelongDispatcher):
+    """Match the free and to-pickup AGVs with the orders not yet picked up, by a matching rule
+    on their travel costs.
 
     Parameters
     ----------
+    matching : callable
+        ``matching(cost (A, O)) -> (rows, cols)``, e.g. :func:`scipy.optimize.
+        linear_sum_assignment` (min-sum) or :func:`allocator.greedy.greedy_matching`.
     switching_cost : float
         Added to every pair but an AGV's current one, so a plan changes only for a gain larger
         than this (world units; default 0.5).
@@ -192,14 +197,18 @@ class HungarianDispatcher(LifelongDispatcher):
     driver : WaypointDriver, optional
     """
 
-    def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
-                 driver: WaypointDriver | None = None) -> None:
+    def __init__(self, matching: Any = linear_sum_assignment, switching_cost: float = 0.5,
+                 priority_weight: float = 2.0, driver: WaypointDriver | None = None) -> None:
         super().__init__(driver)
+        if not callable(matching):
+            raise ValueError(f"matching must be a callable cost -> (rows, cols), got "
+                             f"{matching!r}")
         for name, value in (("switching_cost", switching_cost),
                             ("priority_weight", priority_weight)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
                     or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        self.matching = matching
         self.switching_cost = float(switching_cost)
         self.priority_weight = float(priority_weight)
 
@@ -217,8 +226,30 @@ class HungarianDispatcher(LifelongDispatcher):
         cost = cost + self.switching_cost * ~keep
         big = 1e9
         cost = np.where(np.isfinite(cost), cost, big)
-        rows, cols = linear_sum_assignment(cost)
+        rows, cols = self.matching(cost)
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
         plan[agents] = -1
         ok = cost[rows, cols] < big
         plan[agents[rows[ok]]] = orders[cols[ok]]
         return plan
+
+
+class HungarianDispatcher(MatchingDispatcher):
+    """Min-sum travel (:func:`scipy.optimize.linear_sum_assignment`) over the free and
+    to-pickup AGVs and the orders not yet picked up, with a switching cost and priorities
+    (see :class:`MatchingDispatcher`)."""
+
+    def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
+                 driver: WaypointDriver | None = None) -> None:
+        super().__init__(linear_sum_assignment, switching_cost, priority_weight, driver)
+
+
+class GreedyDispatcher(MatchingDispatcher):
+    """The greedy allocator's rule in lifelong mode: AGVs in index order each take their
+    cheapest order (:func:`allocator.greedy.greedy_matching`)."""
+
+    def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
+                 driver: WaypointDriver | None = None) -> None:
+        from allocator.greedy import greedy_matching
+
+        super().__init__(greedy_matching, switching_cost, priority_weight, driver)

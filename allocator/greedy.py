@@ -94,6 +94,12 @@ class GreedyAllocator(ClassicalAllocator):
         self._planner: Any = None
         self._planner_world: Any = None
 
+    def lifelong_dispatcher(self) -> Any:
+        """:class:`allocator.dispatch.GreedyDispatcher`: lifelong floors, re-planned on events."""
+        from allocator.dispatch import GreedyDispatcher
+
+        return GreedyDispatcher()
+
     def assign(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
     ) -> Assignment:

@@ -305,6 +305,13 @@ class HungarianAllocator(ClassicalAllocator):
         self.seed = seed
         self._planners: dict[int, Any] = {}
 
+    def lifelong_dispatcher(self) -> Any:
+        """:class:`allocator.dispatch.HungarianDispatcher`: lifelong floors, re-planned on
+        events."""
+        from allocator.dispatch import HungarianDispatcher
+
+        return HungarianDispatcher()
+
     def cost_matrix(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
     ) -> np.ndarray:

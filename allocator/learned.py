@@ -120,7 +120,20 @@ class LearnedAllocator:
 
     # ------------------------------------------------------------------ controller
     def reset(self, env: Any) -> None:
-        """Nothing to plan: every AGV decides from its own observation at every step."""
+        """Nothing to plan: every AGV decides from its own observation at every step.
+
+        Raises
+        ------
+        ValueError
+            For a lifelong env: the shipped policies were trained on the paper's episodes
+            (their observations differ); policies for lifelong floors come with lifelong
+            training.
+        """
+        if getattr(env, "lifelong", False):
+            raise ValueError(f"{self.name!r} was trained on the episodic scenario "
+                             f"{self.scenario.name!r}; it cannot drive a lifelong floor (its "
+                             "observations differ). Lifelong floors are dispatched by "
+                             "'hungarian' and 'greedy'")
 
     def act(self, obs: Tensor) -> Tensor:
         """Deterministic actions of the trained policy, (B, N, O) -> (B, N, 2)."""

@@ -71,3 +71,21 @@ def test_bad_input() -> None:
         WaypointDriver(gain=float("nan"))
     with pytest.raises(ValueError, match="reset"):
         FifoDispatcher().act(None)
+
+
+@pytest.mark.parametrize("name", ["hungarian", "greedy"])
+def test_the_registry_allocators_dispatch_lifelong_floors(name) -> None:
+    import allocator
+
+    m = sim.evaluate_lifelong(allocator.make(name), "warehouse-20", steps=150, seed=0)
+    assert m.lost == 0 and m.delivered > 5
+    # The same object still drives the paper's episodes afterwards.
+    assert sim.evaluate(allocator.make(name), "3v3", episodes=4, seed=0).response_rate > 0.5
+
+
+def test_a_learned_allocator_refuses_a_lifelong_floor() -> None:
+    import allocator
+
+    with pytest.raises(ValueError, match="cannot drive a lifelong floor"):
+        sim.evaluate_lifelong(allocator.make("bicnet-ipf", scenario="3v3"), "warehouse-20",
+                              steps=5)
