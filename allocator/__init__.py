@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from allocator.base import ALLOCATORS, Allocator, Assignment, ClassicalAllocator, make, register
+from allocator.fifo import FifoAllocator
 from allocator.greedy import GreedyAllocator
 from allocator.hungarian import HungarianAllocator
 from allocator.learned import register_all as _register_learned
@@ -32,6 +33,7 @@ __all__ = [
     "ClassicalAllocator",
     "HungarianAllocator",
     "GreedyAllocator",
+    "FifoAllocator",
     "FloorDistances",
     "segments_clear",
     "AuctionResult",

@@ -82,6 +82,11 @@ class GreedyAllocator(ClassicalAllocator):
 
     name = "greedy"
 
+    @staticmethod
+    def matching(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The matching rule on the (N, M) costs: :func:`greedy_matching`."""
+        return greedy_matching(cost)
+
     def __init__(
         self, planner: str | None = None, resolution: float = 0.05, seed: int = 0,
         **controller_options: Any,
@@ -134,7 +139,7 @@ class GreedyAllocator(ClassicalAllocator):
         """
         agents, tasks = check_inputs(agents, tasks, world)
         cost = travel_costs(agents, tasks, world, self.resolution)
-        rows, cols = greedy_matching(cost)
+        rows, cols = self.matching(cost)
         task_of_agent = np.full(len(agents), -1, dtype=np.int64)
         task_of_agent[rows] = cols
         agent_of_task = np.full(len(tasks), -1, dtype=np.int64)

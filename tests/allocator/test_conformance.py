@@ -11,7 +11,7 @@ from sim.world import World
 # What each solver promises beyond the common checks: (optimal, equivariant under ...).
 # Greedy takes the AGVs in index order, so only a permutation of the tasks leaves it unchanged;
 # a learned policy sees its K nearest tasks sorted by distance, whatever their order.
-PROMISES = {"hungarian": (True, "both"), "greedy": (False, "tasks")}
+PROMISES = {"hungarian": (True, "both"), "greedy": (False, "tasks"), "fifo": (False, "agents")}
 LEARNED_PROMISE = (False, "tasks")
 
 

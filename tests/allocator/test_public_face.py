@@ -18,7 +18,7 @@ from allocator.greedy import GreedyAllocator, greedy_matching
 from allocator.hungarian import HungarianAllocator, solve_cost_matrix
 from allocator.paths import travel_costs
 
-METHODS = ["hungarian", "greedy"]
+METHODS = ["hungarian", "greedy", "fifo"]
 AGENTS = [[0.0, 0.0], [1.0, 1.0]]
 TASKS = [[1.0, 0.9], [0.1, 0.0]]
 
