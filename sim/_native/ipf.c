@@ -267,6 +267,31 @@ int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float
     return status;
 }
 
+typedef double ipf_v2 __attribute__((vector_size(16)));
+
+/* Two doubles from any (8-byte aligned) address. */
+static inline ipf_v2 ipf_load2(const double *p) {
+    ipf_v2 v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* x . y over n doubles in pairs of lanes, four running sums of two (SSE2 on x86-64). */
+static inline double ipf_dot_v2(const double *x, const double *y, int64_t n) {
+    ipf_v2 s0 = {0.0, 0.0}, s1 = s0, s2 = s0, s3 = s0;
+    int64_t q = 0;
+    for (; q + 8 <= n; q += 8) {
+        s0 += ipf_load2(x + q) * ipf_load2(y + q);
+        s1 += ipf_load2(x + q + 2) * ipf_load2(y + q + 2);
+        s2 += ipf_load2(x + q + 4) * ipf_load2(y + q + 4);
+        s3 += ipf_load2(x + q + 6) * ipf_load2(y + q + 6);
+    }
+    s0 = (s0 + s1) + (s2 + s3);
+    double g = s0[0] + s0[1];
+    for (; q < n; q++) g += x[q] * y[q];
+    return g;
+}
+
 /* Entries of the Green's function from the separator tree (sim/ipf/hierarchy.py,
  * SeparatorTree.entries, the torch reference): out[b, j, k] = G[rows[b, j], cols[b, k]].
  *
@@ -286,6 +311,11 @@ int agv_ipf_tree_entries(int64_t B, int64_t J, int64_t K, const int64_t *rows,
     for (int64_t b = 0; b < B; b++) {
         const int64_t *rb = rows + b * J, *cb = (sym ? rows + b * J : cols + b * K);
         double *ob = out + b * J * K;
+        if (b + 1 < B) {  /* the next environment's vectors, fetched while this one runs */
+            const int64_t *nr = rows + (b + 1) * J;
+            for (int64_t j = 0; j < J; j++)
+                for (int64_t q = 0; q < W; q += 8) __builtin_prefetch(ycat + nr[j] * W + q, 0, 2);
+        }
         for (int64_t j = 0; j < J; j++) {
             const int64_t a = rb[j];
             const double *ya = ycat + a * W;
@@ -297,23 +327,243 @@ int agv_ipf_tree_entries(int64_t B, int64_t J, int64_t K, const int64_t *rows,
                 int64_t s = 0;
                 while (s < L && pa[s] == pc[s]) s++;
                 const int64_t n = offsets[s];
-                const double *yc = ycat + c * W;
-                double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
-                int64_t q = 0;
-                for (; q + 4 <= n; q += 4) {
-                    s0 += ya[q] * yc[q];
-                    s1 += ya[q + 1] * yc[q + 1];
-                    s2 += ya[q + 2] * yc[q + 2];
-                    s3 += ya[q + 3] * yc[q + 3];
-                }
-                for (; q < n; q++) s0 += ya[q] * yc[q];
-                double g = (s0 + s1) + (s2 + s3);
+                double g = ipf_dot_v2(ya, ycat + c * W, n);
                 if (la >= 0 && la == leaf_id[c])
                     g += leaf_values[leaf_offset[la] + leaf_local[a] * leaf_size[la]
                                      + leaf_local[c]];
                 ob[j * K + k] = g;
                 if (sym) ob[k * K + j] = g;
             }
+        }
+    }
+    return 0;
+}
+
+/* The factor and inverse of the SPD n x n block `a` (row-major, read from its upper triangle)
+ * in vectorizable row operations: u = C^T (upper, row-major, in place of a) with C C^T = a,
+ * inv[k] = 1 / C_kk, and y = C^-1 (lower, row-major; above the diagonal undefined). Then the
+ * column sums d[c] = sum_a y[a][c]^2 = (a^-1)_cc. Returns 1 when the block is not positive
+ * definite. */
+static int ipf_factor_inverse(int64_t n, double *restrict u, double *restrict y,
+                              double *restrict inv, double *restrict d) {
+    int status = 0;
+    for (int64_t k = 0; k < n; k++) {
+        double *uk = u + k * n;
+        if (!(uk[k] > 0.0)) status = 1;
+        const double root = sqrt(uk[k]), rk = 1.0 / root;
+        uk[k] = root;
+        inv[k] = rk;
+        for (int64_t j = k + 1; j < n; j++) uk[j] *= rk;
+        for (int64_t i = k + 1; i < n; i++) {
+            const double f = uk[i];
+            double *ui = u + i * n;
+            for (int64_t j = i; j < n; j++) ui[j] -= f * uk[j];
+        }
+    }
+    for (int64_t c = 0; c < n; c++) d[c] = 0.0;
+    for (int64_t a = 0; a < n; a++) {
+        double *ya = y + a * n;
+        for (int64_t c = 0; c < a; c++) ya[c] = 0.0;
+        for (int64_t k = 0; k < a; k++) {  /* C[a][k] = u[k][a] */
+            const double f = u[k * n + a];
+            const double *yk = y + k * n;
+            for (int64_t c = 0; c <= k; c++) ya[c] -= f * yk[c];
+        }
+        for (int64_t c = 0; c < a; c++) ya[c] *= inv[a];
+        ya[a] = inv[a];
+        for (int64_t c = 0; c <= a; c++) d[c] += ya[c] * ya[c];
+    }
+    return status;
+}
+
+/* z = y r for the lower triangular y (n x n, row-major), then p[c] = sum_a y[a][c] z[a]. */
+static void ipf_apply(int64_t n, const double *restrict y, const double *restrict r,
+                      double *restrict z, double *restrict p) {
+    for (int64_t c = 0; c < n; c++) p[c] = 0.0;
+    for (int64_t a = 0; a < n; a++) {
+        const double *ya = y + a * n;
+        double sum = 0.0;
+        for (int64_t c = 0; c <= a; c++) sum += ya[c] * r[c];
+        z[a] = sum;
+        for (int64_t c = 0; c <= a; c++) p[c] += ya[c] * sum;
+    }
+}
+
+/* The dense part of IPFGrid.lifelong_potentials (the torch code there is the reference), one
+ * environment at a time, after the entries of G are gathered:
+ *
+ * - unloaded AGV i: with S = C C^T (schur, (B, N, N), the Schur complement of the open
+ *   pickups' block), Y = C^-1, z = Y r: phi_i = v_i - (Y[:, i] . z) / |Y[:, i]|^2;
+ * - loaded AGV i: with G[A, A] = C C^T (gaa), Y = C^-1, e = Y v_A, w = Y G[A, d_i] (column i
+ *   of gad, (B, N, N), gad[b, j, i] = G[a_j, d_i]), s = gamma_i - |w|^2 (1 where d_src is
+ *   0), h = Y[:, i] . w: phi_i = v_i - (Y[:, i] . e + h (w . e - v_d) / s)
+ *   / (|Y[:, i]|^2 + h^2 / s);
+ *
+ * then the cell rules: another candidate AGV on i's cell (cells ca, candidates acand) gives
+ * agent_value, else its own task_value source (its drop-off cd when loaded and dfree, an open
+ * pickup cp / popen when not) gives task_value; a non-candidate AGV and an environment that
+ * is not active (NULL: all are) read 0. schur and r may be NULL when no AGV is unloaded, gad
+ * and gamma when none is loaded. Returns 0; 1 if a block was not positive definite; -1 if
+ * scratch memory failed. */
+int agv_ipf_lifelong(int64_t B, int64_t N, int64_t Q, const double *schur, const double *r,
+                     const double *gaa, const double *gad, const double *gamma,
+                     const double *va, const uint8_t *loaded, const uint8_t *dsrc,
+                     const int64_t *ca, const int64_t *cp, const int64_t *cd,
+                     const uint8_t *acand, const uint8_t *popen, const uint8_t *dfree,
+                     const uint8_t *active, double agent_value, double task_value,
+                     double *out) {
+    double *u = arena_reserve(8 * (size_t)(4 * N * N + 8 * N + 1) + 8 * (size_t)N);
+    if (u == NULL) return -1;
+    double *y = u + N * N, *wl = y + N * N, *gl = wl + N * N, *inv = gl + N * N;
+    double *d = inv + N, *z = d + N, *p = z + N, *ww = p + N, *hv = ww + N, *hh = hv + N;
+    int64_t *slot = (int64_t *)(hh + N);
+    int status = 0;
+    for (int64_t b = 0; b < B; b++) {
+        double *ob = out + b * N;
+        for (int64_t i = 0; i < N; i++) ob[i] = 0.0;
+        if (active != NULL && !active[b]) continue;
+        const uint8_t *ld = loaded + b * N, *ds = dsrc + b * N, *ac = acand + b * N;
+        const double *vb = va + b * N;
+        int64_t nl = 0;
+        for (int64_t i = 0; i < N; i++)
+            if (ld[i] && ac[i]) slot[nl++] = i;
+        int unloaded = 0;
+        for (int64_t i = 0; i < N; i++) unloaded |= !ld[i] && ac[i];
+        if (unloaded && schur != NULL) {
+            memcpy(u, schur + b * N * N, 8 * (size_t)(N * N));
+            status |= ipf_factor_inverse(N, u, y, inv, d);
+            ipf_apply(N, y, r + b * N, z, p);
+            for (int64_t i = 0; i < N; i++)
+                if (!ld[i] && ac[i]) ob[i] = vb[i] - p[i] / d[i];
+        }
+        if (nl > 0 && gad != NULL) {
+            memcpy(u, gaa + b * N * N, 8 * (size_t)(N * N));
+            status |= ipf_factor_inverse(N, u, y, inv, d);
+            ipf_apply(N, y, vb, z, p);  /* z = e = Y v_A, p = Q v_A */
+            const double *gb = gad + b * N * N;
+            for (int64_t c = 0; c < N; c++)
+                for (int64_t s = 0; s < nl; s++) gl[c * nl + s] = gb[c * N + slot[s]];
+            for (int64_t s = 0; s < nl; s++) ww[s] = hv[s] = hh[s] = 0.0;
+            for (int64_t a = 0; a < N; a++) {  /* W = Y G[A, d_loaded], row by row */
+                const double *ya = y + a * N;
+                double *wa = wl + a * nl;
+                for (int64_t s = 0; s < nl; s++) wa[s] = 0.0;
+                for (int64_t c = 0; c <= a; c++) {
+                    const double f = ya[c];
+                    const double *gc = gl + c * nl;
+                    for (int64_t s = 0; s < nl; s++) wa[s] += f * gc[s];
+                }
+                const double ea = z[a];
+                for (int64_t s = 0; s < nl; s++) {
+                    ww[s] += wa[s] * wa[s];
+                    hv[s] += wa[s] * ea;
+                }
+                for (int64_t s = 0; s < nl && slot[s] <= a; s++) hh[s] += ya[slot[s]] * wa[s];
+            }
+            for (int64_t s = 0; s < nl; s++) {
+                const int64_t i = slot[s];
+                const double sv = ds[i] ? gamma[b * N + i] - ww[s] : 1.0;
+                const double vd = ds[i] ? task_value : 0.0;
+                const double pii = d[i] + hh[s] * hh[s] / sv;
+                ob[i] = vb[i] - (p[i] + hh[s] * (hv[s] - vd) / sv) / pii;
+            }
+        }
+        const int64_t *cab = ca + b * N, *cpb = cp + b * Q, *cdb = cd + b * N;
+        const uint8_t *pob = popen + b * Q, *dfb = dfree + b * N;
+        for (int64_t i = 0; i < N; i++) {
+            if (!ac[i]) {
+                ob[i] = 0.0;
+                continue;
+            }
+            int on_other = 0, on_own = 0;
+            for (int64_t j = 0; j < N; j++)
+                on_other |= j != i && ac[j] && cab[j] == cab[i];
+            if (ld[i]) {
+                on_own = cdb[i] == cab[i] && dfb[i];
+            } else {
+                for (int64_t q = 0; q < Q; q++) on_own |= pob[q] && cpb[q] == cab[i];
+            }
+            if (on_other) ob[i] = agent_value;
+            else if (on_own) ob[i] = task_value;
+        }
+    }
+    return status;
+}
+
+/* Entries of G from a table of its columns (IPFGrid._column_table: table[c * width + k] =
+ * G[c, cell k]): out1[b, j, q] = table[rows[b, j], w1[b, q]] and out2[b, j, i] =
+ * table[rows[b, j], w2[b, i]], both read from one pass over the AGVs' rows, each row
+ * prefetched a few AGVs ahead (the rows miss the caches: the table spans tens of MiB).
+ * K1 or K2 may be 0 (w and out NULL). */
+int agv_ipf_gather_rows(int64_t B, int64_t N, int64_t K1, int64_t K2, const double *table,
+                        int64_t width, const int64_t *rows, const int64_t *w1,
+                        const int64_t *w2, double *out1, double *out2) {
+    const int64_t AHEAD = 6, total = B * N;
+    for (int64_t t = 0; t < total + AHEAD; t++) {
+        if (t + AHEAD < total) {
+            const double *ahead = table + rows[t + AHEAD] * width;
+            for (int64_t k = 0; k < width; k += 8) __builtin_prefetch(ahead + k, 0, 1);
+        }
+        if (t >= total) break;
+        const int64_t b = t / N;
+        const double *row = table + rows[t] * width;
+        if (K1 > 0) {
+            const int64_t *wb = w1 + b * K1;
+            double *o = out1 + t * K1;
+            for (int64_t q = 0; q < K1; q++) o[q] = row[wb[q]];
+        }
+        if (K2 > 0) {
+            const int64_t *wb = w2 + b * K2;
+            double *o = out2 + t * K2;
+            for (int64_t q = 0; q < K2; q++) o[q] = row[wb[q]];
+        }
+    }
+    return 0;
+}
+
+/* The sources of IPFGrid.lifelong_potentials (its torch code is the reference), per
+ * environment, from the cells ca (B, N), cp (B, Q), cd (B, N) and their free indices fa, fp,
+ * fd (F: a fixed cell): candidate AGVs (acand: on a free cell), kept AGVs (no earlier
+ * candidate in the cell), open pickups (popen: open and on a free cell), kept pickups (open,
+ * no candidate AGV in the cell, no earlier such pickup in it) and drop-off sources (dsrc:
+ * loaded, on a free cell, no candidate AGV in it). Writes the free indices of the kept
+ * sources (F for the others) to f_a, f_p, f_d and the AGVs' values to va. */
+int agv_ipf_lifelong_sources(int64_t B, int64_t N, int64_t Q, int64_t F, const int64_t *ca,
+                             const int64_t *cp, const int64_t *cd, const int64_t *fa,
+                             const int64_t *fp, const int64_t *fd, const uint8_t *pickup_open,
+                             const uint8_t *loaded, double agent_value, int64_t *f_a,
+                             int64_t *f_p, int64_t *f_d, double *va, uint8_t *acand,
+                             uint8_t *popen, uint8_t *dsrc) {
+    for (int64_t b = 0; b < B; b++) {
+        const int64_t *cab = ca + b * N, *cpb = cp + b * Q, *cdb = cd + b * N;
+        const int64_t *fab = fa + b * N, *fpb = fp + b * Q, *fdb = fd + b * N;
+        uint8_t *ac = acand + b * N, *po = popen + b * Q, *ds = dsrc + b * N;
+        for (int64_t i = 0; i < N; i++) ac[i] = fab[i] < F;
+        for (int64_t i = 0; i < N; i++) {
+            int shadow = 0, under = 0;
+            for (int64_t j = 0; j < N; j++) {
+                shadow |= j < i && ac[j] && cab[j] == cab[i];
+                under |= ac[j] && cab[j] == cdb[i];
+            }
+            const int kept = ac[i] && !shadow;
+            f_a[b * N + i] = kept ? fab[i] : F;
+            va[b * N + i] = kept ? agent_value : 0.0;
+            ds[i] = loaded[b * N + i] && fdb[i] < F && !under;
+            f_d[b * N + i] = ds[i] ? fdb[i] : F;
+        }
+        for (int64_t q = 0; q < Q; q++) {
+            po[q] = pickup_open[b * Q + q] && fpb[q] < F;
+            int under = 0;
+            for (int64_t j = 0; j < N; j++) under |= ac[j] && cab[j] == cpb[q];
+            f_p[b * Q + q] = po[q] && !under ? fpb[q] : F;  /* a candidate, not yet kept */
+        }
+        for (int64_t q = 0; q < Q; q++) {  /* an earlier candidate in the cell shadows it */
+            if (f_p[b * Q + q] == F) continue;
+            for (int64_t r = 0; r < q; r++)
+                if (f_p[b * Q + r] != F && cpb[r] == cpb[q]) {
+                    f_p[b * Q + q] = F;
+                    break;
+                }
         }
     }
     return 0;

@@ -581,6 +581,7 @@ class IPFGrid:
         agent_value: float = AGENT_VALUE,
         cache: TaskBlockCache | None = None,
         dtype: torch.dtype = torch.float32,
+        native: bool | None = None,
     ) -> Tensor:
         """``r_IPF`` of every AGV on a lifelong floor: its own field at its own cell.
 
@@ -630,6 +631,11 @@ class IPFGrid:
             of environments, apart from the episodic reward's).
         dtype : torch.dtype
             ``torch.float32`` or ``torch.float64``, the dtype of the result.
+        native : bool, optional
+            Do the factorizations, the per-AGV formulas and the cell rules in the CPU kernel
+            ``agv_ipf_lifelong`` of :mod:`sim.native` (one pass per environment, after the
+            entries of ``G`` are gathered; CPU tensors). Default: when the kernels load;
+            ``False`` forces the torch code (the reference).
 
         Returns
         -------
@@ -640,7 +646,7 @@ class IPFGrid:
         ValueError
             Naming the argument, for positions that are not ``(B, ., 2)`` real tensors with
             the same B, masks that are not boolean of the right shape, non-finite potentials
-            or another dtype.
+            or another dtype; or ``native=True`` where the kernel cannot run.
         """
         for name, t in (("agent_pos", agent_pos), ("pickup_pos", pickup_pos),
                         ("dropoff_pos", dropoff_pos)):
@@ -672,10 +678,20 @@ class IPFGrid:
         if dtype not in (torch.float64, torch.float32):
             raise ValueError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
         device = agent_pos.device
+        kernels = None
+        if native is not False and device.type == "cpu":
+            kernels = sim_native.library()
+        if native and kernels is None:
+            raise ValueError("native=True needs CPU tensors and the fused kernels (see "
+                             "sim.native.disabled_reason())")
         F = self.num_free
         index = self._cell_index(device)
         ca, cp, cd = self._cells(agent_pos), self._cells(pickup_pos), self._cells(dropoff_pos)
         fa, fp, fd = index[ca], index[cp], index[cd]
+        if kernels is not None:
+            return self._lifelong_native(kernels, ca, cp, cd, fa, fp, fd, pickup_open,
+                                         loaded, active, task_value, agent_value,
+                                         cache).to(dtype)
         a_cand = fa < F
         same_aa = ca.unsqueeze(-1) == ca.unsqueeze(-2)  # (B, N, N)
         same_pa = cp.unsqueeze(-1) == ca.unsqueeze(-2)  # (B, Q, N)
@@ -735,6 +751,123 @@ class IPFGrid:
         if active is not None:
             phi = phi * active.to(device).unsqueeze(1)
         return phi.to(dtype)
+
+    def _lifelong_native(
+        self, kernels: Any, ca: Tensor, cp: Tensor, cd: Tensor, fa: Tensor, fp: Tensor,
+        fd: Tensor, pickup_open: Tensor, loaded: Tensor, active: Tensor | None,
+        task_value: float, agent_value: float, cache: TaskBlockCache | None,
+    ) -> Tensor:
+        """:meth:`lifelong_potentials` through the kernels (CPU tensors, checked inputs):
+        the sources in ``agv_ipf_lifelong_sources``, the entries of ``G`` and the two block
+        products here, the factorizations, per-AGV formulas and cell rules in
+        ``agv_ipf_lifelong``; (B, N) float64."""
+        B, N = ca.shape
+        Q = cp.shape[1]
+        F = self.num_free
+        ptr = sim_native.pointer
+        f64, i64, u8 = torch.float64, torch.int64, torch.bool
+        ca, cp, cd = ca.contiguous(), cp.contiguous(), cd.contiguous()
+        fa, fp, fd = fa.contiguous(), fp.contiguous(), fd.contiguous()
+        pickup_open = pickup_open.to(device="cpu").contiguous()
+        loaded = loaded.to(device="cpu").contiguous()
+        f_a, f_d = torch.empty(B, N, dtype=i64), torch.empty(B, N, dtype=i64)
+        f_p = torch.empty(B, Q, dtype=i64)
+        v_a = torch.empty(B, N, dtype=f64)
+        a_cand, d_src = torch.empty(B, N, dtype=u8), torch.empty(B, N, dtype=u8)
+        p_open = torch.empty(B, Q, dtype=u8)
+        kernels.agv_ipf_lifelong_sources(
+            B, N, Q, F, ptr(ca, i64, (B, N), "ca"), ptr(cp, i64, (B, Q), "cp"),
+            ptr(cd, i64, (B, N), "cd"), ptr(fa, i64, (B, N), "fa"), ptr(fp, i64, (B, Q), "fp"),
+            ptr(fd, i64, (B, N), "fd"), ptr(pickup_open, u8, (B, Q), "pickup_open"),
+            ptr(loaded, u8, (B, N), "loaded"), float(agent_value), f_a.data_ptr(),
+            f_p.data_ptr(), f_d.data_ptr(), v_a.data_ptr(), a_cand.data_ptr(),
+            p_open.data_ptr(), d_src.data_ptr())
+        g_aa = self._gather(f_a, f_a)  # (B, N, N)
+        g_aa.diagonal(dim1=-2, dim2=-1).add_(f_a == F)  # non-sources decouple
+        keep: dict[str, Tensor] = {"g_aa": g_aa.contiguous()}
+        any_unloaded, any_loaded = bool((~loaded).any()), bool(loaded.any())
+        g_ap, g_ad = self._agent_rows(kernels, f_a, f_p if any_unloaded else None,
+                                      f_d if any_loaded else None)
+        if any_unloaded:
+            if cache is None:
+                cache = TaskBlockCache()
+            inv_chol_d, u = cache.update(self, f_p, task_value)
+            x_t = g_ap @ inv_chol_d.mT  # (B, N, Q)
+            keep["schur"] = torch.baddbmm(g_aa, x_t, x_t.mT, alpha=-1.0)
+            keep["r"] = torch.baddbmm(v_a.unsqueeze(-1), x_t, u.unsqueeze(-1),
+                                      alpha=-1.0).view(B, N)
+        if any_loaded:
+            keep["g_ad"] = g_ad  # [j, i] = G[a_j, d_i]
+            keep["gamma"] = self._pair_block(f_d.reshape(B * N, 1),
+                                             f_d.reshape(B * N, 1)).reshape(B, N).contiguous()
+        keep.update(v_a=v_a, loaded=loaded, d_src=d_src, ca=ca, cp=cp, cd=cd, a_cand=a_cand,
+                    p_open=p_open, d_free=(fd < F).contiguous())
+        if active is not None:
+            keep["active"] = active.to(device="cpu", dtype=torch.bool).contiguous()
+        out = torch.empty(B, N, dtype=torch.float64)
+
+        def opt(name: str, dt: torch.dtype, shape: tuple[int, ...]) -> int | None:
+            t = keep.get(name)
+            return None if t is None else ptr(t, dt, shape, name)
+
+        status = kernels.agv_ipf_lifelong(
+            B, N, Q, opt("schur", f64, (B, N, N)), opt("r", f64, (B, N)),
+            ptr(keep["g_aa"], f64, (B, N, N), "g_aa"), opt("g_ad", f64, (B, N, N)),
+            opt("gamma", f64, (B, N)), ptr(keep["v_a"], f64, (B, N), "v_a"),
+            ptr(keep["loaded"], u8, (B, N), "loaded"), ptr(keep["d_src"], u8, (B, N), "d_src"),
+            ptr(keep["ca"], i64, (B, N), "ca"), ptr(keep["cp"], i64, (B, Q), "cp"),
+            ptr(keep["cd"], i64, (B, N), "cd"), ptr(keep["a_cand"], u8, (B, N), "a_cand"),
+            ptr(keep["p_open"], u8, (B, Q), "p_open"),
+            ptr(keep["d_free"], u8, (B, N), "d_free"), opt("active", u8, (B,)),
+            float(agent_value), float(task_value), out.data_ptr(),
+        )
+        keep.clear()
+        if status < 0:
+            raise MemoryError(f"IPF lifelong kernel: no memory for the scratch of N = {N}")
+        if status:
+            raise RuntimeError("IPF lifelong kernel: a block was not positive definite")
+        return out
+
+    def _agent_rows(
+        self, kernels: Any, f_a: Tensor, f_p: Tensor | None, f_d: Tensor | None,
+    ) -> tuple[Tensor | None, Tensor | None]:
+        """``G[f_a[b, j], f_p[b, q]]`` (B, N, Q) and ``G[f_a[b, j], f_d[b, i]]`` (B, N, N),
+        contiguous float64 (None where the cells are None), from the kept columns of ``G``
+        in one pass of ``agv_ipf_gather_rows`` over the AGVs' rows (the torch gathers of
+        :meth:`_pair_block` where the two column sets do not share one table)."""
+        B, N = f_a.shape
+        sets = [f for f in (f_p, f_d) if f is not None]
+        if not sets:
+            return None, None
+        found = [self._column_table(f) for f in sets]
+        table = found[-1][0]
+        if any(t is not table for t, _ in found):  # a call-only table: the torch gathers
+            return (None if f_p is None else self._pair_block(f_p, f_a).mT.contiguous(),
+                    None if f_d is None else self._pair_block(f_d, f_a).mT.contiguous())
+        width = table.shape[1]
+        ptr = sim_native.pointer
+        rows = f_a.contiguous()
+        outs: list[Tensor | None] = []
+        args: list[Any] = []
+        for f, (_, where) in zip(sets, found, strict=True):
+            K = f.shape[1]
+            w = where.view(B, K).contiguous()
+            out = torch.empty(B, N, K, dtype=torch.float64)
+            outs.append(out)
+            args.append((K, w, out))
+        while len(args) < 2:
+            args.append((0, None, None))
+        (k1, w1, o1), (k2, w2, o2) = args
+        kernels.agv_ipf_gather_rows(
+            B, N, k1, k2, ptr(table, torch.float64, tuple(table.shape), "column table"), width,
+            ptr(rows, torch.int64, (B, N), "agent cells"),
+            None if w1 is None else ptr(w1, torch.int64, (B, k1), "columns 1"),
+            None if w2 is None else ptr(w2, torch.int64, (B, k2), "columns 2"),
+            None if o1 is None else o1.data_ptr(), None if o2 is None else o2.data_ptr())
+        del w1, w2, rows
+        if f_p is None:
+            return None, outs[0]
+        return outs[0], outs[1] if f_d is not None else None
 
     def _potentials_native(
         self, kernels: Any, agent_pos: Tensor, task_pos: Tensor, mask: Tensor | None,

@@ -233,6 +233,43 @@ def test_lifelong_potentials_match_jacobi_and_keep_their_cache_across_changes() 
     np.testing.assert_allclose(again[0].numpy(), first[0].numpy(), atol=1e-12)
 
 
+@pytest.mark.parametrize("world,forced_tree", [(SHELVES, False), (SHELVES, True),
+                                               (SMALL_WAREHOUSE, True)],
+                         ids=["shelves-dense", "shelves-tree", "warehouse-tree"])
+def test_lifelong_kernel_equals_the_torch_reference(world, forced_tree) -> None:
+    """``agv_ipf_lifelong`` (the default where the kernels load) against ``native=False``:
+    coinciding cells, loaded and unloaded AGVs, an environment all loaded, one all unloaded,
+    an inactive one, an AGV on the boundary ring, a cache kept across a change."""
+    from sim import native as sim_native
+
+    if sim_native.library() is None:
+        pytest.skip(f"kernels unavailable: {sim_native.disabled_reason()}")
+    grid = tree_grid(world, 0.1) if forced_tree else IPFGrid(world, 0.1)
+    B, N, Q = 5, 9, 7
+    agents, pickups, open_, drops, loaded = lifelong_scene(world, B, N, Q, seed=11)
+    loaded[2], loaded[3] = True, False
+    agents[4, 6] = (world.bounds[0] + 1e-3, 0.0)  # the boundary ring
+    active = torch.tensor([True, True, True, True, False])
+    cache_native, cache_torch = TaskBlockCache(), TaskBlockCache()
+    for step in range(2):
+        args = [torch.from_numpy(x) for x in (agents, pickups, open_, drops, loaded)]
+        native = grid.lifelong_potentials(*args, active=active, cache=cache_native,
+                                          dtype=torch.float64, native=True)
+        reference = grid.lifelong_potentials(*args, active=active, cache=cache_torch,
+                                             dtype=torch.float64, native=False)
+        np.testing.assert_allclose(native.numpy(), reference.numpy(), rtol=0, atol=1e-9,
+                                   err_msg=f"step {step}")
+        assert (native[4] == 0).all() and native[0, 2] == TASK_VALUE
+        assert native[1, 0] == native[1, 3] == AGENT_VALUE
+        open_[1] = ~open_[1]  # env 1's pickups change between the calls
+        agents[:, 7] += 0.01
+    only_loaded = grid.lifelong_potentials(*args[:4], torch.ones(B, N, dtype=torch.bool),
+                                           dtype=torch.float64)
+    want = grid.lifelong_potentials(*args[:4], torch.ones(B, N, dtype=torch.bool),
+                                    dtype=torch.float64, native=False)
+    np.testing.assert_allclose(only_loaded.numpy(), want.numpy(), rtol=0, atol=1e-9)
+
+
 def test_lifelong_potentials_zero_inactive_envs_and_agvs_on_fixed_cells() -> None:
     grid = IPFGrid(SHELVES, 0.1)
     agents, pickups, open_, drops, loaded = lifelong_scene(SHELVES, 2, 4, 3, seed=7,
