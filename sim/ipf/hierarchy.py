@@ -268,6 +268,8 @@ class SeparatorTree:
         self.build()
         sym = rows is cols
         batch, J, K = rows.shape[:-1], rows.shape[-1], cols.shape[-1]
+        if J == 0 or K == 0 or rows.numel() == 0:  # nothing to read (reshape(-1, 0) fails)
+            return torch.zeros(*batch, J, K, dtype=torch.float64)
         r = rows.reshape(-1, J).contiguous()
         c = r if sym else cols.reshape(-1, K).contiguous()
         if kernels is not None:

@@ -326,3 +326,21 @@ def test_100v100_ipf_with_16_envs_is_accepted_and_steps() -> None:
     for _ in range(2):
         _, _, _, info = env.step(torch.rand(16, 100, 2) * 2 - 1)
     assert bool(torch.isfinite(info["reward_terms"]["ipf"]).all())
+
+
+def test_lifelong_potentials_without_pickups_on_a_tree_grid() -> None:
+    """Q = 0 open pickups (no +5 source for unloaded AGVs) on a tree grid: only the other
+    AGVs' -3, so every potential is negative and finite."""
+    import sim
+    from sim.ipf import ipf_grid
+
+    world = sim.warehouse_floor(50)
+    grid = ipf_grid(world)
+    assert grid.method == "tree"
+    B, N = 2, 5
+    start = torch.tensor(world.depot[0, :2] + 0.5, dtype=torch.float32)
+    pos = start.repeat(B, N, 1) + torch.arange(N).view(1, N, 1) * 0.4
+    out = grid.lifelong_potentials(pos, torch.zeros(B, 0, 2), torch.zeros(B, 0, dtype=torch.bool),
+                                   torch.zeros(B, N, 2), torch.zeros(B, N, dtype=torch.bool),
+                                   torch.ones(B, dtype=torch.bool))
+    assert out.shape == (B, N) and bool(torch.isfinite(out).all()) and bool((out < 0).all())
