@@ -30,8 +30,8 @@ from torch import Tensor
 
 from allocator.distances import FloorDistances
 
-__all__ = ["FifoDispatcher", "GreedyDispatcher", "HungarianDispatcher", "LifelongDispatcher",
-           "MatchingDispatcher", "WaypointDriver"]
+__all__ = ["FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher", "MatchingDispatcher",
+           "WaypointDriver"]
 
 _OPEN, _ASSIGNED = 1, 2
 _IDLE, _TO_PICKUP = 0, 1
@@ -242,14 +242,3 @@ class HungarianDispatcher(MatchingDispatcher):
     def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
                  driver: WaypointDriver | None = None) -> None:
         super().__init__(linear_sum_assignment, switching_cost, priority_weight, driver)
-
-
-class GreedyDispatcher(MatchingDispatcher):
-    """The greedy allocator's rule in lifelong mode: AGVs in index order each take their
-    cheapest order (:func:`allocator.greedy.greedy_matching`)."""
-
-    def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
-                 driver: WaypointDriver | None = None) -> None:
-        from allocator.greedy import greedy_matching
-
-        super().__init__(greedy_matching, switching_cost, priority_weight, driver)

@@ -100,10 +100,11 @@ class GreedyAllocator(ClassicalAllocator):
         self._planner_world: Any = None
 
     def lifelong_dispatcher(self) -> Any:
-        """:class:`allocator.dispatch.GreedyDispatcher`: lifelong floors, re-planned on events."""
-        from allocator.dispatch import GreedyDispatcher
+        """:class:`allocator.dispatch.MatchingDispatcher` with this allocator's matching rule:
+        lifelong floors, re-planned on events."""
+        from allocator.dispatch import MatchingDispatcher
 
-        return GreedyDispatcher()
+        return MatchingDispatcher(self.matching)
 
     def assign(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
