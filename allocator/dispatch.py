@@ -75,12 +75,9 @@ class WaypointDriver:
         target = target.double().cpu().numpy()
         has = has.cpu().numpy()
         cmd = np.zeros_like(pos)
-        moving = np.argwhere(has)
-        if len(moving):
-            a, t = pos[has], target[has]
-            way = self.distances.next_waypoint(a, t)
-            rel = way - a
-            cmd[has] = rel * self.gain
+        if has.any():
+            a = pos[has]
+            cmd[has] = (self.distances.next_waypoint(a, target[has]) - a) * self.gain
         speed = np.linalg.norm(cmd, axis=-1, keepdims=True)
         cmd = cmd * (self.max_speed / np.maximum(speed, self.max_speed))
         ph = self.physics
