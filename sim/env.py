@@ -10,7 +10,6 @@ leading batch dimension and no Python loop runs over agents or environments on t
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -30,6 +29,7 @@ from sim.checks import (
 from sim.lifelong import LifelongEnv, LifelongScenario
 from sim.observations import ObsLayout, global_state, observe
 from sim.rewards import RewardFn, make_reward
+from sim.rewards.base import check_reward_terms
 from sim.scenarios import Scenario, get_scenario
 from sim.state import SimState, StepContext
 from sim.world import World
@@ -434,7 +434,7 @@ class AGVEnv:
                           *team_terms)
         terms = self.reward_fn(self.state, ctx)
         if self._check_terms:
-            self._check_reward_terms(terms)
+            check_reward_terms(terms, (self.num_envs, self.num_agents), self.device)
         values = list(terms.values())
         if values:
             reward = sum(values[1:], values[0])
@@ -453,22 +453,6 @@ class AGVEnv:
             "active": active,
         }
         return self.observe() if obs is None else obs, reward, self._done.clone(), info
-
-    def _check_reward_terms(self, terms: Any) -> None:
-        """A user reward's output must be ``{name: finite floating (B, N) tensor}``."""
-        shape = (self.num_envs, self.num_agents)
-        if not isinstance(terms, Mapping):
-            raise ValueError(f"the reward callable must return a dict {{name: (B, N) tensor}}, "
-                             f"got {type(terms).__name__}")
-        for name, value in terms.items():
-            if not isinstance(value, Tensor) or not value.dtype.is_floating_point:
-                raise ValueError(f"reward term {name!r} must be a floating tensor of shape "
-                                 f"{shape}, got {type(value).__name__} {value!r:.60}")
-            if tuple(value.shape) != shape or value.device != self.device:
-                raise ValueError(f"reward term {name!r} must have shape {shape} on "
-                                 f"{self.device}, got {tuple(value.shape)} on {value.device}")
-            if not bool(torch.isfinite(value).all()):
-                raise ValueError(f"reward term {name!r} contains NaN or infinite values")
 
     def _post_step_torch(
         self, active: Tensor

@@ -18,7 +18,6 @@ orders with :meth:`LifelongEnv.assign`. The controller protocol is the episodes'
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -55,6 +54,7 @@ from sim.orders import (
     Poisson,
     Trace,
 )
+from sim.rewards.base import check_reward_terms
 from sim.spawn import Sampler, place_entities, uniform_sampler
 from sim.state import LifelongContext, LifelongState
 from sim.world import World
@@ -785,7 +785,7 @@ class LifelongEnv:
             target=target, has_target=has_target)
         terms = self.reward_fn(self.state, ctx)
         if self._check_terms:
-            _check_reward_terms(terms, (B, N), self.device)
+            check_reward_terms(terms, (B, N), self.device)
         values = list(terms.values())
         if values:
             reward = sum(values[1:], values[0]) * active.unsqueeze(1)
@@ -914,17 +914,3 @@ def _pad(mask: Tensor, Q: int) -> Tensor:
     if mask.shape[1] == Q:
         return mask
     return torch.cat([mask, mask.new_zeros(mask.shape[0], Q - mask.shape[1])], 1)
-
-
-def _check_reward_terms(terms: Any, shape: tuple[int, int], device: torch.device) -> None:
-    if not isinstance(terms, Mapping):
-        raise ValueError(f"the reward callable must return a dict {{name: (B, N) tensor}}, "
-                         f"got {type(terms).__name__}")
-    for name, value in terms.items():
-        if not isinstance(value, Tensor) or not value.dtype.is_floating_point:
-            raise ValueError(f"reward term {name!r} must be a floating tensor of shape {shape}")
-        if tuple(value.shape) != shape or value.device != device:
-            raise ValueError(f"reward term {name!r} must have shape {shape} on {device}, got "
-                             f"{tuple(value.shape)} on {value.device}")
-        if not bool(torch.isfinite(value).all()):
-            raise ValueError(f"reward term {name!r} contains NaN or infinite values")
