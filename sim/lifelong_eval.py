@@ -125,9 +125,7 @@ class _NoReward:
 
 def _scenario(scenario: Any, steps: int, arrival_rate: Any, faults: Any, trace: Any,
               options: dict[str, Any]) -> LifelongScenario:
-    if isinstance(scenario, World):
-        sc = get_scenario(scenario, **options)
-    elif isinstance(scenario, (str, LifelongScenario)):
+    if isinstance(scenario, (str, LifelongScenario, World)):
         sc = get_scenario(scenario, **options)
     else:
         raise ValueError(f"scenario must be a lifelong scenario name such as 'warehouse-50', a "
