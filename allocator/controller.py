@@ -11,7 +11,16 @@
    (:class:`~allocator.avoidance.VelocityAvoidance`) makes the velocities collision-free, and
    is solved again where an AGV will break its reciprocal rows (it claims a task and stops
    dead, or its rows conflicted): the others then take the full responsibility against it;
-   each velocity becomes the acceleration action that reaches it in one step.
+   each velocity becomes the acceleration action that reaches it in one step;
+3. safety: the :class:`~allocator.avoidance.braking.BrakingShield` certifies every velocity
+   against the simulator's exact discrete dynamics (each AGV keeps a braking segment that stays
+   ``2 r + margin`` from every other's); a velocity it cannot certify becomes a blend towards
+   braking, or braking (``docs/safety.md``);
+4. liveness: preferred velocities carry a tiny seeded perturbation (RVO2's examples use 1e-4
+   against perfectly symmetric deadlocks); an AGV that makes no progress for a few steps while a
+   neighbour blocks its way yields when that neighbour has the higher (seeded, random) priority
+   (it sidesteps to its right and backs off) and otherwise turns right progressively, so that a
+   jam becomes a roundabout; an AGV whose next leg runs into a parked AGV is re-routed at once.
 
 The simulator moves positions with the *current* velocity before the action acts
 (``pos += vel dt``; ``vel = (1 - damping) vel + action sensitivity dt / mass``), so the
@@ -29,6 +38,7 @@ import torch
 from torch import Tensor
 
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
+from allocator.avoidance.braking import BrakingShield, _point_segment, braking_velocity
 from sim.tasks import claim
 
 __all__ = ["AllocatorController"]
@@ -55,7 +65,11 @@ class AllocatorController:
     avoid_tasks : bool
         Keep AGVs off tasks that are not theirs (an idle AGV claims any task it touches).
     avoidance_options : dict, optional
-        Overrides of :class:`~allocator.avoidance.AvoidanceConfig`.
+        Overrides of :class:`~allocator.avoidance.AvoidanceConfig`, and four keys of the
+        controller's own: ``"shield"`` (bool, default True: the braking safety filter),
+        ``"liveness"`` (bool, default True: perturbation, yielding and early re-routing),
+        ``"shield_margin"`` (float, default 0.01: gap kept between two AGVs' braking segments)
+        and ``"perturbation"`` (float, default 1e-4: size of the symmetry-breaking noise).
     waypoint_tolerance : float
         Distance at which an intermediate waypoint counts as reached.
     stuck_steps : int
@@ -99,7 +113,18 @@ class AllocatorController:
         self.brake = brake
         self.reassign_every = reassign_every
         self.avoid_tasks = avoid_tasks
-        self.avoidance_options = dict(avoidance_options or {})
+        opts = dict(avoidance_options or {})
+        self.shield = bool(opts.pop("shield", True))
+        self.liveness = bool(opts.pop("liveness", True))
+        self.shield_margin = float(opts.pop("shield_margin", 0.01))
+        self.perturbation = float(opts.pop("perturbation", 1e-4))
+        if not (np.isfinite(self.shield_margin) and self.shield_margin >= 0):
+            raise ValueError(f"avoidance_options['shield_margin'] must be >= 0, got "
+                             f"{self.shield_margin!r}")
+        if not (np.isfinite(self.perturbation) and self.perturbation >= 0):
+            raise ValueError(f"avoidance_options['perturbation'] must be >= 0, got "
+                             f"{self.perturbation!r}")
+        self.avoidance_options = opts
         self.waypoint_tolerance = waypoint_tolerance
         self.stuck_steps = stuck_steps
         self.seed = seed
@@ -107,9 +132,12 @@ class AllocatorController:
         self._world: Any = None
         self._planner: Any = None
         self._avoid: VelocityAvoidance | None = None
+        self._shield: BrakingShield | None = None
         self.fallbacks = 0
+        self.shield_brakes = 0
+        self.yields = 0
         self.reassignments = 0
-        self.timing = {"assign": 0.0, "plan": 0.0, "avoid": 0.0, "act": 0.0}
+        self.timing = {"assign": 0.0, "plan": 0.0, "avoid": 0.0, "shield": 0.0, "act": 0.0}
 
     # ------------------------------------------------------------------ planning
     def reset(self, env: Any) -> None:
@@ -120,6 +148,7 @@ class AllocatorController:
             self._world = world
             self._planner = None
             self._avoid = None
+            self._shield = None
         B, N = env.num_envs, env.num_agents
         self.task_of_agent = np.full((B, N), -1, dtype=np.int64)
         self._paths: list[list[np.ndarray | None]] = [[None] * N for _ in range(B)]
@@ -131,6 +160,13 @@ class AllocatorController:
         self._best = np.full((B, N), np.inf)
         self.replans = 0
         self.resolves = 0
+        self._rng = np.random.default_rng(self.seed)
+        self._priority = np.argsort(self._rng.random((B, N)), axis=1)  # seeded, distinct
+        self._stall = np.zeros((B, N), dtype=np.int64)
+        self._yield_left = np.zeros((B, N), dtype=np.int64)
+        self._yield_dir = np.zeros((B, N, 2))
+        self._last_dist = np.full((B, N), np.inf)
+        self._parked_seen = np.zeros((B, N), dtype=bool)
         self.reassign()
 
     def reassign(self, env_ids: Any = None) -> None:
@@ -265,6 +301,10 @@ class AllocatorController:
         stopping, taken = self._claims(ahead, idle, claimed, tasks)
         moving = idle & ~stopping
         preferred = self._preferred(ahead, moving)
+        if self.liveness:
+            self._reroute_blocked(ahead, held, tasks, moving)
+            preferred = self._preferred(ahead, moving)
+            preferred = self._resolve_deadlocks(ahead, vel, preferred, moving)
 
         if self.use_avoidance:
             t0 = time.perf_counter()
@@ -275,8 +315,117 @@ class AllocatorController:
         gain = ph.sensitivity * ph.dt / ph.mass
         action = np.clip((command - (1.0 - ph.damping) * vel) / gain, -1.0, 1.0)
         action = np.where(moving[..., None], action, 0.0)
+        if self.shield:
+            t0 = time.perf_counter()
+            action = self._certify(pos, vel, action, idle)
+            self.timing["shield"] = self.timing.get("shield", 0.0) + time.perf_counter() - t0
         self.timing["act"] += time.perf_counter() - t_start
         return torch.as_tensor(action, dtype=env.dtype, device=env.device)
+
+    def _shield_filter(self) -> BrakingShield:
+        if self._shield is None:
+            self._shield = BrakingShield.for_world(self._world, margin=self.shield_margin)
+        return self._shield
+
+    def _certify(self, pos: np.ndarray, vel: np.ndarray, action: np.ndarray,
+                 movable: np.ndarray) -> np.ndarray:
+        """The actions after the braking shield: the planned velocity, else a blend of it
+        with braking, else braking (``docs/safety.md``)."""
+        shield = self._shield_filter()
+        planned = shield.realised(vel, action)
+        brake = braking_velocity(vel, shield.damping, shield.gain)
+        blends = [planned] + [brake + f * (planned - brake) for f in (0.6, 0.3)]
+        out = shield.filter(pos, vel, np.stack(blends, axis=2), movable)
+        self.shield_brakes += int(out.braking.sum())
+        self.last_shield = out
+        return out.action
+
+    def _reroute_blocked(self, ahead: np.ndarray, held: np.ndarray, tasks: np.ndarray,
+                         moving: np.ndarray) -> None:
+        """Re-route at once an AGV whose next leg runs into an AGV that parked since the last
+        check (it would otherwise wait ``stuck_steps`` in front of it, e.g. held between the
+        parked AGV and a wall)."""
+        parked = held >= 0
+        new = parked & ~self._parked_seen
+        self._parked_seen = parked.copy()
+        if not new.any():
+            return
+        B, N, _ = ahead.shape
+        wp, nxt = self._waypoints, self._next
+        target = np.take_along_axis(wp, nxt[..., None, None].repeat(2, -1), 2)[:, :, 0]
+        has = moving & (self.task_of_agent >= 0) & (self._num_waypoints > 0)
+        envs = np.flatnonzero(new.any(axis=1) & has.any(axis=1))
+        if not len(envs):
+            return
+        r = self._world.agent_radius
+        a = ahead[envs][:, :, None, :]
+        b = target[envs][:, :, None, :]
+        q = ahead[envs][:, None, :, :]
+        d = _point_segment(np.broadcast_to(q, (len(envs), N, N, 2)),
+                           np.broadcast_to(a, (len(envs), N, N, 2)),
+                           np.broadcast_to(b, (len(envs), N, N, 2)))  # (E, i, j)
+        goal = np.take_along_axis(tasks[envs], np.maximum(self.task_of_agent[envs], 0)[
+            ..., None].repeat(2, -1), 1)
+        goal_free = np.linalg.norm(goal[:, :, None, :] - q, axis=-1) > 2 * r + \
+            self._world.capture_radius
+        blocked = (d < 2 * r + 0.02) & new[envs][:, None, :] & has[envs][:, :, None] & goal_free
+        todo = blocked.any(axis=2)
+        if todo.any():
+            self._stuck[envs] = np.where(todo, self.stuck_steps, self._stuck[envs])
+            self._replan_stuck(ahead, np.zeros_like(ahead), held, tasks, moving,
+                               count_progress=False)
+
+    def _resolve_deadlocks(self, ahead: np.ndarray, vel: np.ndarray, preferred: np.ndarray,
+                           moving: np.ndarray) -> np.ndarray:
+        """Preferred velocities with the liveness rules applied (see the module docstring)."""
+        B, N, _ = ahead.shape
+        cruise = self._cruise_speed()
+        goal_pos = np.take_along_axis(self._waypoints, (self._num_waypoints - 1).clip(0)[
+            ..., None, None].repeat(2, -1), 2)[:, :, 0]
+        dist = np.linalg.norm(goal_pos - ahead, axis=-1)
+        active = moving & (self.task_of_agent >= 0) & (dist > self._world.capture_radius)
+        progress = dist < self._last_dist - 0.01 * cruise
+        self._last_dist = dist
+        self._stall = np.where(active & ~progress, self._stall + 1, 0)
+        pref = preferred.copy()
+        if self.perturbation > 0:
+            ang = self._rng.uniform(0, 2 * np.pi, (B, N))
+            mag = self._rng.uniform(0, self.perturbation, (B, N))
+            pref += np.where(active[..., None], mag[..., None] * np.stack(
+                [np.cos(ang), np.sin(ang)], -1), 0.0)
+        stalled = active & (self._stall >= 2)
+        yielding = (self._yield_left > 0) & active
+        if stalled.any():
+            r = self._world.agent_radius
+            rel = ahead[:, None, :, :] - ahead[:, :, None, :]  # (B, i, j, 2): j seen from i
+            d = np.linalg.norm(rel, axis=-1)
+            unit = rel / np.maximum(d, 1e-9)[..., None]
+            dirn = preferred / np.maximum(np.linalg.norm(preferred, axis=-1), 1e-9)[..., None]
+            ahead_of = (unit * dirn[:, :, None, :]).sum(-1) > 0.3
+            near = (d < 2 * r + 0.4) & ~np.eye(N, dtype=bool)[None]
+            blocks = near & ahead_of & stalled[:, :, None]
+            higher = self._priority[:, None, :] > self._priority[:, :, None]
+            must_yield = (blocks & higher).any(axis=2) & ~yielding
+            if must_yield.any():
+                # sidestep to the right of the way and back off from the blockers
+                right = np.stack([dirn[..., 1], -dirn[..., 0]], -1)
+                away = -(unit * (blocks & higher)[..., None]).sum(axis=2)
+                away /= np.maximum(np.linalg.norm(away, axis=-1), 1e-9)[..., None]
+                step = right + 0.7 * away
+                step /= np.maximum(np.linalg.norm(step, axis=-1), 1e-9)[..., None]
+                self._yield_dir = np.where(must_yield[..., None], step, self._yield_dir)
+                self._yield_left = np.where(must_yield, 4, self._yield_left)
+                self.yields += int(must_yield.sum())
+            # the others turn right more the longer they wait (a roundabout forms)
+            turn = np.minimum(self._stall, 6)[..., None] * (np.pi / 12)
+            c, s_ = np.cos(-turn), np.sin(-turn)
+            rot = np.concatenate([c * pref[..., :1] - s_ * pref[..., 1:],
+                                  s_ * pref[..., :1] + c * pref[..., 1:]], -1)
+            pref = np.where(stalled[..., None], rot, pref)
+        yielding = (self._yield_left > 0) & active
+        pref = np.where(yielding[..., None], 0.5 * cruise * self._yield_dir, pref)
+        self._yield_left = np.maximum(self._yield_left - 1, 0)
+        return pref
 
     def _avoid_step(
         self, ahead: np.ndarray, vel: np.ndarray, preferred: np.ndarray, moving: np.ndarray,
@@ -373,7 +522,7 @@ class AllocatorController:
 
     def _replan_stuck(
         self, pos: np.ndarray, vel: np.ndarray, held: np.ndarray, tasks: np.ndarray,
-        moving: np.ndarray,
+        moving: np.ndarray, count_progress: bool = True,
     ) -> None:
         """Route AGVs that stopped short of their task around the parked AGVs.
 
@@ -384,10 +533,12 @@ class AllocatorController:
         """
         goal = np.take_along_axis(tasks, np.maximum(self.task_of_agent, 0)[..., None], 1)
         dist = np.linalg.norm(goal - pos, axis=-1)
-        active = moving & (self.task_of_agent >= 0) & (dist > 2 * self._world.capture_radius)
-        progress = dist < self._best - 0.02
-        self._best = np.where(progress | ~active, dist, self._best)
-        self._stuck = np.where(active & ~progress, self._stuck + 1, 0)
+        if count_progress:
+            active = moving & (self.task_of_agent >= 0) & \
+                (dist > 2 * self._world.capture_radius)
+            progress = dist < self._best - 0.02
+            self._best = np.where(progress | ~active, dist, self._best)
+            self._stuck = np.where(active & ~progress, self._stuck + 1, 0)
         todo = np.argwhere(self._stuck >= self.stuck_steps)
         if not len(todo):
             return

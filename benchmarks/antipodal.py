@@ -1,0 +1,239 @@
+"""The antipodal circle (the ORCA paper's test) driven by the library's episodic controller.
+
+N AGVs evenly on a circle of radius R, each sent to the task diametrically opposite it, with
+the assignment given by a user's own allocator (:class:`AntipodalAllocator`, a trivial class
+with ``assign``) and driven by :class:`allocator.controller.AllocatorController` through
+:func:`sim.evaluate` (or, for the large circles, the env directly, recording positions).
+
+Variants (``--variants``): R in {1.0, 1.2, 1.4, 1.6} and the tasks either exactly opposite,
+just behind the opposite AGV (radius R + 0.35: every AGV crosses the centre and passes the AGV
+leaving its goal), or on the paths (radius R - 0.2: each task lies on the straight path of the
+AGV that starts behind it, which must not claim it in passing).
+
+Writes ``benchmarks/results/antipodal/<label>.json`` and ``.md``. Run from the repository root::
+
+    python benchmarks/antipodal.py --label after            # the 8 variants, 16 AGVs, and 24
+    python benchmarks/antipodal.py --label large --large 1000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+OUT = ROOT / "benchmarks" / "results" / "antipodal"
+
+
+class AntipodalAllocator:
+    """A user's own allocator: each AGV takes the task nearest its antipode."""
+
+    def __init__(self, centre: np.ndarray | None = None) -> None:
+        self.centre = np.zeros(2) if centre is None else np.asarray(centre, dtype=float)
+
+    def assign(self, agents: np.ndarray, tasks: np.ndarray, world: Any = None) -> Any:
+        from scipy.optimize import linear_sum_assignment
+
+        from allocator.base import Assignment
+
+        a = np.asarray(agents, dtype=float) - self.centre
+        t = np.asarray(tasks, dtype=float) - self.centre
+        # cost: angle between the task's direction and the AGV's antipode
+        ang_a = np.arctan2(-a[:, 1], -a[:, 0])
+        ang_t = np.arctan2(t[:, 1], t[:, 0])
+        diff = np.abs((ang_a[:, None] - ang_t[None, :] + np.pi) % (2 * np.pi) - np.pi)
+        rows, cols = linear_sum_assignment(diff)
+        task_of_agent = np.full(len(a), -1, dtype=np.int64)
+        task_of_agent[rows] = cols
+        agent_of_task = np.full(len(t), -1, dtype=np.int64)
+        agent_of_task[cols] = rows
+        cost = float(np.linalg.norm(a[rows] - t[cols], axis=1).sum())
+        return Assignment(task_of_agent, agent_of_task, cost, method="antipodal")
+
+
+def circle_scene(n: int, radius: float, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(agents (n, 2), tasks (n, 2))``: agent i at angle 2 pi i / n, its task opposite."""
+    ang = 2 * np.pi * np.arange(n) / n
+    unit = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    agents = radius * unit
+    task_radius = radius + 0.35 if kind == "opposite" else radius - 0.2
+    tasks = -task_radius * unit
+    return agents, tasks
+
+
+def circle_scenario(n: int, radius: float, kind: str, max_steps: int) -> Any:
+    import sim
+    from sim.scenarios import Scenario, paper_scenario
+    from sim.world import World
+
+    agents, tasks = circle_scene(n, radius, kind)
+    half = radius + 0.75
+    world = World(bounds=(-half, -half, half, half))
+    base = paper_scenario(min(n, 6))
+    del sim
+    return Scenario.given_scene(base, agents, tasks, world=world, max_steps=max_steps,
+                                name=f"antipodal-{n}-{radius}-{kind}")
+
+
+def make_controller(mode: str) -> Any:
+    from allocator.controller import AllocatorController
+
+    if mode == "orca":  # the ORCA QP alone (no braking shield, no deadlock resolution)
+        try:
+            return AllocatorController(AntipodalAllocator(), shield=False, liveness=False)
+        except TypeError:
+            return AllocatorController(AntipodalAllocator())
+    return AllocatorController(AntipodalAllocator())
+
+
+def run_circle(n: int, radius: float, kind: str, max_steps: int, mode: str) -> dict[str, Any]:
+    """One episode, positions recorded; overlaps, steps and per-AGV arrival steps."""
+    import torch
+
+    import sim
+    from sim.env import AGVEnv
+
+    scn = circle_scenario(n, radius, kind, max_steps)
+    env = AGVEnv(scn, num_envs=1, reward="minidist", seed=0)
+    agents, tasks = circle_scene(n, radius, kind)
+    env.set_state(torch.as_tensor(agents[None], dtype=torch.float32),
+                  torch.as_tensor(tasks[None], dtype=torch.float32))
+    ctl = make_controller(mode)
+    ctl.reset(env)
+    r2 = 2 * env.world.agent_radius
+    overlaps = 0
+    deepest = 0.0
+    min_gap = np.inf
+    arrival = np.full(n, -1)
+    frames = [env.agent_pos[0].numpy().copy()]
+    act_ms = []
+    while not bool(env.done.all()):
+        t0 = time.perf_counter()
+        a = ctl.act(None)
+        act_ms.append(1e3 * (time.perf_counter() - t0))
+        _, _, _, info = env.step(a)
+        p = env.agent_pos[0].double().numpy()
+        frames.append(p.astype(np.float32))
+        overlaps += int(info["collision_pairs"].sum())
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(p).query_pairs(r2 + 0.5, output_type="ndarray")
+        if len(pairs):
+            d = np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)
+            min_gap = min(min_gap, float(d.min()) - r2)
+            deepest = max(deepest, float((r2 - d).max()))
+        held = env.agent_task[0].numpy()
+        arrival = np.where((arrival < 0) & (held >= 0), int(env.steps[0]), arrival)
+    del sim
+    ph = env.world.physics
+    straight = np.linalg.norm(agents - tasks, axis=1) - env.world.capture_radius
+    # straight-line time at the simulator's terminal speed
+    t_line = straight / (ph.terminal_speed * ph.dt)
+    served = arrival >= 0
+    within = served & (arrival <= 1.6 * t_line)
+    return dict(
+        n=n, radius=radius, kind=kind, mode=mode, steps=int(env.steps[0]),
+        served=int(served.sum()), overlapping_pair_steps=overlaps,
+        deepest_penetration=max(deepest, 0.0), min_gap=float(min_gap),
+        within_1_6x_straight_line=int(within.sum()),
+        mean_act_ms=float(np.mean(act_ms)), median_act_ms=float(np.median(act_ms)),
+        worst_act_ms=float(np.max(act_ms)), frames=np.stack(frames),
+    )
+
+
+def atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--label", default="after")
+    p.add_argument("--mode", default="default", choices=["default", "orca"])
+    p.add_argument("--sizes", default="16,24")
+    p.add_argument("--radii", default="1.0,1.2,1.4,1.6")
+    p.add_argument("--kinds", default="opposite,on-path")
+    p.add_argument("--max-steps", type=int, default=300)
+    p.add_argument("--large", type=int, default=0, help="also a circle of this many AGVs")
+    p.add_argument("--figure", action="store_true", help="docs/figures/safety_antipodal.png")
+    args = p.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    rows = []
+    figure_runs = []
+    for n in [int(s) for s in args.sizes.split(",") if s]:
+        for radius in [float(s) for s in args.radii.split(",")]:
+            for kind in args.kinds.split(","):
+                # 24 AGVs need a larger circle to stand on it one diameter apart
+                rad = radius if n <= 16 else radius * n / 16
+                res = run_circle(n, rad, kind, args.max_steps, args.mode)
+                frames = res.pop("frames")
+                if n == 16 and kind == "opposite" and len(figure_runs) < 2:
+                    figure_runs.append((res, frames))
+                rows.append(res)
+                print(json.dumps(res), flush=True)
+    if args.large:
+        n = args.large
+        rad = 0.4 * n / (2 * np.pi) * 1.05  # AGVs 0.42 apart on the circle
+        res = run_circle(n, rad, "opposite", max(args.max_steps, int(4 * rad / 0.15) + 100),
+                         args.mode)
+        res.pop("frames")
+        rows.append(res)
+        print(json.dumps(res), flush=True)
+    doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
+               date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
+    atomic_write(OUT / f"{args.label}.json", json.dumps(doc, indent=1))
+    lines = [f"# Antipodal circle ({args.label})", "",
+             f"Command: `{doc['command']}`; date {doc['date']}; 1 thread; one episode each, "
+             f"step limit {args.max_steps}.", "",
+             "| N | R | tasks | served | steps | overlapping pair-steps | deepest | "
+             "within 1.6x line | act ms (mean / worst) |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['n']} | {r['radius']:.2f} | {r['kind']} | {r['served']}/{r['n']} | "
+                     f"{r['steps']} | {r['overlapping_pair_steps']} | "
+                     f"{r['deepest_penetration']:.3f} | {r['within_1_6x_straight_line']} | "
+                     f"{r['mean_act_ms']:.2f} / {r['worst_act_ms']:.1f} |")
+    atomic_write(OUT / f"{args.label}.md", "\n".join(lines) + "\n")
+    if args.figure and figure_runs:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, len(figure_runs), figsize=(5 * len(figure_runs), 5))
+        axes = np.atleast_1d(axes)
+        for ax, (res, frames) in zip(axes, figure_runs, strict=False):
+            cmap = plt.get_cmap("hsv")
+            for i in range(frames.shape[1]):
+                ax.plot(frames[:, i, 0], frames[:, i, 1], color=cmap(i / frames.shape[1]), lw=1)
+                ax.add_patch(plt.Circle(frames[-1, i], 0.15, fill=False,
+                                        color=cmap(i / frames.shape[1])))
+            ax.set_aspect("equal")
+            ax.set_title(f"N={res['n']} R={res['radius']} {res['kind']}: served "
+                         f"{res['served']}, overlaps {res['overlapping_pair_steps']}")
+        fig.tight_layout()
+        path = ROOT / "docs" / "figures" / "safety_antipodal.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.png")
+        fig.savefig(tmp, dpi=90)
+        os.replace(tmp, path)
+
+
+if __name__ == "__main__":
+    main()
