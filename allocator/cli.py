@@ -622,6 +622,10 @@ def build_parser() -> argparse.ArgumentParser:
         add(sub)
     # Sweeps on Ray Tune (learners/sweep_cli.py); evaluation sweeps build allocators by name.
     add_sweep_parser(sub, make_controller=allocator.make)
+    # The fleet service (allocator/serve; FastAPI is imported only when it runs).
+    from allocator.serve.cli import add_serve_parser
+
+    add_serve_parser(sub)
     return parser
 
 
