@@ -51,6 +51,11 @@ _DEFAULT_TABLE_BYTES = 512 * 2**20
 _DEFAULT_CACHE_BYTES = 256 * 2**20
 """Memory for the cache of on-demand distance fields."""
 
+def table_fits(targets: int, free_cells: int, table_bytes: int) -> bool:
+    """Whether ``targets`` float32 fields over ``free_cells`` cells fit in ``table_bytes``."""
+    return targets * free_cells * 4 <= table_bytes
+
+
 # Moves (drow, dcol), and for each the cells (drow, dcol) it crosses that must be free too.
 _MOVES_8 = [((0, 1), ()), ((1, 0), ()), ((1, 1), ((0, 1), (1, 0))), ((1, -1), ((0, -1), (1, 0)))]
 _MOVES_16 = _MOVES_8 + [  # a knight move needs its whole 2 x 3 box of cells free
@@ -189,10 +194,24 @@ class _FloorGrid:
         fixed = np.concatenate([world.pickups, world.stations])
         self.fixed_cells = np.unique(self.snap(fixed)[0]) if len(fixed) else \
             np.zeros(0, np.int64)
+        # The fixed points' fields, kept on the free cells only and in float32 (a relative
+        # error under 6e-8), one row per free cell so that the fields at K AGV cells are K
+        # contiguous rows: ``table[column[cell], row_of[target]]``.
+        flat_free = self.free.ravel()
+        self.column = np.full(nx * ny, -1, dtype=np.int64)
+        self.column[flat_free] = np.arange(int(flat_free.sum()))
         self.table: np.ndarray | None = None
+        self.row_of = np.full(nx * ny, -1, dtype=np.int64)
         self.row_of_cell: dict[int, int] = {}
-        if len(self.fixed_cells) and len(self.fixed_cells) * nx * ny * 8 <= table_bytes:
-            self.table = csgraph.dijkstra(self.graph, directed=False, indices=self.fixed_cells)
+        if len(self.fixed_cells) and table_fits(len(self.fixed_cells), int(flat_free.sum()),
+                                                table_bytes):
+            self.table = np.empty((int(flat_free.sum()), len(self.fixed_cells)), np.float32)
+            chunk = max(1, (64 * 2**20) // (8 * nx * ny))  # bounds the float64 scratch
+            for s in range(0, len(self.fixed_cells), chunk):
+                rows = csgraph.dijkstra(self.graph, directed=False,
+                                        indices=self.fixed_cells[s:s + chunk])
+                self.table[:, s:s + chunk] = rows[:, flat_free].T
+            self.row_of[self.fixed_cells] = np.arange(len(self.fixed_cells))
             self.row_of_cell = {int(c): k for k, c in enumerate(self.fixed_cells)}
 
     @property
@@ -200,6 +219,7 @@ class _FloorGrid:
         """Memory held: raster, graph, nearest-cell map, table and cached fields."""
         g = self.graph
         total = self.free.nbytes + self.nearest_free.nbytes + self.move_ok.nbytes
+        total += self.column.nbytes + self.row_of.nbytes
         total += g.data.nbytes + g.indices.nbytes + g.indptr.nbytes
         total += 0 if self.table is None else self.table.nbytes
         return total + sum(row.nbytes for row in self._cache.values())
@@ -280,7 +300,8 @@ class _FloorGrid:
         for k, c in enumerate(uniq.tolist()):
             row = self.row_of_cell.get(c)
             if row is not None:
-                out[k] = self.table[row]
+                out[k] = np.inf
+                out[k, self.free.ravel()] = self.table[:, row]
             elif c in self._cache:
                 self._cache.move_to_end(c)
                 out[k] = self._cache[c]
@@ -335,6 +356,33 @@ def _grid_for(world: World, resolution: float, connectivity: int, table_bytes: i
     return grid
 
 
+def _default_resolution(world: World, connectivity: int, table_bytes: int) -> float:
+    """Half the AGV radius, coarsened (to at most the radius) where the fixed points' table
+    would not fit ``table_bytes`` there, and where the grid would exceed ``_MAX_CELLS``.
+
+    A fleet-scale floor (e.g. ``sim.warehouse_floor(1000)``: 2,245 pickups and stations)
+    keeps its table at the AGV radius (341 MB) instead of computing every pickup's field on
+    demand at half of it (1.3 GB, which does not fit).
+    """
+    r = world.agent_radius
+    width, height = world.size
+    floor_res = math.sqrt(width * height / _MAX_CELLS) * 1.001
+    fixed = len(world.pickups) + len(world.stations)
+
+    def cells(res: float) -> int:
+        return math.ceil(width / res - 1e-9) * math.ceil(height / res - 1e-9)
+
+    fine = max(r / 2, floor_res)
+    if not fixed or table_fits(fixed, cells(fine), table_bytes) or floor_res > r:
+        return fine
+    probe = _FloorGrid(world, r, connectivity, 0, 1)  # its free fraction, no table
+    share = float(probe.free.mean()) * 1.05
+    for res in (r / 2, 2 * r / 3, 0.8 * r, r):
+        if res >= floor_res and table_fits(fixed, int(cells(res) * share), table_bytes):
+            return res
+    return fine
+
+
 # ---------------------------------------------------------------------- public face
 class FloorDistances:
     """Obstacle-aware travel distances, smoothed paths and next waypoints on one floor.
@@ -348,14 +396,17 @@ class FloorDistances:
     world : sim.World
         The floor; its ``pickups`` and ``stations`` (may be empty) get precomputed fields.
     resolution : float, optional
-        Cell side in world units, default ``agent_radius / 2`` (coarsened on very large floors
-        so that the grid stays under 16 million cells). At most ``2 * agent_radius``: a floor
+        Cell side in world units, default ``agent_radius / 2``, coarsened (up to
+        ``agent_radius``) on fleet-scale floors so that the pickups' and stations' table fits
+        ``table_bytes``, and on very large floors so that the grid stays under 16 million
+        cells. At most ``2 * agent_radius``: a floor
         loaded from a ``.map`` grid with ``cell_size`` (at least an AGV diameter) is exact at
         ``resolution=cell_size``, the map's own cells (a free cell's centre holds an AGV).
     connectivity : {16, 8}
         Grid moves: 8 neighbours, or 8 neighbours and 8 knight moves (default).
     table_bytes : int
-        Memory allowed for the fixed points' table (default 512 MiB); if it would need more,
+        Memory allowed for the fixed points' table (default 512 MiB; float32 fields over the
+        free cells); if it would need more even at the coarsest default resolution,
         their fields are computed on demand like any other target.
     cache_bytes : int
         Memory for the least-recently-used cache of on-demand fields (default 256 MiB).
@@ -382,8 +433,7 @@ class FloorDistances:
             raise ValueError(f"world must be a sim.World, got {type(world).__name__}")
         r = world.agent_radius
         if resolution is None:
-            width, height = world.size
-            resolution = max(r / 2, math.sqrt(width * height / _MAX_CELLS) * 1.001)
+            resolution = _default_resolution(world, connectivity, table_bytes)
         if isinstance(resolution, bool) or not isinstance(resolution, (int, float)) or \
                 not (math.isfinite(resolution) and 0 < resolution <= 2 * r + 1e-12):
             raise ValueError(f"resolution must be a number in (0, 2 * agent_radius = {2 * r:g}]"
@@ -441,7 +491,7 @@ class FloorDistances:
         if g.table is None:
             return None
         cells, _ = g.snap(b)
-        rows = np.array([g.row_of_cell.get(int(c), -1) for c in cells], dtype=np.int64)
+        rows = g.row_of[cells]
         return None if (rows < 0).any() else rows
 
     # ------------------------------------------------------------------ queries
@@ -476,7 +526,8 @@ class FloorDistances:
         b_cells, b_off = g.snap(b)
         rows = self._fixed_rows(b)
         if rows is not None:
-            grid = g.table[rows[None, :], a_cells[:, None]]
+            uniq, inv = np.unique(rows, return_inverse=True)
+            grid = g.table[g.column[a_cells]][:, uniq][:, inv].astype(np.float64)
         else:
             grid = g.fields(b_cells)[:, a_cells].T
         return grid + a_off[:, None] + b_off[None, :]
