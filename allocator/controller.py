@@ -39,6 +39,7 @@ from torch import Tensor
 
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, _point_segment, braking_velocity
+from allocator.avoidance.liveness import DeadlockResolver
 from sim.tasks import claim
 
 __all__ = ["AllocatorController"]
@@ -160,11 +161,8 @@ class AllocatorController:
         self._best = np.full((B, N), np.inf)
         self.replans = 0
         self.resolves = 0
-        self._rng = np.random.default_rng(self.seed)
-        self._priority = np.argsort(self._rng.random((B, N)), axis=1)  # seeded, distinct
-        self._stall = np.zeros((B, N), dtype=np.int64)
-        self._yield_left = np.zeros((B, N), dtype=np.int64)
-        self._yield_dir = np.zeros((B, N, 2))
+        self._resolver = DeadlockResolver(B, N, world.agent_radius, seed=self.seed,
+                                          perturbation=self.perturbation)
         self._last_dist = np.full((B, N), np.inf)
         self._parked_seen = np.zeros((B, N), dtype=bool)
         self.reassign()
@@ -377,8 +375,8 @@ class AllocatorController:
 
     def _resolve_deadlocks(self, ahead: np.ndarray, vel: np.ndarray, preferred: np.ndarray,
                            moving: np.ndarray) -> np.ndarray:
-        """Preferred velocities with the liveness rules applied (see the module docstring)."""
-        B, N, _ = ahead.shape
+        """Preferred velocities with the liveness rules of :class:`~allocator.avoidance.
+        liveness.DeadlockResolver` applied (progress: the distance to the goal shrank)."""
         cruise = self._cruise_speed()
         goal_pos = np.take_along_axis(self._waypoints, (self._num_waypoints - 1).clip(0)[
             ..., None, None].repeat(2, -1), 2)[:, :, 0]
@@ -386,46 +384,9 @@ class AllocatorController:
         active = moving & (self.task_of_agent >= 0) & (dist > self._world.capture_radius)
         progress = dist < self._last_dist - 0.01 * cruise
         self._last_dist = dist
-        self._stall = np.where(active & ~progress, self._stall + 1, 0)
-        pref = preferred.copy()
-        if self.perturbation > 0:
-            ang = self._rng.uniform(0, 2 * np.pi, (B, N))
-            mag = self._rng.uniform(0, self.perturbation, (B, N))
-            pref += np.where(active[..., None], mag[..., None] * np.stack(
-                [np.cos(ang), np.sin(ang)], -1), 0.0)
-        stalled = active & (self._stall >= 2)
-        yielding = (self._yield_left > 0) & active
-        if stalled.any():
-            r = self._world.agent_radius
-            rel = ahead[:, None, :, :] - ahead[:, :, None, :]  # (B, i, j, 2): j seen from i
-            d = np.linalg.norm(rel, axis=-1)
-            unit = rel / np.maximum(d, 1e-9)[..., None]
-            dirn = preferred / np.maximum(np.linalg.norm(preferred, axis=-1), 1e-9)[..., None]
-            ahead_of = (unit * dirn[:, :, None, :]).sum(-1) > 0.3
-            near = (d < 2 * r + 0.4) & ~np.eye(N, dtype=bool)[None]
-            blocks = near & ahead_of & stalled[:, :, None]
-            higher = self._priority[:, None, :] > self._priority[:, :, None]
-            must_yield = (blocks & higher).any(axis=2) & ~yielding
-            if must_yield.any():
-                # sidestep to the right of the way and back off from the blockers
-                right = np.stack([dirn[..., 1], -dirn[..., 0]], -1)
-                away = -(unit * (blocks & higher)[..., None]).sum(axis=2)
-                away /= np.maximum(np.linalg.norm(away, axis=-1), 1e-9)[..., None]
-                step = right + 0.7 * away
-                step /= np.maximum(np.linalg.norm(step, axis=-1), 1e-9)[..., None]
-                self._yield_dir = np.where(must_yield[..., None], step, self._yield_dir)
-                self._yield_left = np.where(must_yield, 4, self._yield_left)
-                self.yields += int(must_yield.sum())
-            # the others turn right more the longer they wait (a roundabout forms)
-            turn = np.minimum(self._stall, 6)[..., None] * (np.pi / 12)
-            c, s_ = np.cos(-turn), np.sin(-turn)
-            rot = np.concatenate([c * pref[..., :1] - s_ * pref[..., 1:],
-                                  s_ * pref[..., :1] + c * pref[..., 1:]], -1)
-            pref = np.where(stalled[..., None], rot, pref)
-        yielding = (self._yield_left > 0) & active
-        pref = np.where(yielding[..., None], 0.5 * cruise * self._yield_dir, pref)
-        self._yield_left = np.maximum(self._yield_left - 1, 0)
-        return pref
+        out = self._resolver.apply(ahead, preferred, active, progress, cruise)
+        self.yields = self._resolver.yields
+        return out
 
     def _avoid_step(
         self, ahead: np.ndarray, vel: np.ndarray, preferred: np.ndarray, moving: np.ndarray,

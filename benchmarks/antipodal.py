@@ -7,8 +7,10 @@ with ``assign``) and driven by :class:`allocator.controller.AllocatorController`
 
 Variants (``--variants``): R in {1.0, 1.2, 1.4, 1.6} and the tasks either exactly opposite,
 just behind the opposite AGV (radius R + 0.35: every AGV crosses the centre and passes the AGV
-leaving its goal), or on the paths (radius R - 0.2: each task lies on the straight path of the
-AGV that starts behind it, which must not claim it in passing).
+leaving its goal), or on the paths (every other task at radius R - 0.2 instead: it lies on the
+straight path of the AGV that starts behind it, which must not claim it in passing; the others
+stay behind, so that tasks are at least 0.5 apart, the spawner's rule that makes every scene
+servable without overlaps).
 
 Writes ``benchmarks/results/antipodal/<label>.json`` and ``.md``. Run from the repository root::
 
@@ -20,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import tempfile
@@ -68,8 +69,10 @@ def circle_scene(n: int, radius: float, kind: str) -> tuple[np.ndarray, np.ndarr
     ang = 2 * np.pi * np.arange(n) / n
     unit = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     agents = radius * unit
-    task_radius = radius + 0.35 if kind == "opposite" else radius - 0.2
-    tasks = -task_radius * unit
+    task_radius = np.full(n, radius + 0.35)
+    if kind == "on-path":  # every other task inside the circle, on two AGVs' paths
+        task_radius[::2] = radius - 0.2
+    tasks = -task_radius[:, None] * unit
     return agents, tasks
 
 
@@ -79,7 +82,7 @@ def circle_scenario(n: int, radius: float, kind: str, max_steps: int) -> Any:
     from sim.world import World
 
     agents, tasks = circle_scene(n, radius, kind)
-    half = radius + 0.75
+    half = radius + 1.5  # open space around the circle, as in RVO2's example
     world = World(bounds=(-half, -half, half, half))
     base = paper_scenario(min(n, 6))
     del sim
@@ -153,6 +156,37 @@ def run_circle(n: int, radius: float, kind: str, max_steps: int, mode: str) -> d
     )
 
 
+SCENES = (("3v3", "hungarian", 600), ("6v6", "hungarian", 600), ("20v20", "greedy", 100),
+          ("50v50", "hungarian", 40), ("warehouse", "hungarian", 200))
+
+
+def run_scenes(mode: str, scale: float = 1.0) -> list[dict[str, Any]]:
+    """The paper's scenes through :func:`sim.evaluate`: overlaps, response, ms per step."""
+    import allocator
+    import sim
+
+    off = {"shield": False, "liveness": False} if mode == "orca" else {}
+    rows = []
+    for name, method, episodes in SCENES:
+        episodes = max(4, int(episodes * scale))
+        solver = allocator.make(method, avoidance_options=dict(off))
+        t0 = time.perf_counter()
+        m = sim.evaluate(solver, name, episodes=episodes, seed=0)
+        wall = time.perf_counter() - t0
+        ctl = solver.controller
+        scn = sim.scenarios.get_scenario(name)
+        missed = int(round((1 - m.response_rate) * episodes * scn.num_tasks))
+        row = dict(scene=name, method=method, mode=mode, episodes=episodes,
+                   response_rate=m.response_rate, missed_tasks=missed,
+                   collisions_per_episode=m.collisions, avg_time=m.avg_time, wall_s=wall,
+                   act_ms_per_step=1e3 * ctl.timing["act"] / max(1, ctl._steps),
+                   shield_brakes=getattr(ctl, "shield_brakes", 0),
+                   yields=getattr(ctl, "yields", 0), replans=getattr(ctl, "replans", 0))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
 def atomic_write(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
@@ -170,11 +204,30 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--kinds", default="opposite,on-path")
     p.add_argument("--max-steps", type=int, default=300)
     p.add_argument("--large", type=int, default=0, help="also a circle of this many AGVs")
+    p.add_argument("--scenes", action="store_true", help="the paper's scenes instead")
+    p.add_argument("--scale", type=float, default=1.0, help="episodes factor for --scenes")
     p.add_argument("--figure", action="store_true", help="docs/figures/safety_antipodal.png")
     args = p.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)
+    if args.scenes:
+        rows = run_scenes(args.mode, args.scale)
+        doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
+                   date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
+        atomic_write(OUT / f"scenes-{args.label}.json", json.dumps(doc, indent=1))
+        lines = [f"# Episodic scenes ({args.label})", "", f"Command: `{doc['command']}`; "
+                 f"date {doc['date']}; seed 0; 1 thread.", "",
+                 "| scene | method | episodes | response | missed tasks | overlapping pairs "
+                 "per episode | avg time | act ms/step | shield brakes | yields |",
+                 "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            lines.append(f"| {r['scene']} | {r['method']} | {r['episodes']} | "
+                         f"{r['response_rate']:.4f} | {r['missed_tasks']} | "
+                         f"{r['collisions_per_episode']:.4f} | {r['avg_time']:.2f} | "
+                         f"{r['act_ms_per_step']:.2f} | {r['shield_brakes']} | {r['yields']} |")
+        atomic_write(OUT / f"scenes-{args.label}.md", "\n".join(lines) + "\n")
+        return
     rows = []
     figure_runs = []
     for n in [int(s) for s in args.sizes.split(",") if s]:
