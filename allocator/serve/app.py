@@ -181,26 +181,32 @@ class _Limits:
             if n > self.max_body:
                 return await _error(413, f"body of {n} bytes is over the limit of "
                                     f"{self.max_body}")(scope, receive, send)
-        limit = self.max_body
-        seen = 0
+        if length is None and scope.get("method") in ("POST", "PUT", "PATCH", "DELETE"):
+            # No Content-Length (chunked): read the body here, up to the limit, then replay it.
+            chunks, seen = [], 0
+            while True:
+                msg = await receive()
+                if msg["type"] != "http.request":
+                    return
+                chunks.append(msg.get("body", b""))
+                seen += len(chunks[-1])
+                if seen > self.max_body:
+                    return await _error(413, f"body is over the limit of {self.max_body} "
+                                        "bytes")(scope, receive, send)
+                if not msg.get("more_body", False):
+                    break
+            body = b"".join(chunks)
+            sent = False
 
-        async def bounded() -> dict:
-            nonlocal seen
-            msg = await receive()
-            if msg["type"] == "http.request":
-                seen += len(msg.get("body", b""))
-                if seen > limit:
-                    raise _TooLarge()
-            return msg
+            async def replay() -> dict:
+                nonlocal sent
+                if not sent:
+                    sent = True
+                    return {"type": "http.request", "body": body, "more_body": False}
+                return await receive()
 
-        try:
-            await self.app(scope, bounded, send)
-        except _TooLarge:
-            await _error(413, f"body is over the limit of {limit} bytes")(scope, receive, send)
-
-
-class _TooLarge(Exception):
-    pass
+            return await self.app(scope, replay, send)
+        await self.app(scope, receive, send)
 
 
 def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None = None
@@ -246,8 +252,18 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = exc.errors()
+        # POST /v1/orders takes one order or a batch: report the errors of the form sent,
+        # without pydantic's union tag in the location.
+        body = getattr(exc, "body", None)
+        branch = "OrderBatch" if isinstance(body, dict) and "orders" in body else "OrderIn"
+        tagged = [e for e in errors if len(e.get("loc", ())) > 1
+                  and e["loc"][1] in ("OrderIn", "OrderBatch")]
+        if tagged:
+            errors = [e | {"loc": (e["loc"][0], *e["loc"][2:])} for e in tagged
+                      if e["loc"][1] == branch] + [e for e in errors if e not in tagged]
         detail = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
-                   "type": e.get("type", "")} for e in exc.errors()]
+                   "type": e.get("type", "")} for e in errors]
         return JSONResponse({"detail": detail}, status_code=422)
 
     def fail(exc: Exception) -> JSONResponse:

@@ -54,7 +54,7 @@ class NotFound(Exception):
 class Invalid(Exception):
     """A value the floor refuses (HTTP 422), naming the field (``loc``)."""
 
-    def __init__(self, loc: tuple[str, ...], msg: str) -> None:
+    def __init__(self, loc: tuple[Any, ...], msg: str) -> None:
         super().__init__(msg)
         self.loc = loc
         self.msg = msg
@@ -247,7 +247,7 @@ class Fleet:
             fn(kind, data)
 
     # ------------------------------------------------------------------ checks
-    def _check_point(self, point: tuple[float, float], loc: tuple[str, ...],
+    def _check_point(self, point: tuple[float, float], loc: tuple[Any, ...],
                      free: bool) -> None:
         p = np.asarray(point, dtype=np.float64)
         if not np.all(np.isfinite(p)):
@@ -285,8 +285,8 @@ class Fleet:
         seen: dict[str, str] = {}
         seq = self.seq
         for k, it in enumerate(items):
-            prefix: tuple[str, ...] = ("body",) if len(items) == 1 and not it.get("_batch") \
-                else ("body", str(k))
+            prefix: tuple[Any, ...] = ("body",) if not it.get("_batch") \
+                else ("body", "orders", k)
             pickup, dropoff = tuple(it["pickup"]), tuple(it["dropoff"])
             body = canonical_body(pickup, dropoff, it.get("priority", 0), it.get("deadline"))
             oid = it["id"]
