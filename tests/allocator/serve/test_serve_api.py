@@ -84,7 +84,6 @@ def test_a_fault_returns_the_order_to_the_pool(client: httpx.Client) -> None:
     client.post(f"/v1/agents/{a}/events", json={"type": "fault"})
     client.put(f"/v1/agents/{b}", json={"position": DROP, "status": "idle"})
     wait_for(lambda: client.get(f"/v1/orders/{oid}").json()["agent"] == b)
-    client.post(f"/v1/orders/{oid}".replace("orders", "orders"), json={}) if False else None
     client.delete(f"/v1/orders/{oid}")
     client.post(f"/v1/agents/{a}/events", json={"type": "repaired"})
     client.put(f"/v1/agents/{a}", json={"position": DROP, "status": "charging"})
