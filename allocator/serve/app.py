@@ -247,6 +247,22 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
                   "post transport orders, read the plan. Every path but /healthz needs "
                   "`Authorization: Bearer <key>`.", lifespan=lifespan)
     app.state.fleet = fleet
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            from fastapi.openapi.utils import get_openapi
+
+            doc = get_openapi(title=app.title, version=app.version,
+                              description=app.description, routes=app.routes)
+            doc.setdefault("components", {})["securitySchemes"] = {
+                "bearer": {"type": "http", "scheme": "bearer",
+                           "description": "the key of --api-key-file"}}
+            doc["security"] = [{"bearer": []}]
+            doc["paths"]["/healthz"]["get"]["security"] = []
+            app.openapi_schema = doc
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     app.state.dispatch = dispatch
     app.add_middleware(_Limits, key=config.api_key.encode(), max_body=config.max_body)
 
