@@ -372,7 +372,7 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
     async def get_plan() -> Any:
         """The current plan: each AGV's order, leg and path waypoints; the active orders;
         throughput and wait figures."""
-        return fleet.plan_view()
+        return JSONResponse(fleet.plan_view())
 
     @app.get("/v1/events", tags=["plan"], responses={
         **_ERRORS, 200: {"content": {"text/event-stream": {}},

@@ -31,7 +31,7 @@ import numpy as np
 from allocator.serve.store import Store
 
 __all__ = ["Fleet", "Conflict", "NotFound", "Invalid", "AGENT_STATUSES", "ORDER_STATUSES",
-           "EVENT_TYPES", "compute_paths"]
+           "EVENT_TYPES", "PathPlanner"]
 
 AGENT_STATUSES = ("idle", "busy", "broken", "charging")
 ORDER_STATUSES = ("open", "assigned", "loaded", "delivered", "withdrawn")
@@ -115,51 +115,89 @@ def canonical_body(pickup: tuple[float, float], dropoff: tuple[float, float], pr
                       sort_keys=True, separators=(",", ":"))
 
 
-def compute_paths(distances: Any, start: np.ndarray, goal: np.ndarray,
-                  max_corners: int = 24) -> list[np.ndarray]:
-    """Corner waypoints from each ``start[k]`` to ``goal[k]``, batched over K.
+class PathPlanner:
+    """Path waypoints for the plan, from :meth:`FloorDistances.path`, cached between the
+    floor's fixed points.
 
-    Repeats :meth:`allocator.distances.FloorDistances.next_waypoint` from the last corner
-    found, for every path at once.
+    An AGV's trips run mostly between fixed points (it stands at a station after a delivery,
+    at a pickup after a pickup), so a path starts from the nearest pickup or station when the
+    AGV is within ``snap`` of it, and such paths are kept in a bounded cache: on a floor with
+    P pickups and S stations at most 2 P S of them are ever computed. Other paths are
+    computed within a time budget per plan; an AGV whose path is not computed yet keeps its
+    last path for the same leg, or gets none (an empty list) until a later plan.
 
     Parameters
     ----------
     distances : allocator.distances.FloorDistances
-    start, goal : np.ndarray, shape (K, 2)
-    max_corners : int
-        Longest path kept; a longer one ends at its last corner found.
-
-    Returns
-    -------
-    list of np.ndarray, each of shape (P_k, 2)
-        ``path[0] == start[k]``; ``path[-1] == goal[k]`` when the goal was reached; just
-        ``[start[k]]`` when the goal cannot be reached.
+    budget : float
+        Seconds of path computation per plan (default 0.05).
+    cache_size : int
+        Paths kept (default 20000).
     """
-    K = len(start)
-    if K == 0:
-        return []
-    pts = [start.astype(np.float64)]
-    cur = pts[0]
-    active = np.ones(K, dtype=bool)
-    for _ in range(max_corners):
-        k = np.flatnonzero(active)
-        if not k.size:
-            break
-        nxt = cur.copy()
-        nxt[k] = distances.next_waypoint(cur[k], goal[k])
-        moved = np.linalg.norm(nxt - cur, axis=1) > 1e-9
-        active &= moved
-        active &= np.linalg.norm(nxt - goal, axis=1) > 1e-9
-        pts.append(nxt)
-        cur = nxt
-    stack = np.stack(pts, axis=1)  # (K, S, 2)
-    out = []
-    for i in range(K):
-        p = stack[i]
-        keep = np.ones(len(p), dtype=bool)
-        keep[1:] = np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-9
-        out.append(p[keep])
-    return out
+
+    def __init__(self, distances: Any, budget: float = 0.05, cache_size: int = 20_000) -> None:
+        from collections import OrderedDict
+
+        self.distances = distances
+        w = distances.world
+        self.fixed = np.concatenate([np.asarray(w.pickups, dtype=np.float64).reshape(-1, 2),
+                                     np.asarray(w.stations, dtype=np.float64).reshape(-1, 2)])
+        self.snap = 2.0 * float(w.capture_radius)
+        self.budget = float(budget)
+        self.cache_size = int(cache_size)
+        self.cache: OrderedDict[tuple, np.ndarray | None] = OrderedDict()
+        self.computed = 0
+
+    def _start(self, pos: np.ndarray) -> tuple[np.ndarray, bool]:
+        """The fixed point within ``snap`` of each position (or the position itself)."""
+        if not len(self.fixed) or not len(pos):
+            return pos.copy(), np.zeros(len(pos), dtype=bool)
+        d = np.linalg.norm(pos[:, None, :] - self.fixed[None, :, :], axis=-1)
+        k = d.argmin(axis=1)
+        near = d[np.arange(len(pos)), k] <= self.snap
+        return np.where(near[:, None], self.fixed[k], pos), near
+
+    def paths(self, pos: np.ndarray, goal: np.ndarray,
+              previous: list[list[list[float]] | None]) -> list[list[list[float]]]:
+        """Waypoints from each ``pos[k]`` to ``goal[k]`` (``previous[k]``: the AGV's last path
+        for the same leg, or None).
+
+        Returns
+        -------
+        list of lists of [x, y]
+            ``path[0]`` the AGV's position and ``path[-1]`` its goal where computed; the
+            previous path where not computed in time; ``[]`` for none yet or unreachable.
+        """
+        import time as _time
+
+        start, fixed = self._start(pos)
+        out: list[list[list[float]]] = []
+        t_end = _time.perf_counter() + self.budget
+        for k in range(len(pos)):
+            key = (round(float(start[k, 0]), 3), round(float(start[k, 1]), 3),
+                   round(float(goal[k, 0]), 3), round(float(goal[k, 1]), 3))
+            path = self.cache.get(key, False) if fixed[k] else False
+            if path is False:
+                if _time.perf_counter() > t_end:
+                    out.append(previous[k] if previous[k] is not None else [])
+                    continue
+                path = self.distances.path(start[k], goal[k])
+                self.computed += 1
+                if fixed[k]:
+                    self.cache[key] = path
+                    if len(self.cache) > self.cache_size:
+                        self.cache.popitem(last=False)
+            elif fixed[k]:
+                self.cache.move_to_end(key)
+            if path is None:
+                out.append([])
+                continue
+            pts = np.asarray(path, dtype=np.float64)
+            if fixed[k]:
+                pts = np.concatenate([pos[k][None], pts[1:]]) if \
+                    np.linalg.norm(pts[0] - pos[k]) > 1e-9 else pts
+            out.append(pts.round(4).tolist())
+        return out
 
 
 @dataclass
@@ -176,6 +214,7 @@ class PlanSnapshot:
     dropoff: np.ndarray
     order_seq: np.ndarray
     priority: np.ndarray
+    previous: dict[str, tuple[str | None, bool, list]]
 
 
 class Fleet:
@@ -200,6 +239,7 @@ class Fleet:
         self.dispatcher = dispatcher
         self.distances = distances
         dispatcher.distances = distances
+        self.paths = PathPlanner(distances)
         self.store = store
         self.clock = clock
         self.agents: dict[str, Agent] = {}
@@ -529,11 +569,12 @@ class Fleet:
             pickup=np.array([o.pickup for o in orders], dtype=np.float64).reshape(Q, 2),
             dropoff=np.array([o.dropoff for o in orders], dtype=np.float64).reshape(Q, 2),
             order_seq=np.array([o.seq for o in orders], dtype=np.int64),
-            priority=np.array([o.priority for o in orders], dtype=np.int64))
+            priority=np.array([o.priority for o in orders], dtype=np.int64),
+            previous={a.id: (a.order, a.loaded, a.path) for a in agents})
 
-    def compute_plan(self, s: PlanSnapshot) -> tuple[np.ndarray, list[np.ndarray]]:
+    def compute_plan(self, s: PlanSnapshot) -> tuple[np.ndarray, list[list]]:
         """The dispatcher's plan (slot per AGV or -1) and every AGV's path (thread-safe:
-        reads only the snapshot and the floor)."""
+        reads only the snapshot, the floor and the path cache, which only planning uses)."""
         N = len(s.agent_ids)
         plan = np.full(N, -1, dtype=np.int64)
         if N and len(s.order_ids):
@@ -544,20 +585,22 @@ class Fleet:
             loaded = s.status == _LOADED
             plan[loaded] = s.current[loaded]
             plan[s.status == _OUT] = -1
-        has = plan >= 0
-        goal = np.zeros((N, 2))
-        slot = plan.clip(min=0)
-        if len(s.order_ids):
-            goal = np.where((s.status == _LOADED)[:, None], s.dropoff[slot], s.pickup[slot])
-        paths: list[np.ndarray] = [np.zeros((0, 2))] * N
-        idx = np.flatnonzero(has)
+        paths: list[list] = [[] for _ in range(N)]
+        idx = np.flatnonzero(plan >= 0)
         if idx.size:
-            for i, p in zip(idx, compute_paths(self.distances, s.pos[idx], goal[idx]),
-                            strict=True):
+            slot = plan[idx]
+            loaded = s.status[idx] == _LOADED
+            goal = np.where(loaded[:, None], s.dropoff[slot], s.pickup[slot])
+            previous = []
+            for i, ld in zip(idx, loaded, strict=True):
+                order, was_loaded, path = s.previous[s.agent_ids[i]]
+                same = order == s.order_ids[plan[i]] and was_loaded == bool(ld) and path
+                previous.append(path if same else None)
+            for i, p in zip(idx, self.paths.paths(s.pos[idx], goal, previous), strict=True):
                 paths[i] = p
         return plan, paths
 
-    def apply_plan(self, s: PlanSnapshot, plan: np.ndarray, paths: list[np.ndarray]) -> bool:
+    def apply_plan(self, s: PlanSnapshot, plan: np.ndarray, paths: list[list]) -> bool:
         """Apply a plan made from ``s`` where it is still valid; True if assignments changed.
 
         An AGV's new order is taken only if the AGV is still free or on its way to a pickup
@@ -590,7 +633,7 @@ class Fleet:
             if a is None:
                 continue
             if a.order is not None and plan[i] >= 0 and s.order_ids[plan[i]] == a.order:
-                a.path = paths[i].round(4).tolist()
+                a.path = paths[i]
             elif a.order is None:
                 a.path = []
         self.plan_version += 1
