@@ -164,6 +164,8 @@ class AllocatorController:
         self._resolver = DeadlockResolver(B, N, world.agent_radius, seed=self.seed,
                                           perturbation=self.perturbation)
         self._last_dist = np.full((B, N), np.inf)
+        self._last_next = np.zeros((B, N), dtype=np.int64)
+        self._last_shape: tuple[int, ...] = ()
         self._parked_seen = np.zeros((B, N), dtype=bool)
         self.reassign()
 
@@ -378,12 +380,19 @@ class AllocatorController:
         """Preferred velocities with the liveness rules of :class:`~allocator.avoidance.
         liveness.DeadlockResolver` applied (progress: the distance to the goal shrank)."""
         cruise = self._cruise_speed()
-        goal_pos = np.take_along_axis(self._waypoints, (self._num_waypoints - 1).clip(0)[
+        wp = self._waypoints
+        goal_pos = np.take_along_axis(wp, (self._num_waypoints - 1).clip(0)[
             ..., None, None].repeat(2, -1), 2)[:, :, 0]
-        dist = np.linalg.norm(goal_pos - ahead, axis=-1)
-        active = moving & (self.task_of_agent >= 0) & (dist > self._world.capture_radius)
-        progress = dist < self._last_dist - 0.01 * cruise
+        target = np.take_along_axis(wp, self._next[..., None, None].repeat(2, -1), 2)[:, :, 0]
+        dist = np.linalg.norm(target - ahead, axis=-1)
+        active = moving & (self.task_of_agent >= 0) & \
+            (np.linalg.norm(goal_pos - ahead, axis=-1) > self._world.capture_radius)
+        # progress: closer to the waypoint being driven to (or a new waypoint / path)
+        same = (self._next == self._last_next) & (self._waypoints.shape == self._last_shape)
+        progress = (dist < self._last_dist - 0.01 * cruise) | ~same
         self._last_dist = dist
+        self._last_next = self._next.copy()
+        self._last_shape = self._waypoints.shape
         out = self._resolver.apply(ahead, preferred, active, progress, cruise)
         self.yields = self._resolver.yields
         return out

@@ -10,11 +10,11 @@ do not guarantee):
    *stalled*; a neighbour within ``reach`` in front of it (inside a 145-degree cone around its
    preferred direction) *blocks* it (the wait-for relation);
 3. priority yielding: every AGV has a distinct seeded random priority; a stalled AGV blocked by a
-   higher-priority AGV yields for ``yield_steps`` steps: it sidesteps to its right and backs
+   higher-priority active AGV (parked and broken ones are obstacles, not yielded to) yields for ``yield_steps`` steps: it sidesteps to its right and backs
    off from its higher-priority blockers at half speed. The highest-priority AGV of a wait-for
    cycle never yields to the others of the cycle, so the cycle is broken;
-4. roundabout: a stalled AGV that does not yield turns its preferred velocity to the right by
-   15 degrees per stalled step (at most 90), so that a symmetric jam rotates.
+4. roundabout: a stalled, blocked AGV that does not yield turns its preferred velocity to the
+   right by 15 degrees per stalled step (at most 90), so that a symmetric jam rotates.
 
 All of it is vectorised over the environments and AGVs through neighbour pairs.
 """
@@ -78,8 +78,8 @@ class DeadlockResolver:
     """
 
     def __init__(self, num_envs: int, num_agents: int, radius: float, seed: int = 0,
-                 perturbation: float = 1e-4, stall_steps: int = 2, yield_steps: int = 4,
-                 reach: float = 0.4) -> None:
+                 perturbation: float = 1e-4, stall_steps: int = 3, yield_steps: int = 4,
+                 reach: float = 0.4, cone: float = 0.0) -> None:
         for name, v in (("num_envs", num_envs), ("num_agents", num_agents),
                         ("stall_steps", stall_steps), ("yield_steps", yield_steps)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -97,6 +97,7 @@ class DeadlockResolver:
         self.stall_steps = int(stall_steps)
         self.yield_steps = int(yield_steps)
         self.reach = float(reach)
+        self.cone = float(cone)
         self.stall = np.zeros((B, N), dtype=np.int64)
         self.yield_left = np.zeros((B, N), dtype=np.int64)
         self.yield_dir = np.zeros((B, N, 2))
@@ -140,12 +141,16 @@ class DeadlockResolver:
             pairs = neighbour_pairs(pos, 2 * self.radius + self.reach)
             st = stalled.reshape(-1)
             prio = self.priority.reshape(-1)
+            act = active.reshape(-1)
             block_from = []
             block_to = []
+            blocked = np.zeros(B * N, dtype=bool)
             for a, b in ((pairs[:, 0], pairs[:, 1]), (pairs[:, 1], pairs[:, 0])):
                 rel = flat_pos[b] - flat_pos[a]
                 unit = rel / np.maximum(np.linalg.norm(rel, axis=1), 1e-9)[:, None]
-                blocks = st[a] & ((unit * dirn[a]).sum(1) > 0.3) & (prio[b] > prio[a])
+                in_way = st[a] & ((unit * dirn[a]).sum(1) > self.cone)
+                blocked[a[in_way]] = True
+                blocks = in_way & (prio[b] > prio[a]) & act[b]  # never yield to a parked AGV
                 block_from.append(a[blocks])
                 block_to.append(b[blocks])
             src = np.concatenate(block_from)
@@ -171,7 +176,8 @@ class DeadlockResolver:
             c, s = np.cos(turn), np.sin(turn)  # clockwise: a right turn
             rot = np.concatenate([c * pref[..., :1] + s * pref[..., 1:],
                                   -s * pref[..., :1] + c * pref[..., 1:]], -1)
-            pref = np.where(stalled[..., None], rot, pref)
+            turning = stalled & blocked.reshape(B, N)
+            pref = np.where(turning[..., None], rot, pref)
         yielding = (self.yield_left > 0) & active
         pref = np.where(yielding[..., None], 0.5 * speed * self.yield_dir, pref)
         self.yield_left = np.maximum(self.yield_left - 1, 0)
