@@ -15,6 +15,12 @@ step in the same run, the same scene is
 Target (issue 4): rows + solve at most 3 ms per step at N = 100. Timings are medians and 90th
 percentiles over the steps (the first step, which includes OSQP setup, is dropped). Writes
 benchmarks/results/avoidance_speed.md.
+
+The braking shield (issue 14, ``allocator/avoidance/braking.py``) is timed on the same recorded
+steps (its calls are recorded as well). ``--lifelong 1000`` also times a whole lifelong step on
+``warehouse-N`` (re-planning by ``HungarianDispatcher``, then the driver) with
+:class:`allocator.traffic.SafeDriver` against the path-following ``WaypointDriver`` in the
+same run (target, issue 14: dispatch + avoidance at most 100 ms per step at N = 1000).
 """
 
 from __future__ import annotations
@@ -84,19 +90,30 @@ def record(n: int, steps: int, seed: int) -> tuple[avoidance.VelocityAvoidance, 
     solver = allocator.make("hungarian", **({"stuck_steps": 10**9} if n > REPLAN_MAX else {}))
     solver.reset(env)
     qp = solver.controller._avoidance()
+    shield = solver.controller._shield_filter()
     calls: list[tuple[tuple, dict]] = []
+    shield_calls: list[tuple[tuple, dict]] = []
     original = qp.constraints
+    original_filter = shield.filter
 
     def capture(*a, **k):
         calls.append((a, k))
         return original(*a, **k)
 
+    def capture_filter(*a, **k):
+        shield_calls.append((a, k))
+        return original_filter(*a, **k)
+
     qp.constraints = capture
+    shield.filter = capture_filter
     for _ in range(steps):
         obs, _, done, _ = env.step(solver.act(obs))
         if bool(done.all()):
             break
     qp.constraints = original
+    shield.filter = original_filter
+    qp.shield_calls = shield_calls
+    qp.shield = shield
     return qp, calls
 
 
@@ -131,11 +148,63 @@ def measure(n: int, steps: int, seed: int, loop_max: int) -> dict:
             ok = rows.active & ~f_ex & solved
             if ok.any():
                 diff_loop = max(diff_loop, float(np.abs(v_ex[ok] - v_lp[ok]).max()))
+    t["shield"] = []
+    for a, k in qp.shield_calls:
+        t0 = time.perf_counter()
+        qp.shield.filter(*a, **k)
+        t["shield"].append(time.perf_counter() - t0)
     ms = {key: np.array(val[1:]) * 1e3 for key, val in t.items() if val}
     ms["total_exact"] = ms["rows"] + ms["exact"]
+    if "shield" in ms and len(ms["shield"]) == len(ms["total_exact"]):
+        ms["total_shield"] = ms["total_exact"] + ms["shield"]
     ms["total_osqp"] = ms["rows"] + ms["osqp"]
     return dict(n=n, steps=len(calls) - 1, R=R, ms=ms, diff_osqp=diff_osqp, diff_loop=diff_loop,
                 fell_exact=fell_exact, fell_osqp=fell_osqp, loop=loop is not None)
+
+
+def lifelong_step_ms(n: int, steps: int, seed: int, driver: object) -> dict:
+    """Median ms of a dispatcher's ``act`` (re-plan + drive) on ``warehouse-N``."""
+    import torch
+
+    from allocator.dispatch import HungarianDispatcher
+
+    env = sim.make_env(f"warehouse-{n}", num_envs=1, seed=seed)
+    env.reset()
+    disp = HungarianDispatcher(driver=driver)
+    t0 = time.perf_counter()
+    disp.reset(env)
+    setup = time.perf_counter() - t0
+    total, collisions = [], 0
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        a = disp.act(None)
+        total.append(time.perf_counter() - t0)
+        _, _, _, info = env.step(a)
+        collisions += int(torch.as_tensor(info["collision_pairs"]).sum())
+    return dict(ms=np.array(total[1:]) * 1e3, setup=setup, collisions=collisions,
+                timing=getattr(driver, "timing", None), steps=steps)
+
+
+def lifelong_section(n: int, steps: int, seed: int) -> list[str]:
+    from allocator.dispatch import WaypointDriver
+    from allocator.traffic import SafeDriver
+
+    out = [f"## Lifelong step, warehouse-{n}", "",
+           f"{steps} steps from the start of a seeded run (the first is not timed); "
+           "`HungarianDispatcher(driver=...)`: re-planning on events plus the driver.", "",
+           "| driver | median (ms) | 90th percentile (ms) | overlapping pair-steps | "
+           "setup (s) | parts (ms per step: path / ORCA / shield) |", "|---|---|---|---|---|---|"]
+    for name, drv in (("WaypointDriver", WaypointDriver()), ("SafeDriver", SafeDriver()),
+                      ("SafeDriver(avoidance=False)", SafeDriver(avoidance=False))):
+        r = lifelong_step_ms(n, steps, seed, drv)
+        parts = ""
+        if r["timing"]:
+            tm = r["timing"]
+            parts = " / ".join(f"{1e3 * tm[k] / steps:.1f}" for k in ("path", "avoid", "shield"))
+        out.append(f"| {name} | {np.median(r['ms']):.1f} | {np.percentile(r['ms'], 90):.1f} | "
+                   f"{r['collisions']} | {r['setup']:.1f} | {parts} |")
+    out.append("")
+    return out
 
 
 def main() -> None:
@@ -147,6 +216,9 @@ def main() -> None:
                         help="skip the per-AGV OSQP loop above this many AGVs")
     parser.add_argument("--out", type=Path,
                         default=Path(__file__).parent / "results" / "avoidance_speed.md")
+    parser.add_argument("--lifelong", type=int, nargs="*", default=[],
+                        help="also time a lifelong step on warehouse-N for these N")
+    parser.add_argument("--lifelong-steps", type=int, default=20)
     args = parser.parse_args()
     stamp = datetime.datetime.now().isoformat(timespec="minutes")
     lines = [
@@ -167,6 +239,8 @@ def main() -> None:
         ("osqp", "one block-diagonal OSQP problem, warm"),
         ("total_osqp", "rows + block-diagonal OSQP"),
         ("loop", "loop of N separate OSQP problems, warm"),
+        ("shield", "braking shield (issue 14)"),
+        ("total_shield", "**rows + exact solve + shield**"),
     )
     for n in args.agents:
         r = measure(n, args.steps, args.seed, args.loop_max)
@@ -189,6 +263,9 @@ def main() -> None:
                          f"{np.median(arr) / n * 1e3:.1f} |")
         lines.append("")
         print("\n".join(lines[-12:]), flush=True)
+    for n in args.lifelong:
+        lines += lifelong_section(n, args.lifelong_steps, args.seed)
+        print("\n".join(lines[-8:]), flush=True)
     text = "\n".join(lines)
     atomic_write_text(args.out, text)
     print(f"wrote {args.out}")
