@@ -38,7 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["AuctionResult", "auction", "communication_graph", "default_eps"]
+__all__ = ["AuctionResult", "ComponentAuction", "auction",
+           "check_comm_range", "communication_graph", "component_auction", "default_eps"]
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,15 @@ def _components(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
+def check_comm_range(comm_range: object) -> float:
+    """``comm_range`` as a float, or a ValueError naming it (not a positive number)."""
+    if isinstance(comm_range, (bool, np.bool_)) or not isinstance(
+            comm_range, (int, float, np.integer, np.floating)) or not comm_range > 0:
+        raise ValueError(f"comm_range must be a positive number (inf: everyone hears "
+                         f"everyone), got {comm_range!r}")
+    return float(comm_range)
+
+
 def _check(benefit: object, positions: object, comm_range: object, eps: object,
            max_rounds: object, scaling: object) -> tuple[np.ndarray, np.ndarray, float]:
     raw = np.asarray(benefit)
@@ -115,10 +125,7 @@ def _check(benefit: object, positions: object, comm_range: object, eps: object,
     pos = pos.astype(np.float64)
     if not np.isfinite(pos).all():
         raise ValueError("positions hold NaN or infinite values")
-    if isinstance(comm_range, bool) or not isinstance(comm_range, (int, float, np.number)) \
-            or not comm_range > 0:
-        raise ValueError(f"comm_range must be a positive number (inf: everyone hears "
-                         f"everyone), got {comm_range!r}")
+    comm_range = check_comm_range(comm_range)
     if eps is not None and (isinstance(eps, bool) or not isinstance(eps, (int, float, np.number))
                             or not (math.isfinite(eps) and eps > 0)):
         raise ValueError(f"eps must be a positive finite number or None, got {eps!r}")
@@ -286,3 +293,88 @@ def auction(
     return AuctionResult(task_of_agent=task_of_agent, agent_of_task=agent_of_task,
                          rounds=rounds, messages=messages, converged=converged,
                          claimed=claimed, component=component, prices=prices)
+
+
+@dataclass(frozen=True)
+class ComponentAuction:
+    """The outcome of :func:`component_auction`."""
+
+    task_of_agent: np.ndarray
+    """(N,) int64: task of each AGV, -1 idle (conflict-free: each task heard by one component)."""
+    home: np.ndarray
+    """(M,) int64: the AGV each task was announced to (nearest its position)."""
+    component: np.ndarray
+    """(N,) int64: connected component of each AGV."""
+    messages: int
+    """Auction messages sent in all the components (one AGV's copy to one neighbour)."""
+    rounds: int
+    """Rounds of the longest component's auction."""
+    converged: bool
+    """Whether every component's auction went quiet."""
+
+
+def component_auction(
+    benefit: np.ndarray,
+    positions: np.ndarray,
+    task_positions: np.ndarray,
+    comm_range: float,
+    eps: float | None = None,
+    max_rounds: int = 20_000,
+) -> ComponentAuction:
+    """A decentralized auction where each task is heard by one component of the graph.
+
+    Each task is announced to the AGV nearest its position (straight line, ties to the lower
+    index), which floods it through its connected component (AGVs at most ``comm_range``
+    apart); the AGVs of each component then run :func:`auction` over the tasks announced to
+    them. No two components hold the same task, so the plan is conflict-free without any
+    central step.
+
+    Parameters
+    ----------
+    benefit : array-like, shape (N, M)
+        Finite real numbers: AGV i's gain for task j.
+    positions : array-like, shape (N, 2)
+    task_positions : array-like, shape (M, 2)
+    comm_range : float
+        > 0 (``inf``: one component).
+    eps, max_rounds
+        As :func:`auction`.
+
+    Returns
+    -------
+    ComponentAuction
+
+    Raises
+    ------
+    ValueError
+        As :func:`auction`, and naming ``task_positions`` for a wrong shape or NaN.
+    """
+    b, pos, comm_range = _check(benefit, positions, comm_range, eps, max_rounds, None)
+    n, m = b.shape
+    tasks = np.asarray(task_positions)
+    if tasks.dtype.kind not in "iuf" or tasks.shape != (m, 2) or \
+            not np.isfinite(tasks.astype(np.float64)).all():
+        raise ValueError(f"task_positions must be an ({m}, 2) array of finite real numbers "
+                         f"(one row per benefit column), got {tasks.dtype} {tasks.shape}")
+    tasks = tasks.astype(np.float64)
+    if math.isinf(comm_range) or n == 1:
+        component = np.zeros(n, dtype=np.int64)
+    else:
+        component = _components(n, *communication_graph(pos, comm_range))
+    home = cKDTree(pos).query(tasks, k=1)[1].astype(np.int64) if m else np.zeros(0, np.int64)
+    heard_by = component[home]
+    task_of_agent = np.full(n, -1, dtype=np.int64)
+    messages = rounds = 0
+    converged = True
+    for c in np.unique(heard_by):  # one auction per component that heard a task
+        members = np.flatnonzero(component == c)
+        heard = np.flatnonzero(heard_by == c)
+        out = auction(b[np.ix_(members, heard)], pos[members], comm_range, eps=eps,
+                      max_rounds=max_rounds)
+        won = out.task_of_agent >= 0
+        task_of_agent[members[won]] = heard[out.task_of_agent[won]]
+        messages += out.messages
+        rounds = max(rounds, out.rounds)
+        converged &= out.converged
+    return ComponentAuction(task_of_agent=task_of_agent, home=home, component=component,
+                            messages=messages, rounds=rounds, converged=bool(converged))

@@ -40,6 +40,11 @@ __all__ = [
     "CONTROLLER_OPTIONS",
     "check_controller_options",
     "MAX_COORDINATE",
+    "PLAN_OPTIONS",
+    "MAX_EXACT_PRIORITY",
+    "priority_levels",
+    "PlanOptions",
+    "check_plan_options",
 ]
 
 CONTROLLER_OPTIONS = (
@@ -410,6 +415,316 @@ def check_inputs(
     return a, t
 
 
+MAX_EXACT_PRIORITY = 2**53
+"""Float priorities above this may already have lost their last digits (float64 holds every
+integer only up to 2**53): pass integers instead."""
+
+
+def priority_levels(values: object, m: int) -> np.ndarray:
+    """Check integer priorities of shape (M,) and return their dense ranks, shape (M,).
+
+    The ranks (0 for the lowest priority given, 1 for the next, ...) order the tasks exactly
+    as the priorities do, however large the integers, and stay small, so the costs keep their
+    precision next to them. The plans are the same: the tasks a matching can serve form a
+    matroid, whose best sets depend only on the order of the priorities.
+
+    Raises
+    ------
+    ValueError
+        For a wrong shape, negative, fractional, non-finite or boolean values, or float values
+        beyond :data:`MAX_EXACT_PRIORITY`.
+    """
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(values, torch.Tensor):
+        values = values.detach().cpu()
+    try:
+        raw = np.asarray(values)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"priorities must be an array of M = {m} integers: {err}") from None
+    if raw.shape != (m,):
+        raise ValueError(f"priorities must have shape (M,) = ({m},), got {raw.shape}")
+    ints = [v for v in raw.tolist() if isinstance(v, int) and not isinstance(v, bool)]
+    if raw.dtype.kind not in "iu" and len(ints) != m:
+        floats = as_real_array(raw, "priorities", f"an array of M = {m} integers")
+        if not np.all(np.isfinite(floats)) or np.any(floats != np.round(floats)):
+            raise ValueError("priorities must be non-negative integers")
+        if np.any(np.abs(floats) > MAX_EXACT_PRIORITY):
+            raise ValueError(
+                f"priorities given as floats must be at most 2**53 = {MAX_EXACT_PRIORITY}: "
+                "beyond it a float cannot hold every integer (pass integers instead)"
+            )
+        raw = floats
+    elif raw.dtype.kind == "O":
+        raw = np.array(ints, dtype=object)
+    if np.any(raw < 0):
+        raise ValueError("priorities must be non-negative integers")
+    return np.unique(raw, return_inverse=True)[1].reshape(m).astype(np.float64)
+
+
+PLAN_OPTIONS = ("available", "priorities", "ready_positions", "ready_steps", "deadlines",
+                "keep", "now", "speed")
+"""The per-call options of :func:`allocator.assign` (the scene's state, not the solver's
+configuration): see :class:`PlanOptions`."""
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """The checked per-call options of a one-shot assignment (see :func:`check_plan_options`).
+
+    Attributes
+    ----------
+    available : np.ndarray of bool, shape (N,)
+        AGVs that may be given a task.
+    priorities : np.ndarray of int64, shape (M,) or None
+        Non-negative priority levels (higher served first).
+    ready_positions : np.ndarray of float64, shape (N, 2)
+        Where each AGV will be free (its position unless it is busy).
+    lag : np.ndarray of float64, shape (N,)
+        Steps from ``now`` until each AGV is free (``ready_steps - now``).
+    latest : np.ndarray of float64, shape (M,)
+        Steps from ``now`` until each task's deadline (``inf`` for none).
+    keep_agents, keep_tasks : np.ndarray of int64, shape (K,)
+        Pairs that must stay.
+    now : int
+    speed : float
+        World units an AGV covers per step.
+    given : tuple of str
+        The options the caller gave.
+    """
+
+    available: np.ndarray
+    priorities: np.ndarray | None
+    ready_positions: np.ndarray
+    lag: np.ndarray
+    latest: np.ndarray
+    keep_agents: np.ndarray
+    keep_tasks: np.ndarray
+    now: int
+    speed: float
+    given: tuple[str, ...]
+
+    @property
+    def has_deadlines(self) -> bool:
+        return bool(np.isfinite(self.latest).any())
+
+    def eta(self, travel: np.ndarray) -> np.ndarray:
+        """Steps from now until AGV i reaches task j, (N, M): its lag plus ``travel / speed``."""
+        return self.lag[:, None] + travel / self.speed
+
+    def cost(self, travel: np.ndarray, lateness_weight: float = 1.0) -> np.ndarray:
+        """The cost each solver minimises, (N, M), in world units: ``speed * eta`` plus
+        ``lateness_weight * speed`` per step an AGV would reach a task past its deadline;
+        ``inf`` for an unavailable AGV. Equal to ``travel`` when no option is given."""
+        cost = travel + (self.speed * self.lag)[:, None]
+        if self.has_deadlines and lateness_weight:
+            late = self.eta(travel) - self.latest[None, :]
+            with np.errstate(invalid="ignore"):
+                cost = cost + lateness_weight * self.speed * np.where(late > 0, late, 0.0)
+        return np.where(self.available[:, None], cost, np.inf)
+
+    def levels(self, travel: np.ndarray) -> np.ndarray | None:
+        """Exact service levels per task (M,), or None without priorities and deadlines:
+        ``priority * (M + 1) + meetable``, where ``meetable`` says a task's deadline can still
+        be met by an available AGV; so higher priorities are served first, then tasks whose
+        deadline can be met, then the rest."""
+        if self.priorities is None and not self.has_deadlines:
+            return None
+        m = travel.shape[1]
+        p = np.zeros(m) if self.priorities is None else self.priorities.astype(np.float64)
+        out = p * (m + 1)
+        if self.has_deadlines and self.available.any():
+            eta = self.eta(travel)[self.available]
+            out = out + (np.isfinite(self.latest) & (eta.min(axis=0) <= self.latest))
+        return out
+
+
+def _int_vector(values: object, name: str, length: int, letter: str) -> np.ndarray:
+    """``values`` as an int64 vector of the given length, or a ValueError naming ``name``."""
+    raw = as_real_array(values, name, f"an ({letter},) = ({length},) array of integers")
+    if raw.shape != (length,):
+        raise ValueError(f"{name} must have shape ({letter},) = ({length},), got {raw.shape}")
+    if not np.isfinite(raw).all():
+        bad = np.flatnonzero(~np.isfinite(raw))
+        raise ValueError(f"{name} holds NaN or infinite values at {bad[:8].tolist()}")
+    if np.any(raw != np.round(raw)):
+        bad = np.flatnonzero(raw != np.round(raw))
+        raise ValueError(f"{name} must hold integers (steps), got {raw[bad[0]]!r} at "
+                         f"{int(bad[0])}")
+    if np.any(np.abs(raw) > 2**53):
+        raise ValueError(f"{name} holds values beyond 2**53")
+    return raw.astype(np.int64)
+
+
+def check_plan_options(
+    agents: np.ndarray,
+    tasks: np.ndarray,
+    world: World | None = None,
+    available: object = None,
+    priorities: object = None,
+    ready_positions: object = None,
+    ready_steps: object = None,
+    deadlines: object = None,
+    keep: object = None,
+    now: object = 0,
+    speed: object = 1.0,
+) -> PlanOptions:
+    """Check the per-call options of a one-shot assignment (:func:`allocator.assign`).
+
+    Parameters
+    ----------
+    agents : np.ndarray, shape (N, 2)
+        The checked AGV positions (:func:`check_inputs`).
+    tasks : np.ndarray, shape (M, 2)
+    world : World, optional
+    available : array-like of bool, shape (N,), optional
+        AGVs that may be given a task (default all).
+    priorities : array-like of int, shape (M,), optional
+        Non-negative integer priorities (higher served first when not every task can be).
+    ready_positions : array-like, shape (N, 2), optional
+        Where each AGV will be free: a busy AGV's drop-off (default its position).
+    ready_steps : array-like of int, shape (N,), optional
+        The step at which each AGV is free there, >= ``now`` (default ``now``).
+    deadlines : array-like of int, shape (M,), optional
+        The step by which each task should be reached, -1 for none.
+    keep : array-like of int, shape (K, 2), optional
+        ``(agent, task)`` pairs that must stay (e.g. loaded AGVs); each agent available, no
+        agent or task twice.
+    now : int
+        The current step (>= 0).
+    speed : float
+        World units an AGV covers per step (> 0), to turn steps into travel.
+
+    Returns
+    -------
+    PlanOptions
+
+    Raises
+    ------
+    ValueError
+        Naming the option: a wrong shape or dtype, NaN, non-integer steps, a ready step in the
+        past, a negative deadline other than -1, a keep pair out of range, naming an
+        unavailable AGV, or repeating an AGV or a task.
+    """
+    n, m = len(agents), len(tasks)
+    given = tuple(name for name, v in (
+        ("available", available), ("priorities", priorities),
+        ("ready_positions", ready_positions), ("ready_steps", ready_steps),
+        ("deadlines", deadlines), ("keep", keep)) if v is not None)
+    if isinstance(now, (bool, np.bool_)) or not _is_int(now) or now < 0:
+        raise ValueError(f"now must be an integer step >= 0, got {now!r}")
+    now = int(now)
+    if not _is_positive_real(speed):
+        raise ValueError(f"speed must be a positive number (world units per step), got "
+                         f"{speed!r}")
+    if available is None:
+        mask = np.ones(n, dtype=bool)
+    else:
+        torch = sys.modules.get("torch")
+        if torch is not None and isinstance(available, torch.Tensor):
+            available = available.detach().cpu().numpy()
+        raw = np.asarray(available)
+        if raw.dtype != np.bool_:
+            raise ValueError(f"available must be an (N,) = ({n},) array of booleans, got "
+                             f"dtype {raw.dtype}")
+        if raw.shape != (n,):
+            raise ValueError(f"available must have shape (N,) = ({n},), got {raw.shape}")
+        mask = raw.copy()
+    levels = None if priorities is None else priority_levels(priorities, m).astype(np.int64)
+    if ready_positions is None:
+        ready = agents
+    else:
+        ready = _as_points(ready_positions, "ready_positions", "N")
+        if ready.shape != (n, 2):
+            raise ValueError(f"ready_positions must have shape (N, 2) = ({n}, 2) like agents, "
+                             f"got {ready.shape}")
+        if world is not None:
+            world.check_positions(ready, "ready_positions")
+    if ready_steps is None:
+        lag = np.zeros(n)
+    else:
+        steps = _int_vector(ready_steps, "ready_steps", n, "N")
+        past = np.flatnonzero(steps < now)
+        if past.size:
+            raise ValueError(f"ready_steps[{int(past[0])}] = {int(steps[past[0]])} is in the "
+                             f"past (now = {now}): an AGV is free at now or later")
+        lag = (steps - now).astype(np.float64)
+    latest = np.full(m, np.inf)
+    if deadlines is not None:
+        due = _int_vector(deadlines, "deadlines", m, "M")
+        bad = np.flatnonzero(due < -1)
+        if bad.size:
+            raise ValueError(f"deadlines must be steps >= 0 or -1 (none), got "
+                             f"{int(due[bad[0]])} at {int(bad[0])}")
+        latest = np.where(due >= 0, (due - now).astype(np.float64), np.inf)
+    keep_a = keep_t = np.zeros(0, dtype=np.int64)
+    if keep is not None:
+        raw = as_real_array(keep, "keep", "a (K, 2) array of (agent, task) index pairs")
+        if raw.size == 0:
+            raw = raw.reshape(0, 2)
+        if raw.ndim != 2 or raw.shape[1] != 2:
+            raise ValueError(f"keep must have shape (K, 2) of (agent, task) pairs, got "
+                             f"{raw.shape}")
+        if not np.isfinite(raw).all() or np.any(raw != np.round(raw)):
+            raise ValueError("keep must hold integer (agent, task) index pairs")
+        pairs = raw.astype(np.int64)
+        keep_a, keep_t = pairs[:, 0], pairs[:, 1]
+        out = np.flatnonzero((keep_a < 0) | (keep_a >= n) | (keep_t < 0) | (keep_t >= m))
+        if out.size:
+            raise ValueError(f"keep pair {pairs[out[0]].tolist()} is out of range (N = {n}, "
+                             f"M = {m})")
+        off = np.flatnonzero(~mask[keep_a])
+        if off.size:
+            raise ValueError(f"keep pair {pairs[off[0]].tolist()} names AGV "
+                             f"{int(keep_a[off[0]])}, which is not available")
+        for what, idx in (("AGV", keep_a), ("task", keep_t)):
+            uniq, counts = np.unique(idx, return_counts=True)
+            if (counts > 1).any():
+                raise ValueError(f"keep names {what} {int(uniq[counts > 1][0])} twice")
+    return PlanOptions(available=mask, priorities=levels, ready_positions=ready, lag=lag,
+                       latest=latest, keep_agents=keep_a, keep_tasks=keep_t, now=now,
+                       speed=float(speed), given=given)
+
+
+def solve_with_options(
+    travel: np.ndarray,
+    options: PlanOptions,
+    solve: Callable[[np.ndarray, np.ndarray | None, np.ndarray],
+                    tuple[np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Matched (rows, cols) under the plan options: the kept pairs fixed, the others solved
+    by ``solve(cost, levels)`` on the remaining AGVs and tasks.
+
+    Parameters
+    ----------
+    travel : np.ndarray, shape (N, M)
+        Travel from each AGV's ready position to each task (``inf``: unreachable).
+    options : PlanOptions
+    solve : callable
+        ``solve(cost (n', m'), levels (m',) or None, tasks (m',)) -> (rows, cols)`` on the
+        sub-problem of the AGVs and tasks not kept (``tasks``: their indices).
+
+    Returns
+    -------
+    rows, cols : np.ndarray of int64
+        Matched agent and task indices, sorted by agent; only finite-cost pairs besides the
+        kept ones.
+    """
+    n, m = travel.shape
+    cost = options.cost(travel)
+    levels = options.levels(travel)
+    rest_a = np.setdiff1d(np.arange(n), options.keep_agents)
+    rest_t = np.setdiff1d(np.arange(m), options.keep_tasks)
+    sub = cost[np.ix_(rest_a, rest_t)]
+    rows, cols = solve(sub, None if levels is None else levels[rest_t], rest_t)
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    ok = np.isfinite(sub[rows, cols]) if rows.size else np.zeros(0, dtype=bool)
+    rows, cols = rows[ok], cols[ok]
+    rows = np.concatenate([options.keep_agents, rest_a[rows]]).astype(np.int64)
+    cols = np.concatenate([options.keep_tasks, rest_t[cols]]).astype(np.int64)
+    order = np.argsort(rows, kind="stable")
+    return rows[order], cols[order]
+
+
 class ClassicalAllocator:
     """Shared base of the centralized allocators: ``assign`` plus the controller methods.
 
@@ -430,6 +745,8 @@ class ClassicalAllocator:
     """
 
     name = "classical"
+    supports_plan_options = True
+    """Whether :meth:`assign` takes the :data:`PLAN_OPTIONS` (learned allocators do not)."""
 
     def __init__(self, **controller_options: Any) -> None:
         unknown = [key for key in controller_options if key not in CONTROLLER_OPTIONS]
@@ -475,7 +792,8 @@ class ClassicalAllocator:
             dispatcher = self.lifelong_dispatcher()
             if dispatcher is None:
                 raise ValueError(f"{type(self).__name__} has no lifelong dispatcher; lifelong "
-                                 "floors are dispatched by 'hungarian' and 'greedy'")
+                                 "floors are dispatched by 'hungarian', 'greedy', 'fifo' and "
+                                 "'auction'")
             dispatcher.reset(env)
             self._dispatcher = dispatcher
             return

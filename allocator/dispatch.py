@@ -7,15 +7,23 @@ floor and hands the plan to ``env.assign``; then :class:`WaypointDriver` drives 
 has a target along its obstacle-aware path (:class:`allocator.distances.FloorDistances`).
 
 - :class:`FifoDispatcher`: the default strategy of OpenTCS, the oldest order (higher priority
-  first) to its nearest available AGV, one by one; an assignment stays until pickup.
-- :class:`HungarianDispatcher`: min-sum travel over the AGVs that are free or on their way to a
-  pickup and the orders not yet picked up (:func:`scipy.optimize.linear_sum_assignment`), with a
-  switching cost that keeps a plan unless another is better by more than it, and priorities as
-  a discount on the cost.
+  first) to its nearest idle AGV, one by one; an assignment stays until pickup.
+- :class:`HungarianDispatcher`: min-sum over the AGVs (idle, on their way to a pickup, and
+  loaded ones counted from their drop-off when they will be free there) and the orders not yet
+  picked up (:func:`scipy.optimize.linear_sum_assignment`), in estimated steps to the pickup,
+  with priorities, deadlines (a discount for an order that misses its deadline unless served in
+  this plan, a penalty per step an AGV would be late) and a switching cost that keeps a plan
+  unless another is better by more than it.
+- :class:`MatchingDispatcher` with another matching rule: ``"greedy"``'s dispatcher.
+- :class:`AuctionDispatcher`: the same costs, matched by the decentralized epsilon-auction of
+  :mod:`allocator.auction` over the AGVs' communication graph, with the messages counted.
 
-Both are the first part of the classical lifelong dispatch (issue 14): the fleet-scale
-controller with its safety and liveness guarantees comes next; the driver here only follows
-paths (AGVs may still touch).
+**Next orders.** ``env.assign`` gives an AGV one order at a time and a loaded AGV keeps the one
+it carries, so a loaded AGV's match (its *next* order) is held in the dispatcher
+(:attr:`MatchingDispatcher.next_order`): the order stays open in the env (any AGV may still be
+matched to it at the next re-plan), and the match is handed to ``env.assign`` at the delivery,
+which is itself an event that re-plans (the switching cost keeps the held match unless a better
+one appeared meanwhile).
 """
 
 from __future__ import annotations
@@ -28,13 +36,68 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
+from allocator.auction import check_comm_range, component_auction
 from allocator.distances import FloorDistances
 
-__all__ = ["FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher", "MatchingDispatcher",
-           "WaypointDriver"]
+__all__ = ["AuctionDispatcher", "FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher",
+           "MatchingDispatcher", "WaypointDriver", "at_risk", "lateness"]
 
 _OPEN, _ASSIGNED = 1, 2
-_IDLE, _TO_PICKUP = 0, 1
+_IDLE, _TO_PICKUP, _LOADED, _BROKEN = 0, 1, 2, 3
+_BIG = 1e9
+
+
+def _check_nonneg(name: str, value: object, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or math.isnan(value) or (value <= 0 if positive else value < 0):
+        bound = "> 0" if positive else ">= 0"
+        raise ValueError(f"{name} must be a number {bound}, got {value!r}")
+    return float(value)
+
+
+def lateness(eta: np.ndarray, latest: np.ndarray) -> np.ndarray:
+    """Steps by which each pair would miss its deadline: ``max(0, eta[i, j] - latest[j])``.
+
+    Parameters
+    ----------
+    eta : np.ndarray, shape (A, O)
+        Steps from now until AGV i could reach order j's pickup.
+    latest : np.ndarray, shape (O,)
+        Latest pickup step (relative to now) that still meets j's deadline; ``inf`` for an
+        order without one.
+
+    Returns
+    -------
+    np.ndarray of float64, shape (A, O)
+    """
+    with np.errstate(invalid="ignore"):
+        late = eta - latest[None, :]
+    return np.where(late > 0, late, 0.0)
+
+
+def at_risk(eta: np.ndarray, latest: np.ndarray, horizon: float) -> np.ndarray:
+    """Orders that can still meet their deadline, but only if they are served in this plan.
+
+    An order is at risk when its best AGV reaches it in time (``min_i eta[i, j] <=
+    latest[j]``) with less than ``horizon`` steps to spare: the next plan is about that far
+    away for an order left out of this one.
+
+    Parameters
+    ----------
+    eta : np.ndarray, shape (A, O)
+    latest : np.ndarray, shape (O,)
+        ``inf`` for an order without deadline (never at risk).
+    horizon : float
+        Steps (``inf``: every order that can still meet its deadline).
+
+    Returns
+    -------
+    np.ndarray of bool, shape (O,)
+    """
+    if eta.shape[0] == 0:
+        return np.zeros(eta.shape[1], dtype=bool)
+    spare = latest - eta.min(axis=0)
+    return np.isfinite(latest) & (spare >= 0) & (spare < horizon)
 
 
 class WaypointDriver:
@@ -88,12 +151,22 @@ class WaypointDriver:
 class LifelongDispatcher:
     """Re-plan the floors where something happened, then drive (the shared loop).
 
-    Subclasses define :meth:`plan`.
+    Subclasses define :meth:`_solve` (or :meth:`plan`).
 
     Parameters
     ----------
     driver : WaypointDriver, optional
         How AGVs follow their targets (default :class:`WaypointDriver`).
+
+    Attributes
+    ----------
+    replans : int
+        Floors re-planned so far.
+    next_order : np.ndarray of int64, shape (B, N)
+        The order slot each loaded AGV is matched to next (held here until its delivery; -1
+        for none); -1 everywhere for a dispatcher that does not plan ahead.
+    speed : float
+        World units an AGV covers per step in the estimates (the driver's top speed times dt).
     """
 
     def __init__(self, driver: WaypointDriver | None = None) -> None:
@@ -102,6 +175,9 @@ class LifelongDispatcher:
         self.driver = driver or WaypointDriver()
         self.env: Any = None
         self.replans = 0
+        self.next_order = np.zeros((0, 0), dtype=np.int64)
+        self.speed = 1.0
+        self.service_steps = 0
 
     def reset(self, env: Any) -> None:
         """Bind to a lifelong env and plan every floor."""
@@ -111,6 +187,10 @@ class LifelongDispatcher:
         self.env = env
         self.driver.reset(env)
         self.distances = self.driver.distances
+        ph = env.world.physics
+        self.speed = float(getattr(self.driver, "max_speed", ph.terminal_speed)) * ph.dt
+        self.service_steps = int(env.scenario.service_steps)
+        self.next_order = np.full((env.num_envs, env.num_agents), -1, dtype=np.int64)
         self._replan(np.ones(env.num_envs, dtype=bool))
 
     def act(self, obs: Tensor | None = None) -> Tensor:
@@ -125,61 +205,138 @@ class LifelongDispatcher:
 
     def _replan(self, floors: np.ndarray) -> None:
         env = self.env
-        plan = env.fleet.order.clone()
+        fleet, o = env.fleet, env.orders
+        current = fleet.order.cpu().numpy()
         status = env.agent_status.cpu().numpy()
-        plan[torch.as_tensor(status == 2)] = -1  # loaded AGVs keep their order (-1 = as is)
-        o = env.orders
+        service_left = fleet.service_left.cpu().numpy()
         pos = env.agent_pos.double().cpu().numpy()
         st = o.status.cpu().numpy()
         pickup = o.pickup.double().cpu().numpy()
+        dropoff = o.dropoff.double().cpu().numpy()
         order_id = o.id.cpu().numpy()
         priority = o.priority.cpu().numpy()
+        release = o.release.cpu().numpy()
+        deadline = o.deadline.cpu().numpy()
+        now = env.steps.cpu().numpy()
+        plan = np.full(current.shape, -1, dtype=np.int64)
+        for b in np.flatnonzero(~floors):
+            plan[b] = np.where(status[b] == _LOADED, -1, current[b])  # as they are
         for b in np.flatnonzero(floors):
-            row = self.plan(pos[b], status[b], plan[b].cpu().numpy(), st[b], pickup[b],
-                            order_id[b], priority[b])
-            plan[b] = torch.as_tensor(row)
-        env.assign(plan)
+            row, nxt = self._solve(pos[b], status[b], current[b], st[b], pickup[b],
+                                   order_id[b], priority[b], dropoff=dropoff[b],
+                                   release=release[b], deadline=deadline[b], now=int(now[b]),
+                                   service_left=service_left[b],
+                                   next_order=self.next_order[b])
+            plan[b] = row
+            self.next_order[b] = nxt
+        env.assign(torch.as_tensor(plan))
         self.replans += int(floors.sum())
 
     def plan(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
              order_status: np.ndarray, pickup: np.ndarray, order_id: np.ndarray,
-             priority: np.ndarray) -> np.ndarray:
-        """One floor's plan: the slot each AGV serves next (-1: none / keep a loaded one)."""
+             priority: np.ndarray, *, dropoff: np.ndarray | None = None,
+             release: np.ndarray | None = None, deadline: np.ndarray | None = None,
+             now: int = 0, service_left: np.ndarray | None = None,
+             next_order: np.ndarray | None = None) -> np.ndarray:
+        """One floor's plan: the slot each AGV serves next (-1: none, or keep a loaded one).
+
+        Parameters
+        ----------
+        pos : np.ndarray, shape (N, 2)
+            AGV positions.
+        status : np.ndarray of int, shape (N,)
+            :data:`sim.orders.AGENT_STATUS` codes (0 idle, 1 to pickup, 2 loaded, 3 broken).
+        current : np.ndarray of int, shape (N,)
+            The slot each AGV is assigned to or carries (-1: none; a loaded AGV given -1 is
+            left out of the plan, its drop-off unknown).
+        order_status : np.ndarray of int, shape (Q,)
+            :data:`sim.orders.ORDER_STATUS` codes per slot.
+        pickup : np.ndarray, shape (Q, 2)
+        order_id : np.ndarray of int, shape (Q,)
+        priority : np.ndarray of int, shape (Q,)
+        dropoff : np.ndarray, shape (Q, 2), optional
+            Drop-offs: with them a loaded AGV is matched from its drop-off (its next order,
+            held in :attr:`last_next`) and deadlines count the loaded trip.
+        release, deadline : np.ndarray of int, shape (Q,), optional
+            Release and due steps (deadline -1: none).
+        now : int
+            The current step (deadlines are absolute steps).
+        service_left : np.ndarray of int, shape (N,), optional
+            Steps of service each AGV still stands.
+        next_order : np.ndarray of int, shape (N,), optional
+            The next orders held from the previous plan (kept unless another plan is better
+            by the switching cost).
+
+        Returns
+        -------
+        np.ndarray of int64, shape (N,)
+            For ``env.assign``; a loaded AGV's next order is in :attr:`last_next`.
+        """
+        row, nxt = self._solve(pos, status, current, order_status, pickup, order_id, priority,
+                               dropoff=dropoff, release=release, deadline=deadline, now=now,
+                               service_left=service_left, next_order=next_order)
+        self.last_next = nxt
+        return row
+
+    def _solve(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
+               order_status: np.ndarray, pickup: np.ndarray, order_id: np.ndarray,
+               priority: np.ndarray, **extra: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(plan row (N,), next order per AGV (N,))`` for one floor."""
         raise NotImplementedError
 
 
 class FifoDispatcher(LifelongDispatcher):
-    """OpenTCS's default: the oldest order (higher priority first) to its nearest free AGV.
+    """OpenTCS's default: the oldest order (higher priority first) to its nearest idle AGV.
 
-    An AGV keeps an assigned order until it picks it up; only free (idle, working) AGVs and
-    open orders are matched, one order at a time.
+    An AGV keeps an assigned order until it picks it up; only idle (working, free) AGVs and
+    open orders are matched, one order at a time in (priority descending, id ascending) order,
+    each to the nearest idle AGV left by travel distance. It plans no next orders.
     """
 
-    def plan(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
-             order_status: np.ndarray, pickup: np.ndarray, order_id: np.ndarray,
-             priority: np.ndarray) -> np.ndarray:
-        plan = current.copy()
+    def _solve(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
+               order_status: np.ndarray, pickup: np.ndarray, order_id: np.ndarray,
+               priority: np.ndarray, **extra: Any) -> tuple[np.ndarray, np.ndarray]:
+        plan = np.where(status == _LOADED, -1, current).astype(np.int64)
+        nxt = np.full(len(pos), -1, dtype=np.int64)
         free = np.flatnonzero(status == _IDLE)
         waiting = np.flatnonzero(order_status == _OPEN)
         if not len(free) or not len(waiting):
-            return plan
+            return plan, nxt
         order = waiting[np.lexsort((order_id[waiting], -priority[waiting]))]
         take = order[: len(free)]
         dist = self.distances.distance(pos[free], pickup[take])  # (F, T)
         available = np.ones(len(free), dtype=bool)
-        for j in range(len(take)):
+        for j in range(len(take)):  # a loop over at most F orders, each an array op
             d = np.where(available, dist[:, j], np.inf)
             i = int(np.argmin(d))
             if not np.isfinite(d[i]):
                 continue
             plan[free[i]] = take[j]
             available[i] = False
-        return plan
+        return plan, nxt
 
 
 class MatchingDispatcher(LifelongDispatcher):
-    """Match the free and to-pickup AGVs with the orders not yet picked up, by a matching rule
-    on their travel costs.
+    """Match the AGVs with the orders not yet picked up, by a matching rule on estimated costs.
+
+    The AGVs: idle and to-pickup ones from where they are, and (given drop-offs) loaded ones
+    from their drop-off once there; broken ones never. The orders: open and assigned ones.
+    The cost of AGV i for order j, in world units (steps times :attr:`speed`)::
+
+        speed * eta[i, j]                                   # steps until i could be at j
+        - priority_weight * priority[j]
+        + lateness_weight * speed * max(0, eta[i, j] - latest[j])
+        - deadline_bonus * at_risk[j]
+        + switching_cost * (j is not i's current or held order)
+
+    with ``eta[i, j] = lag[i] + travel(ready_i, pickup_j) / speed``; ``lag`` is 0 for an AGV
+    that is free (plus service steps still to stand), and for a loaded AGV the remaining
+    travel to its drop-off over ``speed`` plus the service steps there; ``latest[j]`` is the
+    latest pickup step (from now) that meets j's deadline (its deadline minus the loaded
+    trip's steps and the service at both ends; ``inf`` without deadline), and ``at_risk[j]``
+    says j can still meet it but with less than ``deadline_horizon`` steps to spare
+    (:func:`at_risk`), so that it is served now rather than in a later
+    plan. A loaded AGV's match is its next order, held in :attr:`next_order`.
 
     Parameters
     ----------
@@ -187,55 +344,180 @@ class MatchingDispatcher(LifelongDispatcher):
         ``matching(cost (A, O)) -> (rows, cols)``, e.g. :func:`scipy.optimize.
         linear_sum_assignment` (min-sum) or :func:`allocator.greedy.greedy_matching`.
     switching_cost : float
-        Added to every pair but an AGV's current one, so a plan changes only for a gain larger
-        than this (world units; default 0.5).
+        World units added to every pair but an AGV's current one (default 0.5).
     priority_weight : float
         Each priority level is worth this much travel (default 2.0).
+    deadline_bonus : float
+        World units taken off an order at risk of missing its deadline (default 5.0).
+    lateness_weight : float
+        Cost per world unit an AGV would arrive past the order's latest pickup (default 1.0).
+    deadline_horizon : float
+        Steps of spare time below which an order is at risk (default 100).
+    plan_ahead : bool
+        Match loaded AGVs to their next orders (default True).
     driver : WaypointDriver, optional
     """
 
     def __init__(self, matching: Any = linear_sum_assignment, switching_cost: float = 0.5,
-                 priority_weight: float = 2.0, driver: WaypointDriver | None = None) -> None:
+                 priority_weight: float = 2.0, driver: WaypointDriver | None = None, *,
+                 deadline_bonus: float = 5.0, lateness_weight: float = 1.0,
+                 deadline_horizon: float = 100.0, plan_ahead: bool = True) -> None:
         super().__init__(driver)
         if not callable(matching):
             raise ValueError(f"matching must be a callable cost -> (rows, cols), got "
                              f"{matching!r}")
         for name, value in (("switching_cost", switching_cost),
-                            ("priority_weight", priority_weight)):
+                            ("priority_weight", priority_weight),
+                            ("deadline_bonus", deadline_bonus),
+                            ("lateness_weight", lateness_weight)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
                     or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        self.deadline_horizon = _check_nonneg("deadline_horizon", deadline_horizon, True)
+        if not isinstance(plan_ahead, (bool, np.bool_)):
+            raise ValueError(f"plan_ahead must be True or False, got {plan_ahead!r}")
         self.matching = matching
         self.switching_cost = float(switching_cost)
         self.priority_weight = float(priority_weight)
+        self.deadline_bonus = float(deadline_bonus)
+        self.lateness_weight = float(lateness_weight)
+        self.plan_ahead = bool(plan_ahead)
+        self.last_cost: np.ndarray | None = None
 
-    def plan(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
-             order_status: np.ndarray, pickup: np.ndarray, order_id: np.ndarray,
-             priority: np.ndarray) -> np.ndarray:
-        plan = current.copy()
-        agents = np.flatnonzero((status == _IDLE) | (status == _TO_PICKUP))
+    def _match(self, cost: np.ndarray, positions: np.ndarray,
+               targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Matched (rows, cols) of the cost (A, O); AGVs at ``positions`` (A, 2), orders'
+        pickups at ``targets`` (O, 2)."""
+        rows, cols = self.matching(cost)
+        return np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+
+    def _solve(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
+               order_status: np.ndarray, pickup: np.ndarray, order_id: np.ndarray,
+               priority: np.ndarray, *, dropoff: np.ndarray | None = None,
+               release: np.ndarray | None = None, deadline: np.ndarray | None = None,
+               now: int = 0, service_left: np.ndarray | None = None,
+               next_order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        n = len(pos)
+        speed = self.speed
+        plan = np.where(status == _LOADED, -1, current).astype(np.int64)
+        nxt = np.full(n, -1, dtype=np.int64)
+        held = np.full(n, -1, dtype=np.int64) if next_order is None else next_order
+        loaded = (status == _LOADED) & (current >= 0) & (dropoff is not None) & self.plan_ahead
+        agents = np.flatnonzero((status == _IDLE) | (status == _TO_PICKUP) | loaded)
         orders = np.flatnonzero((order_status == _OPEN) | (order_status == _ASSIGNED))
         if not len(agents) or not len(orders):
-            return plan
-        cost = self.distances.distance(pos[agents], pickup[orders])  # (A, O)
-        cost = cost - self.priority_weight * priority[orders][None, :]
-        keep = current[agents][:, None] == orders[None, :]
-        cost = cost + self.switching_cost * ~keep
-        big = 1e9
-        cost = np.where(np.isfinite(cost), cost, big)
-        rows, cols = self.matching(cost)
-        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-        plan[agents] = -1
-        ok = cost[rows, cols] < big
-        plan[agents[rows[ok]]] = orders[cols[ok]]
-        return plan
+            self.last_cost = np.zeros((len(agents), len(orders)))
+            return plan, nxt
+        origin = pos[agents].copy()
+        lag = np.zeros(len(agents)) if service_left is None else \
+            service_left[agents].astype(np.float64)
+        is_loaded = loaded[agents]
+        if is_loaded.any():
+            carried = current[agents[is_loaded]]
+            drop = dropoff[carried]
+            remaining = self.distances.pairwise(origin[is_loaded], drop)
+            lag[is_loaded] += remaining / speed + self.service_steps
+            origin[is_loaded] = drop
+        travel = self.distances.distance(origin, pickup[orders])  # (A, O)
+        cost = travel + (speed * lag)[:, None]
+        if self.priority_weight:
+            cost -= self.priority_weight * priority[orders][None, :]
+        if deadline is not None and (deadline[orders] >= 0).any():
+            due = deadline[orders] >= 0
+            latest = np.full(len(orders), np.inf)
+            trip = np.zeros(int(due.sum()))
+            if dropoff is not None:
+                sel = orders[due]
+                trip = self.distances.pairwise(pickup[sel], dropoff[sel]) / speed
+            latest[due] = deadline[orders][due] - now - trip - 2 * self.service_steps
+            eta = travel / speed + lag[:, None]
+            if self.lateness_weight:
+                cost += self.lateness_weight * speed * lateness(eta, latest)
+            if self.deadline_bonus:
+                cost -= self.deadline_bonus * at_risk(eta, latest, self.deadline_horizon)[None]
+        mine = np.where(plan[agents] >= 0, plan[agents], held[agents])
+        mine = np.where(is_loaded, held[agents], mine)
+        keep = mine[:, None] == orders[None, :]
+        cost += self.switching_cost * ~keep
+        cost = np.where(np.isfinite(cost), cost, _BIG)
+        self.last_cost = cost
+        rows, cols = self._match(cost, pos[agents], pickup[orders])
+        ok = cost[rows, cols] < _BIG / 2
+        rows, cols = rows[ok], cols[ok]
+        plan[agents[~is_loaded]] = -1
+        now_rows = ~is_loaded[rows]
+        plan[agents[rows[now_rows]]] = orders[cols[now_rows]]
+        nxt[agents[rows[~now_rows]]] = orders[cols[~now_rows]]
+        return plan, nxt
 
 
 class HungarianDispatcher(MatchingDispatcher):
-    """Min-sum travel (:func:`scipy.optimize.linear_sum_assignment`) over the free and
-    to-pickup AGVs and the orders not yet picked up, with a switching cost and priorities
-    (see :class:`MatchingDispatcher`)."""
+    """Min-sum (:func:`scipy.optimize.linear_sum_assignment`) over the AGVs and the orders not
+    yet picked up, on the costs of :class:`MatchingDispatcher`: loaded AGVs counted from where
+    and when they will be free, priorities, deadlines, a switching cost."""
 
     def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
-                 driver: WaypointDriver | None = None) -> None:
-        super().__init__(linear_sum_assignment, switching_cost, priority_weight, driver)
+                 driver: WaypointDriver | None = None, **options: Any) -> None:
+        super().__init__(linear_sum_assignment, switching_cost, priority_weight, driver,
+                         **options)
+
+
+class AuctionDispatcher(MatchingDispatcher):
+    """The costs of :class:`MatchingDispatcher`, matched by a decentralized epsilon-auction
+    (:func:`allocator.auction.auction`) over the AGVs' current communication graph.
+
+    What an AGV knows: the warehouse system announces every order to the AGV nearest its
+    pickup (straight-line distance; a terminal at the pickup calls the nearest vehicle), which
+    floods it through its connected component of the graph (AGVs at most ``comm_range`` apart,
+    broken ones left out). So every order is heard by exactly one component, and only that
+    component's AGVs bid for it; conflicts inside a component are resolved by the auction's
+    messages alone (each AGV's prices and holders to its neighbours). Each AGV's costs are its
+    own (its travel and lag); priorities and deadlines travel with the announcement.
+
+    Messages are counted: :attr:`last_messages` (the last re-plan), :attr:`messages` (all),
+    :attr:`replan_messages` (one entry per re-planned floor), and :attr:`last_rounds`.
+
+    Parameters
+    ----------
+    comm_range : float
+        Radio range in world units, > 0 (``inf``: every AGV hears every other).
+    eps : float, optional
+        Bid increment (default :func:`allocator.auction.default_eps` of the benefits).
+    max_rounds : int
+        Round limit per component and re-plan.
+    **options
+        Those of :class:`MatchingDispatcher` (``switching_cost``, ``priority_weight``, ...).
+    """
+
+    def __init__(self, comm_range: float = math.inf, eps: float | None = None,
+                 max_rounds: int = 20_000, **options: Any) -> None:
+        super().__init__(linear_sum_assignment, **options)
+        self.comm_range = check_comm_range(comm_range)
+        if eps is not None:
+            _check_nonneg("eps", eps, positive=True)
+        if isinstance(max_rounds, bool) or not isinstance(max_rounds, (int, np.integer)) \
+                or max_rounds < 1:
+            raise ValueError(f"max_rounds must be an int >= 1, got {max_rounds!r}")
+        self.eps = eps
+        self.max_rounds = int(max_rounds)
+        self.messages = 0
+        self.last_messages = 0
+        self.last_rounds = 0
+        self.replan_messages: list[int] = []
+
+    def _match(self, cost: np.ndarray, positions: np.ndarray,
+               targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        benefit = -cost
+        bad = cost >= _BIG / 2  # unreachable pairs: below every reachable one (then dropped)
+        if bad.any():
+            good = benefit[~bad]
+            low = float(good.min() - (good.max() - good.min()) - 1.0) if good.size else -1.0
+            benefit = np.where(bad, low, benefit)
+        out = component_auction(benefit, positions, targets, self.comm_range, eps=self.eps,
+                                max_rounds=self.max_rounds)
+        self.last_messages = out.messages
+        self.last_rounds = out.rounds
+        self.messages += out.messages
+        self.replan_messages.append(out.messages)
+        rows = np.flatnonzero(out.task_of_agent >= 0)
+        return rows, out.task_of_agent[rows]

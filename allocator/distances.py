@@ -297,24 +297,31 @@ class _FloorGrid:
         uniq, inv = np.unique(cells, return_inverse=True)
         out = np.empty((len(uniq), self.shape[0] * self.shape[1]))
         missing = []
+        expanded = []
         for k, c in enumerate(uniq.tolist()):
-            row = self.row_of_cell.get(c)
-            if row is not None:
-                out[k] = np.inf
-                out[k, self.free.ravel()] = self.table[:, row]
-            elif c in self._cache:
+            if c in self._cache:
                 self._cache.move_to_end(c)
                 out[k] = self._cache[c]
+            elif (row := self.row_of_cell.get(c)) is not None:
+                out[k] = np.inf  # a table row, spread over the grid once and then cached
+                out[k, self.free.ravel()] = self.table[:, row]
+                expanded.append(k)
             else:
                 missing.append(k)
+        for k in expanded:
+            self._remember(int(uniq[k]), out[k].copy())
         if missing:
             new = csgraph.dijkstra(self.graph, directed=False, indices=uniq[missing])
             out[missing] = new
             for k, row in zip(missing, new, strict=True):
-                self._cache[int(uniq[k])] = row
-                if len(self._cache) > self.cache_rows:
-                    self._cache.popitem(last=False)
+                self._remember(int(uniq[k]), row)
         return out[inv]
+
+    def _remember(self, cell: int, row: np.ndarray) -> None:
+        """Keep a full field in the bounded least-recently-used cache."""
+        self._cache[cell] = row
+        if len(self._cache) > self.cache_rows:
+            self._cache.popitem(last=False)
 
     def descend(self, cells: np.ndarray, field_rows: np.ndarray,
                 row_of: np.ndarray) -> np.ndarray:
@@ -531,6 +538,40 @@ class FloorDistances:
         else:
             grid = g.fields(b_cells)[:, a_cells].T
         return grid + a_off[:, None] + b_off[None, :]
+
+    def pairwise(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Obstacle-aware travel distance from ``a[k]`` to ``b[k]`` for every k.
+
+        The diagonal of :meth:`distance` without the rest of the matrix: one gather when every
+        point of ``b`` is one of the floor's pickups or stations.
+
+        Parameters
+        ----------
+        a, b : array-like, shape (K, 2)
+
+        Returns
+        -------
+        np.ndarray of float64, shape (K,)
+            ``inf`` where ``b[k]`` cannot be reached from ``a[k]``.
+
+        Raises
+        ------
+        ValueError
+            Naming ``a`` or ``b`` for a wrong shape, NaN, a point outside the floor, or
+            lengths that differ.
+        """
+        a = self._points(a, "a")
+        b = self._points(b, "b", batch=len(a))
+        g = self._grid
+        a_cells, a_off = g.snap(a)
+        b_cells, b_off = g.snap(b)
+        rows = self._fixed_rows(b)
+        if rows is not None:
+            grid = g.table[g.column[a_cells], rows].astype(np.float64)
+        else:
+            uniq, inv = np.unique(b_cells, return_inverse=True)
+            grid = g.fields(uniq)[inv, a_cells]
+        return grid + a_off + b_off
 
     def path(self, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
         """A smoothed collision-free path from ``a`` to ``b``.

@@ -10,7 +10,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from allocator.base import Assignment, ClassicalAllocator, check_inputs, register
+from allocator.base import (
+    Assignment,
+    ClassicalAllocator,
+    check_inputs,
+    check_plan_options,
+    register,
+    solve_with_options,
+)
 from allocator.hungarian import (
     _make_planner,
     check_cost_matrix,
@@ -107,7 +114,11 @@ class GreedyAllocator(ClassicalAllocator):
         return MatchingDispatcher(self.matching)
 
     def assign(
-        self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
+        self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None, *,
+        available: np.ndarray | None = None, priorities: np.ndarray | None = None,
+        ready_positions: np.ndarray | None = None, ready_steps: np.ndarray | None = None,
+        deadlines: np.ndarray | None = None, keep: np.ndarray | None = None, now: int = 0,
+        speed: float = 1.0,
     ) -> Assignment:
         """Greedy nearest-first assignment of N AGVs to M tasks.
 
@@ -116,6 +127,10 @@ class GreedyAllocator(ClassicalAllocator):
         agents : array-like, shape (N, 2)
         tasks : array-like, shape (M, 2)
         world : World, optional
+        available, priorities, ready_positions, ready_steps, deadlines, keep, now, speed
+            As :meth:`allocator.hungarian.HungarianAllocator.assign`: the same costs; the
+            service levels (priority, then a deadline that can still be met) are matched one
+            after another, highest first, each by this allocator's rule on the AGVs left.
 
         Returns
         -------
@@ -126,7 +141,8 @@ class GreedyAllocator(ClassicalAllocator):
         Raises
         ------
         ValueError
-            On bad input (see :func:`allocator.base.check_inputs`).
+            On bad input (see :func:`allocator.base.check_inputs` and
+            :func:`allocator.base.check_plan_options`).
 
         Examples
         --------
@@ -139,8 +155,10 @@ class GreedyAllocator(ClassicalAllocator):
         array([1, 0])
         """
         agents, tasks = check_inputs(agents, tasks, world)
-        cost = travel_costs(agents, tasks, world, self.resolution)
-        rows, cols = self.matching(cost)
+        opts = check_plan_options(agents, tasks, world, available, priorities,
+                                  ready_positions, ready_steps, deadlines, keep, now, speed)
+        travel = travel_costs(opts.ready_positions, tasks, world, self.resolution)
+        rows, cols = solve_with_options(travel, opts, self._by_levels)
         task_of_agent = np.full(len(agents), -1, dtype=np.int64)
         task_of_agent[rows] = cols
         agent_of_task = np.full(len(tasks), -1, dtype=np.int64)
@@ -150,11 +168,27 @@ class GreedyAllocator(ClassicalAllocator):
             if self._planner_world is not world:
                 self._planner = _make_planner(self.planner, world, self.seed)
                 self._planner_world = world
-            paths = plan_paths(agents, tasks, task_of_agent, world, self._planner)
+            paths = plan_paths(opts.ready_positions, tasks, task_of_agent, world,
+                               self._planner)
         return Assignment(
-            task_of_agent, agent_of_task, float(cost[rows, cols].sum()), paths=paths,
-            unserved=unserved_reasons(cost, agent_of_task), method=self.name,
+            task_of_agent, agent_of_task, float(travel[rows, cols].sum()), paths=paths,
+            unserved=unserved_reasons(opts.cost(travel), agent_of_task), method=self.name,
         )
+
+    def _by_levels(self, cost: np.ndarray, levels: np.ndarray | None,
+                   cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """This allocator's rule, level by level (highest first) on the AGVs left."""
+        if levels is None:
+            return self.matching(cost)
+        work = cost.copy()
+        rows_out, cols_out = [], []
+        for level in np.unique(levels)[::-1]:
+            sel = np.flatnonzero(levels == level)
+            r, c = self.matching(work[:, sel])
+            rows_out.append(r)
+            cols_out.append(sel[c])
+            work[r, :] = np.inf
+        return np.concatenate(rows_out), np.concatenate(cols_out)
 
     def __repr__(self) -> str:
         return f"GreedyAllocator(planner={self.planner!r})"

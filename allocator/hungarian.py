@@ -8,13 +8,22 @@ unserved with the reason; it is never matched at infinite cost.
 from __future__ import annotations
 
 import numbers
-import sys
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from allocator.base import Assignment, ClassicalAllocator, as_real_array, check_inputs, register
+from allocator.base import (
+    MAX_EXACT_PRIORITY,
+    Assignment,
+    ClassicalAllocator,
+    as_real_array,
+    check_inputs,
+    check_plan_options,
+    priority_levels,
+    register,
+    solve_with_options,
+)
 from allocator.paths import travel_costs
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -22,7 +31,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "HungarianAllocator", "solve_cost_matrix", "check_cost_matrix", "priority_levels",
-    "plan_paths", "unserved_reasons", "PLANNERS",
+    "plan_paths", "unserved_reasons", "PLANNERS", "MAX_EXACT_PRIORITY",
 ]
 
 UNREACHABLE = "unreachable: no AGV can reach this task (shelves or walls cut it off)"
@@ -31,10 +40,6 @@ NO_AGENT_LEFT = "no AGV left: every AGV serves another task"
 
 PLANNERS = (None, "grid", "ompl", "rrtconnect", "prm")
 """Values of the ``planner`` option of the classical allocators (``"ompl"``: RRTConnect)."""
-
-MAX_EXACT_PRIORITY = 2**53
-"""Float priorities above this may already have lost their last digits (float64 holds every
-integer only up to 2**53): pass integers instead."""
 
 
 def check_planner_options(planner: object, resolution: object, seed: object) -> None:
@@ -101,47 +106,6 @@ def check_weights(values: object, m: int) -> np.ndarray:
     if np.any(arr <= 0):
         raise ValueError("weights must be positive")
     return arr
-
-
-def priority_levels(values: object, m: int) -> np.ndarray:
-    """Check integer priorities of shape (M,) and return their dense ranks, shape (M,).
-
-    The ranks (0 for the lowest priority given, 1 for the next, ...) order the tasks exactly
-    as the priorities do, however large the integers, and stay small, so the costs keep their
-    precision next to them. The plans are the same: the tasks a matching can serve form a
-    matroid, whose best sets depend only on the order of the priorities.
-
-    Raises
-    ------
-    ValueError
-        For a wrong shape, negative, fractional, non-finite or boolean values, or float values
-        beyond :data:`MAX_EXACT_PRIORITY`.
-    """
-    torch = sys.modules.get("torch")
-    if torch is not None and isinstance(values, torch.Tensor):
-        values = values.detach().cpu()
-    try:
-        raw = np.asarray(values)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"priorities must be an array of M = {m} integers: {err}") from None
-    if raw.shape != (m,):
-        raise ValueError(f"priorities must have shape (M,) = ({m},), got {raw.shape}")
-    ints = [v for v in raw.tolist() if isinstance(v, int) and not isinstance(v, bool)]
-    if raw.dtype.kind not in "iu" and len(ints) != m:
-        floats = as_real_array(raw, "priorities", f"an array of M = {m} integers")
-        if not np.all(np.isfinite(floats)) or np.any(floats != np.round(floats)):
-            raise ValueError("priorities must be non-negative integers")
-        if np.any(np.abs(floats) > MAX_EXACT_PRIORITY):
-            raise ValueError(
-                f"priorities given as floats must be at most 2**53 = {MAX_EXACT_PRIORITY}: "
-                "beyond it a float cannot hold every integer (pass integers instead)"
-            )
-        raw = floats
-    elif raw.dtype.kind == "O":
-        raw = np.array(ints, dtype=object)
-    if np.any(raw < 0):
-        raise ValueError("priorities must be non-negative integers")
-    return np.unique(raw, return_inverse=True)[1].reshape(m).astype(np.float64)
 
 
 def solve_cost_matrix(
@@ -326,6 +290,13 @@ class HungarianAllocator(ClassicalAllocator):
         *,
         weights: np.ndarray | None = None,
         priorities: np.ndarray | None = None,
+        available: np.ndarray | None = None,
+        ready_positions: np.ndarray | None = None,
+        ready_steps: np.ndarray | None = None,
+        deadlines: np.ndarray | None = None,
+        keep: np.ndarray | None = None,
+        now: int = 0,
+        speed: float = 1.0,
     ) -> Assignment:
         """Optimal assignment of N AGVs to M tasks (N and M may differ).
 
@@ -343,20 +314,28 @@ class HungarianAllocator(ClassicalAllocator):
         priorities : array-like of int, shape (M,), optional
             Non-negative integer priority levels, exact at any size; when not every task can
             be served, higher levels are served first.
+        available, ready_positions, ready_steps, deadlines, keep, now, speed
+            The scene's state (see :func:`allocator.base.check_plan_options`): the cost of
+            AGV i for task j is ``speed * (ready_steps[i] - now) + travel(ready_i, task_j)``
+            plus ``speed`` per step it would arrive past j's deadline; kept pairs stay,
+            unavailable AGVs get nothing; served first are higher priorities, then tasks whose
+            deadline an available AGV can still meet (exact levels), then the least cost.
 
         Returns
         -------
         Assignment
             ``task_of_agent[i]`` is the task AGV i should go to (-1: idle),
             ``agent_of_task[j]`` the AGV serving task j (-1: unserved, with the reason in
-            ``unserved[j]``), ``cost`` the total travel distance (unweighted). ``min(N, M)``
-            pairs are served unless shelves cut tasks off.
+            ``unserved[j]``), ``cost`` the total travel distance (unweighted; from the ready
+            positions). ``min(N, M)`` pairs are served unless shelves cut tasks off or AGVs
+            are unavailable.
 
         Raises
         ------
         ValueError
             On a wrong shape, an empty array, NaN or infinite positions, positions outside the
-            world or inside a shelf, or bad weights / priorities.
+            world or inside a shelf, or bad weights / priorities / plan options (the message
+            names the argument).
 
         Examples
         --------
@@ -372,20 +351,28 @@ class HungarianAllocator(ClassicalAllocator):
         agents, tasks = check_inputs(agents, tasks, world)
         m = len(tasks)
         w = None if weights is None else check_weights(weights, m)
-        p = None if priorities is None else priority_levels(priorities, m)
-        cost = self.cost_matrix(agents, tasks, world)
-        rows, cols = solve_cost_matrix(cost, w, p)
-        result_cost = float(cost[rows, cols].sum())
+        opts = check_plan_options(agents, tasks, world, available, priorities,
+                                  ready_positions, ready_steps, deadlines, keep, now, speed)
+        travel = self.cost_matrix(opts.ready_positions, tasks, world)
+
+        def solve(cost: np.ndarray, levels: np.ndarray | None,
+                  cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return solve_cost_matrix(cost, None if w is None else w[cols], levels)
+
+        rows, cols = solve_with_options(travel, opts, solve)
+        result_cost = float(travel[rows, cols].sum())
         task_of_agent = np.full(len(agents), -1, dtype=np.int64)
         task_of_agent[rows] = cols
         paths = None
         if self.planner is not None:
-            paths = plan_paths(agents, tasks, task_of_agent, world, self._planner_for(world))
+            paths = plan_paths(opts.ready_positions, tasks, task_of_agent, world,
+                               self._planner_for(world))
         agent_of_task = np.full(m, -1, dtype=np.int64)
         agent_of_task[cols] = rows
         return Assignment(
             task_of_agent, agent_of_task, result_cost, paths=paths,
-            unserved=unserved_reasons(cost, agent_of_task) if len(cols) < m else {},
+            unserved=unserved_reasons(opts.cost(travel), agent_of_task)
+            if len(cols) < m else {},
             method=self.name,
         )
 
@@ -400,3 +387,4 @@ class HungarianAllocator(ClassicalAllocator):
 
     def __repr__(self) -> str:
         return f"HungarianAllocator(planner={self.planner!r})"
+

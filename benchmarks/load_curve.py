@@ -1,0 +1,266 @@
+"""Load curves of the lifelong dispatchers: throughput and p95 wait from light load to saturation.
+
+Writes ``benchmarks/results/dispatch/load_curve.{json,md}`` and
+``docs/figures/load_curve_<floor>.png``::
+
+    OMP_NUM_THREADS=1 python benchmarks/load_curve.py                  # every floor, then report
+    OMP_NUM_THREADS=1 python benchmarks/load_curve.py --floor kiva-small --no-report
+    python benchmarks/load_curve.py --report-only                        # merge the parts
+
+For each floor (``warehouse-50``, and ``benchmarks/floors/kiva-small.map`` loaded with
+``sim.load_floor(..., cell_size=0.4)`` with 24 AGVs) and each dispatcher (``"hungarian"``,
+``"fifo"``, ``"greedy"``, ``"auction"`` with a finite radio range, and
+``sim.controllers.NearestTaskController``), :func:`sim.evaluate_lifelong` runs at Poisson
+arrival rates set as fractions of the floor's ``throughput_bound`` and at saturation (the
+scenario's backlog: ceil(1.5 N) open orders at all times, as the League of Robot Runners
+reveals them); at saturation once more with breakdowns, for the faulted / fault-free ratio.
+Every run of one floor sees the same seed, so the same orders and breakdowns. Each floor's
+part is written after every run (``load_curve.<floor>.json``), so a run cut short keeps what
+it measured.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+from datetime import datetime, timezone  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+import allocator  # noqa: E402
+import sim  # noqa: E402
+from sim.controllers import NearestTaskController  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "benchmarks" / "results" / "dispatch"
+FIGURES = ROOT / "docs" / "figures"
+KIVA = ROOT / "benchmarks" / "floors" / "kiva-small.map"
+FLOORS = ("warehouse-50", "kiva-small")
+DISPATCHERS = ("hungarian", "fifo", "greedy", "auction", "nearest")
+COMM_RANGE = 3.0
+"""The auction's radio range (world units): a few aisles, so the graph does split."""
+FAULTS = dict(rate=0.0005, repair_steps=50)
+"""Breakdowns per AGV-step and repair time of the faulted runs."""
+
+
+def floor_scenario(name: str) -> tuple[object, dict]:
+    """The ``scenario`` argument of :func:`sim.evaluate_lifelong` and its options."""
+    if name == "kiva-small":
+        return sim.load_floor(KIVA, cell_size=0.4), {"num_agents": 24}
+    return name, {}
+
+
+def controller(name: str) -> object:
+    if name == "nearest":
+        return NearestTaskController()
+    if name == "auction":
+        return allocator.make("auction", comm_range=COMM_RANGE)
+    return allocator.make(name)
+
+
+def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
+            seed: int) -> dict:
+    scenario, options = floor_scenario(floor)
+    ctrl = controller(name)
+    start = time.perf_counter()
+    m = sim.evaluate_lifelong(ctrl, scenario, steps=steps, seed=seed, arrival_rate=rate,
+                              faults=sim.Breakdowns(**FAULTS) if faults else None, **options)
+    row = dict(floor=floor, dispatcher=name, load="saturation" if rate is None else "poisson",
+               rate=rate, faults=faults, throughput=m.throughput,
+               throughput_bound=m.throughput_bound, wait_mean=m.wait_mean,
+               wait_p95=m.wait_p95, lead_p95=m.lead_p95, utilization=m.utilization,
+               reassignments=m.reassignments, lost=m.lost, released=m.released,
+               delivered=m.delivered, open_at_end=m.open_at_end,
+               collisions_per_1000=m.collisions_per_1000,
+               seconds=time.perf_counter() - start)
+    dispatcher = getattr(ctrl, "_dispatcher", None)
+    if name == "auction" and dispatcher is not None:
+        per = dispatcher.replan_messages
+        row.update(messages=dispatcher.messages, replans=len(per),
+                   messages_per_replan=dispatcher.messages / max(len(per), 1),
+                   comm_range=COMM_RANGE)
+    return row
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True, cwd=ROOT).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, allow_nan=True))
+    tmp.replace(path)
+
+
+def measure_floor(floor: str, fractions: list[float], dispatchers: list[str], steps: int,
+                  seed: int) -> None:
+    scenario, options = floor_scenario(floor)
+    bound = sim.get_scenario(scenario, **options).throughput_bound()
+    config = dict(floor=floor, steps=steps, seed=seed, runs=1, fractions=fractions,
+                  rates=[f * bound / 1000.0 for f in fractions], throughput_bound=bound,
+                  faults=FAULTS, comm_range=COMM_RANGE, dispatchers=dispatchers,
+                  saturation="the scenario's backlog: ceil(1.5 N) open orders at all times",
+                  commit=_commit(), torch_threads=torch.get_num_threads(),
+                  omp_num_threads=os.environ.get("OMP_NUM_THREADS"),
+                  machine=f"{platform.machine()}, {os.cpu_count()} CPUs",
+                  date=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
+    if floor == "kiva-small":
+        config.update(map=str(KIVA.relative_to(ROOT)), cell_size=0.4, num_agents=24)
+    part = OUT / f"load_curve.{floor}.json"
+    rows: list[dict] = []
+    loads: list[tuple[float | None, bool]] = [(r, False) for r in config["rates"]]
+    loads += [(None, False), (None, True)]
+    for rate, faults in loads:
+        for name in dispatchers:
+            row = run_one(floor, name, rate, faults, steps, seed)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+            _write_json(part, dict(config=config, results=rows))
+
+
+def _fmt(x: float | None, spec: str = ".1f") -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+
+def report() -> None:
+    parts = {}
+    for floor in FLOORS:
+        path = OUT / f"load_curve.{floor}.json"
+        if path.exists():
+            parts[floor] = json.loads(path.read_text())
+    summary: dict[str, dict] = {}
+    lines = ["# Load curves of the lifelong dispatchers", "",
+             "`OMP_NUM_THREADS=1 python benchmarks/load_curve.py` (one process per floor, "
+             "`--floor NAME`). Throughput in orders delivered per 1000 steps; waits release to "
+             "pickup, steps; *bound* = `throughput_bound` (every AGV always on a shortest "
+             "loaded trip at top speed). Poisson rates as fractions of the bound; *saturation* "
+             "= the scenario's backlog (ceil(1.5 N) open orders at all times); *faults* = "
+             f"`sim.Breakdowns(rate={FAULTS['rate']}, repair_steps={FAULTS['repair_steps']})` "
+             "at saturation. One run per point (seed and steps below).", ""]
+    for floor, part in parts.items():
+        cfg, rows = part["config"], part["results"]
+        lines += [f"## {floor}", "",
+                  f"{cfg['steps']} steps, seed {cfg['seed']}, {cfg['runs']} run per point, "
+                  f"bound {cfg['throughput_bound']:.1f}, auction comm_range "
+                  f"{cfg['comm_range']}, commit {cfg['commit']}, {cfg['date']}"
+                  + (f", map `{cfg['map']}` at cell_size {cfg['cell_size']} with "
+                     f"{cfg['num_agents']} AGVs" if "map" in cfg else "") + ".", "",
+                  "| load | rate (orders/step) | dispatcher | throughput | / bound | wait mean |"
+                  " wait p95 | reassignments | lost | auction messages / re-plan |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            load = ("saturation + faults" if r["faults"] else "saturation") \
+                if r["load"] == "saturation" else \
+                f"{r['rate'] * 1000 / r['throughput_bound']:.2f} x bound" \
+                if r["throughput_bound"] else "poisson"
+            lines.append(
+                f"| {load} | {_fmt(r['rate'], '.4f')} | {r['dispatcher']} | "
+                f"{r['throughput']:.1f} | {r['throughput'] / cfg['throughput_bound']:.2f} | "
+                f"{_fmt(r['wait_mean'])} | {_fmt(r['wait_p95'])} | "
+                f"{r['reassignments']:.0f} | {r['lost']} | "
+                f"{_fmt(r.get('messages_per_replan'), '.0f')} |")
+        sat = {r["dispatcher"]: r for r in rows if r["load"] == "saturation" and not r["faults"]}
+        top = max((r["rate"] for r in rows if r["rate"] is not None), default=None)
+        heavy = {r["dispatcher"]: r for r in rows if r["rate"] == top and top is not None}
+        faulted = {r["dispatcher"]: r for r in rows if r["faults"]}
+        s: dict = {}
+        for label, table in (("saturation", sat), ("highest Poisson rate", heavy)):
+            if "hungarian" in table and "fifo" in table and table["fifo"]["throughput"]:
+                s[f"hungarian / fifo, {label}"] = (table["hungarian"]["throughput"]
+                                                   / table["fifo"]["throughput"])
+        for name, r in faulted.items():
+            if name in sat and sat[name]["throughput"]:
+                s[f"faulted / fault-free, {name}"] = r["throughput"] / sat[name]["throughput"]
+        s["lost (all runs)"] = sum(r["lost"] for r in rows)
+        summary[floor] = s
+        lines += ["", "Targets (issue 14): hungarian >= 1.2x fifo at saturation; with faults "
+                  ">= 85% of the fault-free throughput; 0 lost.", ""]
+        for key, value in s.items():
+            verdict = ""
+            if key.startswith("hungarian / fifo"):
+                verdict = " (met)" if value >= 1.2 else " (NOT met)"
+            elif key.startswith("faulted"):
+                verdict = " (met)" if value >= 0.85 else " (NOT met)"
+            lines.append(f"- {key}: {value:.2f}{verdict}" if isinstance(value, float)
+                         else f"- {key}: {value}")
+        lines.append("")
+        plot(floor, cfg, rows)
+        lines += [f"![load curve {floor}](../../../docs/figures/load_curve_{floor}.png)", ""]
+    _write_json(OUT / "load_curve.json", dict(parts=parts, summary=summary))
+    tmp = OUT / "load_curve.md.tmp"
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(OUT / "load_curve.md")
+
+
+def plot(floor: str, cfg: dict, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_t, ax_w) = plt.subplots(1, 2, figsize=(10, 4))
+    bound = cfg["throughput_bound"]
+    for name in cfg["dispatchers"]:
+        pts = sorted((r["rate"], r) for r in rows if r["dispatcher"] == name
+                     and r["load"] == "poisson")
+        sat = [r for r in rows if r["dispatcher"] == name and r["load"] == "saturation"
+               and not r["faults"]]
+        xs = [1000 * rate for rate, _ in pts]
+        line, = ax_t.plot(xs, [r["throughput"] for _, r in pts], "o-", label=name)
+        ax_w.plot(xs, [r["wait_p95"] for _, r in pts], "o-", color=line.get_color(),
+                  label=name)
+        if sat:
+            x_sat = 1000 * max(rate for rate, _ in pts) * 1.25 if pts else 0.0
+            ax_t.plot([x_sat], [sat[0]["throughput"]], "s", color=line.get_color())
+            ax_w.plot([x_sat], [sat[0]["wait_p95"]], "s", color=line.get_color())
+    top = max((1000 * r["rate"] for r in rows if r["rate"]), default=1.0) * 1.3
+    ax_t.plot([0, top], [0, top], ":", color="grey", label="arrival rate")
+    ax_t.axhline(bound, color="black", ls="--", lw=1, label="throughput_bound")
+    ax_t.set_xlabel("arrival rate (orders per 1000 steps); squares: saturation (backlog)")
+    ax_t.set_ylabel("throughput (orders per 1000 steps)")
+    ax_t.set_ylim(0, min(bound * 1.05, top * 1.1))
+    ax_w.set_xlabel("arrival rate (orders per 1000 steps); squares: saturation")
+    ax_w.set_ylabel("p95 wait, release to pickup (steps)")
+    ax_t.legend(fontsize=8)
+    fig.suptitle(f"{floor}: {cfg['steps']} steps, seed {cfg['seed']}")
+    fig.tight_layout()
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    tmp = FIGURES / f"load_curve_{floor}.tmp.png"
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(FIGURES / f"load_curve_{floor}.png")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--floor", choices=FLOORS, action="append")
+    parser.add_argument("--dispatchers", nargs="+", default=list(DISPATCHERS))
+    parser.add_argument("--fractions", nargs="+", type=float, default=[0.1, 0.2, 0.3, 0.4])
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-report", action="store_true")
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args()
+    if not args.report_only:
+        for floor in args.floor or FLOORS:
+            measure_floor(floor, args.fractions, args.dispatchers, args.steps, args.seed)
+    if not args.no_report:
+        report()
+
+
+if __name__ == "__main__":
+    main()
