@@ -45,6 +45,9 @@ __all__ = ["AuctionDispatcher", "FifoDispatcher", "HungarianDispatcher", "Lifelo
 _OPEN, _ASSIGNED = 1, 2
 _IDLE, _TO_PICKUP, _LOADED, _BROKEN = 0, 1, 2, 3
 _BIG = 1e9
+_RETURNED_BONUS = 1e5
+"""World units taken off an order a breakdown returned, for the AGVs free now: more than any
+travel on a floor, so the next plan reassigns it while an AGV is free."""
 
 
 def _check_nonneg(name: str, value: object, positive: bool = False) -> float:
@@ -218,6 +221,7 @@ class LifelongDispatcher:
         release = o.release.cpu().numpy()
         deadline = o.deadline.cpu().numpy()
         now = env.steps.cpu().numpy()
+        returned = env.events.returned.cpu().numpy()
         plan = np.full(current.shape, -1, dtype=np.int64)
         for b in np.flatnonzero(~floors):
             plan[b] = np.where(status[b] == _LOADED, -1, current[b])  # as they are
@@ -226,7 +230,7 @@ class LifelongDispatcher:
                                    order_id[b], priority[b], dropoff=dropoff[b],
                                    release=release[b], deadline=deadline[b], now=int(now[b]),
                                    service_left=service_left[b],
-                                   next_order=self.next_order[b])
+                                   next_order=self.next_order[b], returned=returned[b])
             plan[b] = row
             self.next_order[b] = nxt
         env.assign(torch.as_tensor(plan))
@@ -237,7 +241,8 @@ class LifelongDispatcher:
              priority: np.ndarray, *, dropoff: np.ndarray | None = None,
              release: np.ndarray | None = None, deadline: np.ndarray | None = None,
              now: int = 0, service_left: np.ndarray | None = None,
-             next_order: np.ndarray | None = None) -> np.ndarray:
+             next_order: np.ndarray | None = None,
+             returned: np.ndarray | None = None) -> np.ndarray:
         """One floor's plan: the slot each AGV serves next (-1: none, or keep a loaded one).
 
         Parameters
@@ -266,6 +271,9 @@ class LifelongDispatcher:
         next_order : np.ndarray of int, shape (N,), optional
             The next orders held from the previous plan (kept unless another plan is better
             by the switching cost).
+        returned : np.ndarray of bool, shape (Q,), optional
+            Orders a breakdown just took from their AGV: they go first to the AGVs free now
+            (``env.events.returned``), so that each is reassigned at once while one is free.
 
         Returns
         -------
@@ -274,7 +282,8 @@ class LifelongDispatcher:
         """
         row, nxt = self._solve(pos, status, current, order_status, pickup, order_id, priority,
                                dropoff=dropoff, release=release, deadline=deadline, now=now,
-                               service_left=service_left, next_order=next_order)
+                               service_left=service_left, next_order=next_order,
+                               returned=returned)
         self.last_next = nxt
         return row
 
@@ -290,7 +299,8 @@ class FifoDispatcher(LifelongDispatcher):
 
     An AGV keeps an assigned order until it picks it up; only idle (working, free) AGVs and
     open orders are matched, one order at a time in (priority descending, id ascending) order,
-    each to the nearest idle AGV left by travel distance. It plans no next orders.
+    each to the nearest idle AGV left by travel distance; orders a breakdown just returned go
+    first. It plans no next orders.
     """
 
     def _solve(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
@@ -302,7 +312,9 @@ class FifoDispatcher(LifelongDispatcher):
         waiting = np.flatnonzero(order_status == _OPEN)
         if not len(free) or not len(waiting):
             return plan, nxt
-        order = waiting[np.lexsort((order_id[waiting], -priority[waiting]))]
+        back = extra.get("returned")
+        first = np.zeros(len(waiting), dtype=bool) if back is None else back[waiting]
+        order = waiting[np.lexsort((order_id[waiting], -priority[waiting], ~first))]
         take = order[: len(free)]
         dist = self.distances.distance(pos[free], pickup[take])  # (F, T)
         available = np.ones(len(free), dtype=bool)
@@ -327,6 +339,7 @@ class MatchingDispatcher(LifelongDispatcher):
         - priority_weight * priority[j]
         + lateness_weight * speed * max(0, eta[i, j] - latest[j])
         - deadline_bonus * at_risk[j]
+        - 1e5 * (j was just returned by a breakdown and i is not loaded)
         + switching_cost * (j is not i's current or held order)
 
     with ``eta[i, j] = lag[i] + travel(ready_i, pickup_j) / speed``; ``lag`` is 0 for an AGV
@@ -396,7 +409,8 @@ class MatchingDispatcher(LifelongDispatcher):
                priority: np.ndarray, *, dropoff: np.ndarray | None = None,
                release: np.ndarray | None = None, deadline: np.ndarray | None = None,
                now: int = 0, service_left: np.ndarray | None = None,
-               next_order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               next_order: np.ndarray | None = None,
+               returned: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         n = len(pos)
         speed = self.speed
         plan = np.where(status == _LOADED, -1, current).astype(np.int64)
@@ -435,6 +449,9 @@ class MatchingDispatcher(LifelongDispatcher):
                 cost += self.lateness_weight * speed * lateness(eta, latest)
             if self.deadline_bonus:
                 cost -= self.deadline_bonus * at_risk(eta, latest, self.deadline_horizon)[None]
+        if returned is not None and returned[orders].any():
+            # Taken from a broken AGV: first to the AGVs free now (ahead of any travel).
+            cost -= _RETURNED_BONUS * (returned[orders][None, :] & ~is_loaded[:, None])
         mine = np.where(plan[agents] >= 0, plan[agents], held[agents])
         mine = np.where(is_loaded, held[agents], mine)
         keep = mine[:, None] == orders[None, :]
