@@ -54,6 +54,7 @@ class ServiceConfig:
     max_body: int = 256 * 1024
     max_batch: int = 500
     replan_delay: float = 0.05
+    min_replan_interval: float = 0.2
     refresh_interval: float = 1.0
     sse_queue: int = 64
     heartbeat: float = 15.0
@@ -152,7 +153,9 @@ def _error(status: int, message: str, **headers: str) -> JSONResponse:
 
 
 class _Limits:
-    """ASGI middleware: the API key on every path but /healthz and /, and the body limit."""
+    """ASGI middleware: the API key on every path but /healthz and /, the body limit, and a
+    ``Server-Timing: app;dur=<ms>`` header (time from the request's arrival at the
+    application to its answer's first byte)."""
 
     def __init__(self, app: Any, key: bytes, max_body: int) -> None:
         self.app = app
@@ -162,6 +165,17 @@ class _Limits:
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
+        start = time.perf_counter()
+        outer = send
+
+        async def send(message: dict) -> None:  # noqa: F811 - adds Server-Timing
+            if message["type"] == "http.response.start":
+                dur = (time.perf_counter() - start) * 1e3
+                message = dict(message)
+                message["headers"] = [*message.get("headers", []),
+                                      (b"server-timing", f"app;dur={dur:.2f}".encode())]
+            await outer(message)
+
         path = scope.get("path", "")
         headers = dict(scope.get("headers") or [])
         if path not in ("/healthz", "/"):
@@ -209,8 +223,8 @@ class _Limits:
         await self.app(scope, receive, send)
 
 
-def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None = None
-               ) -> FastAPI:
+def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None = None,
+               worker: Any = None) -> FastAPI:
     """The FastAPI application of one fleet.
 
     Parameters
@@ -220,8 +234,11 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
     background : list of callables, optional
         ``async fn(app)`` tasks started with the service and cancelled at shutdown (the
         simulator).
+    worker : concurrent.futures.Executor, optional
+        A planning process (:func:`allocator.serve.fleet.start_worker`); default: plan in a
+        thread of this process.
     """
-    dispatch = DispatchLoop(fleet, config)
+    dispatch = DispatchLoop(fleet, config, worker)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -422,9 +439,10 @@ class DispatchLoop:
     """Re-plan after changes (debounced) and on a slow timer as AGVs move; push each new
     plan to the event-stream subscribers."""
 
-    def __init__(self, fleet: Fleet, config: ServiceConfig) -> None:
+    def __init__(self, fleet: Fleet, config: ServiceConfig, worker: Any = None) -> None:
         self.fleet = fleet
         self.config = config
+        self.worker = worker
         self.subscribers: set[asyncio.Queue] = set()
         self.closing = False
         self.planned_epoch = -1
@@ -432,6 +450,7 @@ class DispatchLoop:
         self._structural = True
         self.replans = 0
         self.plan_seconds = 0.0
+        self._last = 0.0
 
     def subscribe(self) -> asyncio.Queue:
         q: asyncio.Queue = asyncio.Queue(maxsize=self.config.sse_queue)
@@ -471,13 +490,23 @@ class DispatchLoop:
                 await asyncio.sleep(self.config.replan_delay)  # gather a burst of changes
             except asyncio.TimeoutError:
                 pass
+            wait = self.config.min_replan_interval - (time.monotonic() - self._last)
+            if wait > 0:  # under a stream of changes, plan at most every min_replan_interval
+                await asyncio.sleep(wait)
+            self._last = time.monotonic()
             self._event.clear()
             self._structural = False
             epoch = fleet.epoch
             snap = fleet.snapshot()
             t0 = time.perf_counter()
             try:
-                plan, paths = await asyncio.to_thread(fleet.compute_plan, snap)
+                if self.worker is not None:
+                    from allocator.serve.fleet import plan_in_worker
+
+                    plan, paths = await asyncio.get_running_loop().run_in_executor(
+                        self.worker, plan_in_worker, snap)
+                else:
+                    plan, paths = await asyncio.to_thread(fleet.compute_plan, snap)
             except Exception:  # a planning bug must not stop the service; it is logged
                 log.exception("planning failed")
                 await asyncio.sleep(1.0)

@@ -49,6 +49,9 @@ def add_serve_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--sync", choices=("normal", "full"), default="normal",
                    help="SQLite synchronous mode: normal survives a killed process, full a "
                         "power cut too (an fsync per write); default normal")
+    p.add_argument("--plan-in-thread", dest="plan_process", action="store_false",
+                   help="plan in a thread of the service's process instead of a separate "
+                        "planning process (saves memory; slower answers under load)")
     p.add_argument("--log-level", default="warning",
                    choices=("critical", "error", "warning", "info", "debug"))
     p.set_defaults(func=run_serve)
@@ -123,6 +126,11 @@ def build_service(args: argparse.Namespace) -> tuple[Any, Any]:
         raise ValueError("give --floor FILE|SCENARIO (or --simulate SCENARIO)")
     world = load_world(floor)
     dispatcher = make_dispatcher(args.method)
+    worker = ready = None
+    if args.plan_process:  # builds its own copy of the floor's distances meanwhile
+        from allocator.serve.fleet import start_worker
+
+        worker, ready = start_worker(floor, args.method)
     store = Store(args.db, sync=args.sync)
     fleet = Fleet(world, dispatcher, store, FloorDistances(world))
     background = []
@@ -132,7 +140,10 @@ def build_service(args: argparse.Namespace) -> tuple[Any, Any]:
         sim_fleet = SimulatedFleet(fleet, args.simulate, rate=args.sim_rate,
                                    faults=args.sim_faults, seed=args.sim_seed)
         background.append(sim_fleet.run)
-    app = create_app(fleet, ServiceConfig(api_key=key), background=background)
+    if ready is not None and not ready.result():  # pragma: no cover
+        raise RuntimeError("the planning process did not start")
+    app = create_app(fleet, ServiceConfig(api_key=key), background=background, worker=worker)
+    app.state.worker = worker
     return app, fleet
 
 
@@ -153,6 +164,10 @@ def run_serve(args: argparse.Namespace) -> int:
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level,
                             access_log=False, timeout_graceful_shutdown=2,
                             lifespan="on", server_header=False)
-    uvicorn.Server(config).run()
-    fleet.store.close()
+    try:
+        uvicorn.Server(config).run()
+    finally:
+        if app.state.worker is not None:
+            app.state.worker.shutdown(wait=False, cancel_futures=True)
+        fleet.store.close()
     return 0

@@ -200,6 +200,109 @@ class PathPlanner:
         return out
 
 
+class Planner:
+    """The dispatcher's plan and the AGVs' paths for a :class:`PlanSnapshot`.
+
+    Runs in the service's process or, so that planning never holds the event loop's
+    interpreter lock, in a worker process (:func:`start_worker`, :func:`plan_in_worker`).
+    """
+
+    def __init__(self, dispatcher: Any, distances: Any) -> None:
+        self.dispatcher = dispatcher
+        dispatcher.distances = distances
+        self.distances = distances
+        self.paths = PathPlanner(distances)
+
+    def compute(self, s: PlanSnapshot) -> tuple[np.ndarray, list[list]]:
+        """The plan (an order slot per AGV, or -1) and every AGV's path."""
+        N = len(s.agent_ids)
+        plan = np.full(N, -1, dtype=np.int64)
+        if N and len(s.order_ids):
+            current = np.where(s.status == _LOADED, -1, s.current)
+            plan = np.asarray(self.dispatcher.plan(
+                pos=s.pos, status=s.status, current=current, order_status=s.order_status,
+                pickup=s.pickup, order_id=s.order_seq, priority=s.priority), dtype=np.int64)
+            loaded = s.status == _LOADED
+            plan[loaded] = s.current[loaded]
+            plan[s.status == _OUT] = -1
+        paths: list[list] = [[] for _ in range(N)]
+        idx = np.flatnonzero(plan >= 0)
+        if idx.size:
+            slot = plan[idx]
+            loaded = s.status[idx] == _LOADED
+            goal = np.where(loaded[:, None], s.dropoff[slot], s.pickup[slot])
+            previous = []
+            for i, ld in zip(idx, loaded, strict=True):
+                order, was_loaded, path = s.previous[s.agent_ids[i]]
+                same = order == s.order_ids[plan[i]] and was_loaded == bool(ld) and path
+                previous.append(path if same else None)
+            for i, p in zip(idx, self.paths.paths(s.pos[idx], goal, previous), strict=True):
+                paths[i] = p
+        return plan, paths
+
+
+_WORKER: Planner | None = None
+
+
+def _worker_init(floor: str, method: str) -> None:
+    global _WORKER
+    import os
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _exit_with_parent(os.getppid())
+    from allocator.distances import FloorDistances
+    from allocator.serve.cli import load_world, make_dispatcher
+
+    world = load_world(floor)
+    _WORKER = Planner(make_dispatcher(method), FloorDistances(world))
+
+
+def _exit_with_parent(parent: int) -> None:
+    """End this worker when the service dies, even by SIGKILL (no clean-up runs there)."""
+    import os
+    import threading
+
+    try:  # Linux: a signal at the parent's death
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+
+    def watch() -> None:
+        import time as _time
+
+        while os.getppid() == parent:
+            _time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True, name="agv-serve-parent-watch").start()
+
+
+def _worker_ping() -> bool:
+    return _WORKER is not None
+
+
+def plan_in_worker(s: PlanSnapshot) -> tuple[np.ndarray, list[list]]:
+    """:meth:`Planner.compute` in the worker process."""
+    if _WORKER is None:  # pragma: no cover - the initializer always runs first
+        raise RuntimeError("the planning worker was not initialised")
+    return _WORKER.compute(s)
+
+
+def start_worker(floor: str, method: str) -> tuple[Any, Any]:
+    """A one-process pool (spawned, not forked) holding the floor and the dispatcher, and a
+    future that is done when it is ready (it builds the floor's distances meanwhile)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_init, initargs=(floor, method))
+    return pool, pool.submit(_worker_ping)
+
+
 @dataclass
 class PlanSnapshot:
     """What the dispatcher needs, copied off the live state."""
@@ -239,7 +342,7 @@ class Fleet:
         self.dispatcher = dispatcher
         self.distances = distances
         dispatcher.distances = distances
-        self.paths = PathPlanner(distances)
+        self.planner = Planner(dispatcher, distances)
         self.store = store
         self.clock = clock
         self.agents: dict[str, Agent] = {}
@@ -573,32 +676,8 @@ class Fleet:
             previous={a.id: (a.order, a.loaded, a.path) for a in agents})
 
     def compute_plan(self, s: PlanSnapshot) -> tuple[np.ndarray, list[list]]:
-        """The dispatcher's plan (slot per AGV or -1) and every AGV's path (thread-safe:
-        reads only the snapshot, the floor and the path cache, which only planning uses)."""
-        N = len(s.agent_ids)
-        plan = np.full(N, -1, dtype=np.int64)
-        if N and len(s.order_ids):
-            current = np.where(s.status == _LOADED, -1, s.current)
-            plan = np.asarray(self.dispatcher.plan(
-                pos=s.pos, status=s.status, current=current, order_status=s.order_status,
-                pickup=s.pickup, order_id=s.order_seq, priority=s.priority), dtype=np.int64)
-            loaded = s.status == _LOADED
-            plan[loaded] = s.current[loaded]
-            plan[s.status == _OUT] = -1
-        paths: list[list] = [[] for _ in range(N)]
-        idx = np.flatnonzero(plan >= 0)
-        if idx.size:
-            slot = plan[idx]
-            loaded = s.status[idx] == _LOADED
-            goal = np.where(loaded[:, None], s.dropoff[slot], s.pickup[slot])
-            previous = []
-            for i, ld in zip(idx, loaded, strict=True):
-                order, was_loaded, path = s.previous[s.agent_ids[i]]
-                same = order == s.order_ids[plan[i]] and was_loaded == bool(ld) and path
-                previous.append(path if same else None)
-            for i, p in zip(idx, self.paths.paths(s.pos[idx], goal, previous), strict=True):
-                paths[i] = p
-        return plan, paths
+        """The plan of a snapshot, in this process (see :class:`Planner`)."""
+        return self.planner.compute(s)
 
     def apply_plan(self, s: PlanSnapshot, plan: np.ndarray, paths: list[list]) -> bool:
         """Apply a plan made from ``s`` where it is still valid; True if assignments changed.
