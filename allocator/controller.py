@@ -20,7 +20,7 @@
    against perfectly symmetric deadlocks); an AGV that makes no progress for a few steps while a
    neighbour blocks its way yields when that neighbour has the higher (seeded, random) priority
    (it sidesteps to its right and backs off) and otherwise turns right progressively, so that a
-   jam becomes a roundabout; an AGV whose next leg runs into a parked AGV is re-routed at once.
+   jam becomes a roundabout; an AGV stalled against a parked AGV is re-routed at once.
 
 The simulator moves positions with the *current* velocity before the action acts
 (``pos += vel dt``; ``vel = (1 - damping) vel + action sensitivity dt / mass``), so the
@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
-from allocator.avoidance.braking import BrakingShield, _point_segment, braking_velocity
+from allocator.avoidance.braking import BrakingShield, braking_velocity
 from allocator.avoidance.liveness import DeadlockResolver
 from sim.tasks import claim
 
@@ -166,7 +166,6 @@ class AllocatorController:
         self._last_dist = np.full((B, N), np.inf)
         self._last_next = np.zeros((B, N), dtype=np.int64)
         self._last_shape: tuple[int, ...] = ()
-        self._parked_seen = np.zeros((B, N), dtype=bool)
         self.reassign()
 
     def reassign(self, env_ids: Any = None) -> None:
@@ -342,38 +341,27 @@ class AllocatorController:
 
     def _reroute_blocked(self, ahead: np.ndarray, held: np.ndarray, tasks: np.ndarray,
                          moving: np.ndarray) -> None:
-        """Re-route at once an AGV whose next leg runs into an AGV that parked since the last
-        check (it would otherwise wait ``stuck_steps`` in front of it, e.g. held between the
-        parked AGV and a wall)."""
-        parked = held >= 0
-        new = parked & ~self._parked_seen
-        self._parked_seen = parked.copy()
-        if not new.any():
-            return
-        B, N, _ = ahead.shape
-        wp, nxt = self._waypoints, self._next
-        target = np.take_along_axis(wp, nxt[..., None, None].repeat(2, -1), 2)[:, :, 0]
-        has = moving & (self.task_of_agent >= 0) & (self._num_waypoints > 0)
-        envs = np.flatnonzero(new.any(axis=1) & has.any(axis=1))
-        if not len(envs):
+        """Re-route early an AGV stalled against a parked AGV (e.g. held between it and a
+        wall): as soon as the deadlock resolver counts it stalled, instead of after
+        ``stuck_steps`` steps without progress."""
+        res = self._resolver
+        xmin, ymin, xmax, ymax = self._world.bounds
+        if (xmax - xmin) * (ymax - ymin) / 0.04 ** 2 > 4e6:
+            return  # the re-planning grid map (0.04 cells) would be too large for this world
+        stalled = moving & (res.stall >= res.stall_steps) & (self.task_of_agent >= 0) & \
+            (self._stuck < self.stuck_steps)
+        if not stalled.any():
             return
         r = self._world.agent_radius
-        a = ahead[envs][:, :, None, :]
-        b = target[envs][:, :, None, :]
-        q = ahead[envs][:, None, :, :]
-        d = _point_segment(np.broadcast_to(q, (len(envs), N, N, 2)),
-                           np.broadcast_to(a, (len(envs), N, N, 2)),
-                           np.broadcast_to(b, (len(envs), N, N, 2)))  # (E, i, j)
-        goal = np.take_along_axis(tasks[envs], np.maximum(self.task_of_agent[envs], 0)[
-            ..., None].repeat(2, -1), 1)
-        goal_free = np.linalg.norm(goal[:, :, None, :] - q, axis=-1) > 2 * r + \
-            self._world.capture_radius
-        blocked = (d < 2 * r + 0.02) & new[envs][:, None, :] & has[envs][:, :, None] & goal_free
-        todo = blocked.any(axis=2)
+        parked = held >= 0
+        d = np.linalg.norm(ahead[:, :, None, :] - ahead[:, None, :, :], axis=-1)  # (B, N, N)
+        near_parked = ((d < 2 * r + 0.1) & parked[:, None, :]).any(axis=2)
+        todo = stalled & near_parked
         if todo.any():
-            self._stuck[envs] = np.where(todo, self.stuck_steps, self._stuck[envs])
+            self._stuck = np.where(todo, self.stuck_steps, self._stuck)
             self._replan_stuck(ahead, np.zeros_like(ahead), held, tasks, moving,
                                count_progress=False)
+            res.stall = np.where(todo, 0, res.stall)
 
     def _resolve_deadlocks(self, ahead: np.ndarray, vel: np.ndarray, preferred: np.ndarray,
                            moving: np.ndarray) -> np.ndarray:
