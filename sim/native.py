@@ -40,7 +40,8 @@ __all__ = ["available", "disabled_reason", "library", "library_for", "parse_sign
 
 NATIVE_DIR = Path(__file__).parent / "_native"
 SOURCE = NATIVE_DIR / "kernels.c"
-FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
+FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno",
+         "-Wno-psabi"]
 
 _lib: ctypes.CDLL | None = None
 _tried = False

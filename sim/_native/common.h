@@ -10,6 +10,16 @@
 
 #define INF_F ((float)INFINITY)
 
+/* Hot loops that gain from wider vectors get an AVX2 clone beside the default one, picked at
+ * load time by the CPU (GCC's target_clones; x86-64 only). No FMA contraction is allowed
+ * (-ffp-contract=off) and no reduction is reordered (no -ffast-math), so both clones give
+ * bit-identical results: only elementwise loops get wider. */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(AGV_NO_CLONES)
+#define AGV_WIDE __attribute__((target_clones("avx2", "default")))
+#else
+#define AGV_WIDE
+#endif
+
 /* A per-thread scratch buffer that only grows (released at exit). */
 static __thread unsigned char *arena_buf = NULL;
 static __thread size_t arena_len = 0;

@@ -148,6 +148,7 @@ static inline __attribute__((always_inline)) int ipf_values(
  * an AGV holding a task reads task_value (the reward's parked rule); active (B,), where an
  * inactive environment is skipped and reads 0. Returns 0; 1 if a factor was not positive
  * definite; -1 if scratch memory could not be allocated. */
+AGV_WIDE
 int agv_ipf(int64_t B, int64_t N, int64_t M, const float *agent_pos, const float *task_pos,
             const uint8_t *task_mask, int64_t mask_is_claimed, const double *g,
             const double *gdiag, int64_t F, const int64_t *free_index, int64_t H, int64_t W,
@@ -302,6 +303,7 @@ static inline double ipf_dot_v2(const double *x, const double *y, int64_t n) {
  * product of length offsets[s] (the levels are stored in order). Cells in one leaf add the
  * leaf's dense block: leaf_values[leaf_offset[l] + local[a] * leaf_size[l] + local[c]].
  * sym != 0: rows and cols are the same cells (J == K) and only j <= k is computed. */
+AGV_WIDE
 int agv_ipf_tree_entries(int64_t B, int64_t J, int64_t K, const int64_t *rows,
                          const int64_t *cols, int64_t sym, const double *ycat, int64_t W,
                          const int64_t *path, int64_t L, const int64_t *offsets,
@@ -339,12 +341,210 @@ int agv_ipf_tree_entries(int64_t B, int64_t J, int64_t K, const int64_t *rows,
     return 0;
 }
 
+/* One level's part of a Gram block: acc[i * ld + k] += x_i . x_k (k >= i, 0 <= i, k < g) for
+ * the g rows x_i = ycat + cells[i] * W + lo of length n. Every pair's dot product is one
+ * four-lane running sum over q = 0, 4, 8, ..., its lanes added as (l0 + l1) + (l2 + l3), then
+ * the last n % 4 terms in order: the same operations in the same order in the 2 x 4 tiles and
+ * in the edge loop, so a pair's value never depends on the tile it fell in (nor on the other
+ * cells of the call), and the AVX2 and the default clone agree bit for bit (the default one
+ * does each four-lane operation as two SSE2 ones). */
+typedef double ipf_v4 __attribute__((vector_size(32)));
+
+static inline __attribute__((always_inline)) ipf_v4 ipf_load4(const double *p) {
+    ipf_v4 v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+static inline __attribute__((always_inline)) double ipf_lanes4(ipf_v4 s) {
+    return (s[0] + s[1]) + (s[2] + s[3]);
+}
+
+static inline __attribute__((always_inline)) double ipf_dot_pair(const double *x,
+                                                                const double *y, int64_t n) {
+    ipf_v4 s = {0.0, 0.0, 0.0, 0.0};
+    int64_t q = 0;
+    for (; q + 4 <= n; q += 4) s += ipf_load4(x + q) * ipf_load4(y + q);
+    double g = ipf_lanes4(s);
+    for (; q < n; q++) g += x[q] * y[q];
+    return g;
+}
+
+static inline __attribute__((always_inline)) void ipf_gram_level(
+    double *restrict acc, int64_t ld, const int64_t *cells, int64_t g, const double *ycat,
+    int64_t W, int64_t lo, int64_t n) {
+    int64_t i = 0;
+    for (; i + 2 <= g; i += 2) {
+        const double *x0 = ycat + cells[i] * W + lo, *x1 = ycat + cells[i + 1] * W + lo;
+        int64_t k = i;
+        for (; k + 4 <= g; k += 4) {
+            const double *y0 = ycat + cells[k] * W + lo, *y1 = ycat + cells[k + 1] * W + lo;
+            const double *y2 = ycat + cells[k + 2] * W + lo, *y3 = ycat + cells[k + 3] * W + lo;
+            ipf_v4 a00 = {0.0, 0.0, 0.0, 0.0}, a01 = a00, a02 = a00, a03 = a00;
+            ipf_v4 a10 = a00, a11 = a00, a12 = a00, a13 = a00;
+            int64_t q = 0;
+            for (; q + 4 <= n; q += 4) {
+                const ipf_v4 u0 = ipf_load4(x0 + q), u1 = ipf_load4(x1 + q);
+                const ipf_v4 v0 = ipf_load4(y0 + q), v1 = ipf_load4(y1 + q);
+                const ipf_v4 v2 = ipf_load4(y2 + q), v3 = ipf_load4(y3 + q);
+                a00 += u0 * v0; a01 += u0 * v1; a02 += u0 * v2; a03 += u0 * v3;
+                a10 += u1 * v0; a11 += u1 * v1; a12 += u1 * v2; a13 += u1 * v3;
+            }
+            double r0[4] = {ipf_lanes4(a00), ipf_lanes4(a01), ipf_lanes4(a02), ipf_lanes4(a03)};
+            double r1[4] = {ipf_lanes4(a10), ipf_lanes4(a11), ipf_lanes4(a12), ipf_lanes4(a13)};
+            for (; q < n; q++) {
+                const double t0 = x0[q], t1 = x1[q];
+                const double w[4] = {y0[q], y1[q], y2[q], y3[q]};
+                for (int c = 0; c < 4; c++) {
+                    r0[c] += t0 * w[c];
+                    r1[c] += t1 * w[c];
+                }
+            }
+            double *o0 = acc + i * ld + k, *o1 = acc + (i + 1) * ld + k;
+            for (int c = 0; c < 4; c++) {
+                o0[c] += r0[c];
+                if (k + c >= i + 1) o1[c] += r1[c];
+            }
+        }
+        for (; k < g; k++) {
+            const double *y = ycat + cells[k] * W + lo;
+            acc[i * ld + k] += ipf_dot_pair(x0, y, n);
+            if (k >= i + 1) acc[(i + 1) * ld + k] += ipf_dot_pair(x1, y, n);
+        }
+    }
+    for (; i < g; i++) {
+        const double *x = ycat + cells[i] * W + lo;
+        for (int64_t k = i; k < g; k++)
+            acc[i * ld + k] += ipf_dot_pair(x, ycat + cells[k] * W + lo, n);
+    }
+}
+
+/* The unloaded AGVs' blocks of IPFGrid.lifelong_potentials (its torch code is the reference),
+ * per environment: with the open pickups' factor Li = L_D^-1 (linv, (B, Q, Q), lower,
+ * row-major) and u = Li v_P, X = G[A, P] Li^T (gap, (B, N, Q): gap[b, j, q] = G[a_j, p_q]),
+ * schur = G[A, A] - X X^T ((B, N, N) from gaa) and r = v_A - X u ((B, N) from va). Li is
+ * triangular and schur symmetric, so half of each product is skipped. Returns 0; -1 if
+ * scratch memory failed. */
+AGV_WIDE
+int agv_ipf_lifelong_block(int64_t B, int64_t N, int64_t Q, const double *gap,
+                           const double *linv, const double *u, const double *gaa,
+                           const double *va, double *schur, double *r) {
+    double *x = arena_reserve(8 * (size_t)(N * Q + N * N) + 8 * (size_t)N);
+    if (x == NULL) return -1;
+    double *acc = x + N * Q;
+    int64_t *ids = (int64_t *)(acc + N * N);
+    for (int64_t j = 0; j < N; j++) ids[j] = j;
+    for (int64_t b = 0; b < B; b++) {
+        const double *gb = gap + b * N * Q, *lb = linv + b * Q * Q, *ub = u + b * Q;
+        for (int64_t q = 0; q < Q; q++) {  /* X[:, q] = G[A, P[0..q]] . Li[q, 0..q] */
+            const double *lq = lb + q * Q;
+            const int64_t n = q + 1;
+            int64_t j = 0;
+            for (; j + 4 <= N; j += 4) {
+                const double *g0 = gb + j * Q, *g1 = g0 + Q, *g2 = g1 + Q, *g3 = g2 + Q;
+                ipf_v4 s0 = {0.0, 0.0, 0.0, 0.0}, s1 = s0, s2 = s0, s3 = s0;
+                int64_t p = 0;
+                for (; p + 4 <= n; p += 4) {
+                    const ipf_v4 w = ipf_load4(lq + p);
+                    s0 += ipf_load4(g0 + p) * w;
+                    s1 += ipf_load4(g1 + p) * w;
+                    s2 += ipf_load4(g2 + p) * w;
+                    s3 += ipf_load4(g3 + p) * w;
+                }
+                double t[4] = {ipf_lanes4(s0), ipf_lanes4(s1), ipf_lanes4(s2), ipf_lanes4(s3)};
+                for (; p < n; p++) {
+                    t[0] += g0[p] * lq[p];
+                    t[1] += g1[p] * lq[p];
+                    t[2] += g2[p] * lq[p];
+                    t[3] += g3[p] * lq[p];
+                }
+                for (int c = 0; c < 4; c++) x[(j + c) * Q + q] = t[c];
+            }
+            for (; j < N; j++) x[j * Q + q] = ipf_dot_pair(gb + j * Q, lq, n);
+        }
+        for (int64_t m = 0; m < N * N; m++) acc[m] = 0.0;
+        ipf_gram_level(acc, N, ids, N, x, Q, 0, Q);
+        const double *ab = gaa + b * N * N;
+        double *sb = schur + b * N * N;
+        for (int64_t i = 0; i < N; i++)
+            for (int64_t k = i; k < N; k++) {
+                const double v = ab[i * N + k] - acc[i * N + k];
+                sb[i * N + k] = v;
+                sb[k * N + i] = v;
+            }
+        for (int64_t j = 0; j < N; j++) r[b * N + j] = va[b * N + j] - ipf_dot_pair(x + j * Q, ub, Q);
+    }
+    return 0;
+}
+
+/* The symmetric block G[rows[b, j], rows[b, k]] (out, (B, J, J)) from the separator tree,
+ * as agv_ipf_tree_entries with sym, in register tiles: per environment the cells are put in
+ * the tree's depth-first order (rank, SeparatorTree._dfs_rank: each domain of each level and
+ * each leaf is a run of consecutive places), the runs of each level add their Gram block of
+ * that level's vectors, level by level, and the pairs in one leaf add its dense block. A
+ * pair's levels are the common prefix of its paths, the least of the prefixes of the
+ * consecutive cells between them in that order. Returns 0; -1 if scratch memory failed. */
+AGV_WIDE
+int agv_ipf_tree_gram(int64_t B, int64_t J, const int64_t *rows, const double *ycat, int64_t W,
+                      const int64_t *path, int64_t L, const int64_t *offsets,
+                      const int64_t *rank, const int64_t *leaf_id, const int64_t *leaf_local,
+                      const int64_t *leaf_size, const int64_t *leaf_offset,
+                      const double *leaf_values, double *out) {
+    double *acc = arena_reserve(8 * (size_t)(J * J) + 8 * (size_t)(3 * J + 1));
+    if (acc == NULL) return -1;
+    int64_t *perm = (int64_t *)(acc + J * J), *sc = perm + J, *lcp = sc + J;
+    for (int64_t b = 0; b < B; b++) {
+        const int64_t *rb = rows + b * J;
+        for (int64_t j = 0; j < J; j++) {  /* insertion sort by rank, ties in index order */
+            const int64_t key = rank[rb[j]];
+            int64_t m = j;
+            while (m > 0 && rank[rb[perm[m - 1]]] > key) {
+                perm[m] = perm[m - 1];
+                m--;
+            }
+            perm[m] = j;
+        }
+        for (int64_t m = 0; m < J; m++) sc[m] = rb[perm[m]];
+        for (int64_t m = 0; m + 1 < J; m++) {
+            const int64_t *pa = path + sc[m] * L, *pc = path + sc[m + 1] * L;
+            int64_t s = 0;
+            while (s < L && pa[s] == pc[s]) s++;
+            lcp[m] = s;
+        }
+        for (int64_t m = 0; m < J * J; m++) acc[m] = 0.0;
+        for (int64_t l = 0; l < L; l++) {
+            const int64_t lo = offsets[l], n = offsets[l + 1] - lo;
+            for (int64_t m = 0; m < J;) {
+                int64_t e = m;
+                while (e + 1 < J && lcp[e] > l) e++;
+                ipf_gram_level(acc + m * J + m, J, sc + m, e - m + 1, ycat, W, lo, n);
+                m = e + 1;
+            }
+        }
+        for (int64_t i = 0; i < J; i++) {  /* one leaf's cells are consecutive too */
+            const int64_t li = leaf_id[sc[i]];
+            if (li < 0) continue;
+            const double *lv = leaf_values + leaf_offset[li] + leaf_local[sc[i]] * leaf_size[li];
+            for (int64_t k = i; k < J && leaf_id[sc[k]] == li; k++)
+                acc[i * J + k] += lv[leaf_local[sc[k]]];
+        }
+        double *ob = out + b * J * J;
+        for (int64_t i = 0; i < J; i++)
+            for (int64_t k = i; k < J; k++) {
+                const double g = acc[i * J + k];
+                ob[perm[i] * J + perm[k]] = g;
+                ob[perm[k] * J + perm[i]] = g;
+            }
+    }
+    return 0;
+}
+
 /* The factor and inverse of the SPD n x n block `a` (row-major, read from its upper triangle)
  * in vectorizable row operations: u = C^T (upper, row-major, in place of a) with C C^T = a,
  * inv[k] = 1 / C_kk, and y = C^-1 (lower, row-major; above the diagonal undefined). Then the
  * column sums d[c] = sum_a y[a][c]^2 = (a^-1)_cc. Returns 1 when the block is not positive
  * definite. */
-static int ipf_factor_inverse(int64_t n, double *restrict u, double *restrict y,
+static inline __attribute__((always_inline)) int ipf_factor_inverse(int64_t n, double *restrict u, double *restrict y,
                               double *restrict inv, double *restrict d) {
     int status = 0;
     for (int64_t k = 0; k < n; k++) {
@@ -377,7 +577,7 @@ static int ipf_factor_inverse(int64_t n, double *restrict u, double *restrict y,
 }
 
 /* z = y r for the lower triangular y (n x n, row-major), then p[c] = sum_a y[a][c] z[a]. */
-static void ipf_apply(int64_t n, const double *restrict y, const double *restrict r,
+static inline __attribute__((always_inline)) void ipf_apply(int64_t n, const double *restrict y, const double *restrict r,
                       double *restrict z, double *restrict p) {
     for (int64_t c = 0; c < n; c++) p[c] = 0.0;
     for (int64_t a = 0; a < n; a++) {
@@ -387,6 +587,26 @@ static void ipf_apply(int64_t n, const double *restrict y, const double *restric
         z[a] = sum;
         for (int64_t c = 0; c <= a; c++) p[c] += ya[c] * sum;
     }
+}
+
+/* Factors of a batch of SPD blocks (B, n, n), row-major, read from their upper triangles:
+ * y[b] = C^-1 (lower, row-major, zeros above the diagonal) where C C^T = blocks[b] (what
+ * TaskBlockCache keeps, without LAPACK's per-matrix overhead at these sizes). Returns 0; 1 if
+ * a block was not positive definite; -1 if scratch memory failed. */
+AGV_WIDE
+int agv_ipf_inverse_factors(int64_t B, int64_t n, const double *blocks, double *y) {
+    double *u = arena_reserve(8 * (size_t)(n * n + 2 * n));
+    if (u == NULL) return -1;
+    double *inv = u + n * n, *d = inv + n;
+    int status = 0;
+    for (int64_t b = 0; b < B; b++) {
+        double *yb = y + b * n * n;
+        memcpy(u, blocks + b * n * n, 8 * (size_t)(n * n));
+        status |= ipf_factor_inverse(n, u, yb, inv, d);
+        for (int64_t a = 0; a < n; a++)
+            for (int64_t c = a + 1; c < n; c++) yb[a * n + c] = 0.0;
+    }
+    return status;
 }
 
 /* The dense part of IPFGrid.lifelong_potentials (the torch code there is the reference), one
@@ -405,6 +625,7 @@ static void ipf_apply(int64_t n, const double *restrict y, const double *restric
  * is not active (NULL: all are) read 0. schur and r may be NULL when no AGV is unloaded, gad
  * and gamma when none is loaded. Returns 0; 1 if a block was not positive definite; -1 if
  * scratch memory failed. */
+AGV_WIDE
 int agv_ipf_lifelong(int64_t B, int64_t N, int64_t Q, const double *schur, const double *r,
                      const double *gaa, const double *gad, const double *gamma,
                      const double *va, const uint8_t *loaded, const uint8_t *dsrc,

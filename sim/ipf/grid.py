@@ -791,11 +791,17 @@ class IPFGrid:
         if any_unloaded:
             if cache is None:
                 cache = TaskBlockCache()
-            inv_chol_d, u = cache.update(self, f_p, task_value)
-            x_t = g_ap @ inv_chol_d.mT  # (B, N, Q)
-            keep["schur"] = torch.baddbmm(g_aa, x_t, x_t.mT, alpha=-1.0)
-            keep["r"] = torch.baddbmm(v_a.unsqueeze(-1), x_t, u.unsqueeze(-1),
-                                      alpha=-1.0).view(B, N)
+            inv_chol_d, u = cache.update(self, f_p, task_value, recurring=True, kernels=kernels)
+            inv_chol_d, u = inv_chol_d.contiguous(), u.contiguous()
+            # S = G_AA - X X^T and r = v_A - X u with X = G[A, P] L_D^{-T}, in the kernel
+            keep["schur"] = torch.empty(B, N, N, dtype=f64)
+            keep["r"] = torch.empty(B, N, dtype=f64)
+            if kernels.agv_ipf_lifelong_block(
+                    B, N, Q, ptr(g_ap, f64, (B, N, Q), "g_ap"),
+                    ptr(inv_chol_d, f64, (B, Q, Q), "inv_chol"), ptr(u, f64, (B, Q), "u"),
+                    ptr(keep["g_aa"], f64, (B, N, N), "g_aa"), ptr(v_a, f64, (B, N), "v_a"),
+                    keep["schur"].data_ptr(), keep["r"].data_ptr()) < 0:
+                raise MemoryError(f"IPF lifelong kernel: no memory for the scratch of N = {N}")
         if any_loaded:
             keep["g_ad"] = g_ad  # [j, i] = G[a_j, d_i]
             keep["gamma"] = self._pair_block(f_d.reshape(B * N, 1),
@@ -1101,8 +1107,15 @@ class TaskBlockCache:
             self._native = (grid, key, cells, factors, pointers)
         return self._native[4]
 
-    def update(self, grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
+    def update(self, grid: IPFGrid, f_tasks: Tensor, task_value: float,
+               recurring: bool = False, kernels: Any = None) -> tuple[Tensor, Tensor]:
         """Factors for the open tasks ``f_tasks`` (B, M), recomputed only where they changed.
+
+        ``recurring=True`` says the task cells recur between calls (a floor's pickup points):
+        on tree grids ``G[tasks, tasks]`` is then read from the kept columns of ``G`` (see
+        :meth:`IPFGrid._pair_block`) instead of the separator tree. ``kernels`` (the fused
+        kernels of :mod:`sim.native`, CPU tensors) factor the blocks in
+        ``agv_ipf_inverse_factors`` instead of LAPACK.
 
         Returns
         -------
@@ -1115,24 +1128,43 @@ class TaskBlockCache:
         key = (tuple(f_tasks.shape), float(task_value), f_tasks.device)
         if self.grid is not grid or self.key != key or self.f_tasks is None:
             self.grid, self.key, self.f_tasks = grid, key, f_tasks.clone()
-            self.inv_chol, self.u = self._factor(grid, f_tasks, task_value)
+            self.inv_chol, self.u = self._factor(grid, f_tasks, task_value, recurring, kernels)
             return self.inv_chol, self.u
         changed = (f_tasks != self.f_tasks).any(dim=1).nonzero().flatten()
         if len(changed):
-            inv_chol, u = self._factor(grid, f_tasks[changed], task_value)
+            inv_chol, u = self._factor(grid, f_tasks[changed], task_value, recurring, kernels)
             self.inv_chol[changed] = inv_chol
             self.u[changed] = u
             self.f_tasks[changed] = f_tasks[changed]
         return self.inv_chol, self.u
 
     @staticmethod
-    def _factor(grid: IPFGrid, f_tasks: Tensor, task_value: float) -> tuple[Tensor, Tensor]:
+    def _factor(grid: IPFGrid, f_tasks: Tensor, task_value: float, recurring: bool = False,
+                kernels: Any = None) -> tuple[Tensor, Tensor]:
         dropped = f_tasks == grid.num_free
-        block = grid._gather(f_tasks, f_tasks)
+        if recurring and grid.method != "dense":
+            block = grid._pair_block(f_tasks, f_tasks).contiguous()
+        else:
+            block = grid._gather(f_tasks, f_tasks)
         block.diagonal(dim1=-2, dim2=-1).add_(dropped)
-        chol, _ = torch.linalg.cholesky_ex(block)
-        eye = torch.eye(f_tasks.shape[1], dtype=torch.float64, device=f_tasks.device)
-        inv_chol = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+        if kernels is not None and block.shape[0] and block.shape[1]:
+            # the kernel: LAPACK's per-matrix overhead dominates at these sizes
+            B, M = block.shape[:2]
+            block = block.contiguous()
+            inv_chol = torch.empty(B, M, M, dtype=torch.float64)
+            status = kernels.agv_ipf_inverse_factors(
+                B, M, sim_native.pointer(block, torch.float64, (B, M, M), "block"),
+                inv_chol.data_ptr())
+            if status < 0:
+                raise MemoryError(f"IPF kernel: no memory for the scratch of M = {M}")
+            if status:
+                raise RuntimeError("IPF: the tasks' block of G was not positive definite")
+        else:
+            chol, _ = torch.linalg.cholesky_ex(block)
+            eye = torch.eye(f_tasks.shape[1], dtype=torch.float64, device=f_tasks.device)
+            # row-major (LAPACK hands back column-major): the products and kernels read rows
+            inv_chol = torch.linalg.solve_triangular(chol, eye.expand_as(chol),
+                                                     upper=False).contiguous()
         u = (inv_chol * ((~dropped).to(torch.float64) * task_value).unsqueeze(1)).sum(-1)
         return inv_chol, u
 

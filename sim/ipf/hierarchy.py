@@ -171,6 +171,7 @@ class SeparatorTree:
                           + leaf_bytes)
         self._built = False
         self._native: tuple[Any, ...] | None = None
+        self._rank_ptr: int | None = None
 
     # ------------------------------------------------------------------ numerics
     def build(self) -> SeparatorTree:
@@ -246,8 +247,29 @@ class SeparatorTree:
         for k, leaf in enumerate(self.leaves):
             cells[k, : len(leaf.cells)] = leaf.cells
         self._leaf_cells = torch.from_numpy(cells)
+        self._rank = torch.from_numpy(self._dfs_rank())
         self._built = True
         return self
+
+    def _dfs_rank(self) -> np.ndarray:
+        """Each cell's place (F + 1,) in a depth-first order of the tree (a domain's separator,
+        then its children; a leaf's cells together; the no-cell index F last): every domain of
+        every level, and every leaf, is a run of consecutive places."""
+        F = self.num_free
+        order: list[np.ndarray] = []
+        stack = [self.root]
+        while stack:
+            node = stack.pop()
+            if node.leaf:
+                order.append(node.cells)
+                continue
+            order.append(node.sep)
+            stack.extend(reversed(node.children))
+        order.append(np.array([F], dtype=np.int64))
+        flat = np.concatenate(order)
+        rank = np.empty(F + 1, dtype=np.int64)
+        rank[flat] = np.arange(F + 1)
+        return rank
 
     # ------------------------------------------------------------------ queries
     def entries(self, rows: Tensor, cols: Tensor, kernels: Any = None) -> Tensor:
@@ -333,6 +355,18 @@ class SeparatorTree:
             if t.numel() and (int(t.min()) < 0 or int(t.max()) >= F1):
                 raise ValueError(f"{name} must be free-cell indices in [0, {F1 - 1}]")
         out = torch.empty(Bf, J, K, dtype=torch.float64)
+        if sym and J > 4:  # many pairs: the tiled kernel (the same entries up to rounding)
+            if self._rank_ptr is None:
+                self._rank_ptr = pointer(self._rank, torch.int64, (F1,), "tree ranks")
+            ycat, W, path, L, offsets, leaf_id, leaf_local, leaf_size, leaf_offset, \
+                leaf_values = self._native
+            status = kernels.agv_ipf_tree_gram(
+                Bf, J, pointer(r, torch.int64, (Bf, J), "rows"), ycat, W, path, L, offsets,
+                self._rank_ptr, leaf_id, leaf_local, leaf_size, leaf_offset, leaf_values,
+                out.data_ptr())
+            if status < 0:
+                raise MemoryError(f"IPF tree kernel: no memory for the scratch of J = {J}")
+            return out
         kernels.agv_ipf_tree_entries(
             Bf, J, K, pointer(r, torch.int64, (Bf, J), "rows"),
             pointer(c, torch.int64, (Bf, K), "cols"), int(sym), *self._native,
