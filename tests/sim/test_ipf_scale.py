@@ -177,6 +177,66 @@ def brute_force_lifelong(grid, agents, pickups, open_, dropoffs, loaded, method=
     return out
 
 
+@pytest.mark.skipif(not sim.native.available(), reason="fused kernels unavailable")
+def test_tree_gram_kernel_gives_each_pair_the_same_value_whatever_the_batch_and_order() -> None:
+    """The tiled symmetric kernel (``agv_ipf_tree_gram``): equal to the pairwise one, and a
+    pair's entry is bit-identical whatever else is in the call (other environments, the
+    AGVs' order, repeated cells, the no-cell index)."""
+    grid = IPFGrid(SMALL_WAREHOUSE, 0.05, max_bytes=8)
+    tree = grid.tree.build()
+    F = grid.num_free
+    rng = torch.Generator().manual_seed(4)
+    rows = torch.randint(0, F, (6, 23), generator=rng)
+    rows[0, 3] = F
+    rows[1, 5] = rows[1, 9]
+    lib = sim.native.library()
+    full = tree.entries(rows, rows, lib)
+    np.testing.assert_allclose(full.numpy(), tree.entries(rows, rows.clone(), lib).numpy(),
+                               rtol=0, atol=1e-14)
+    assert torch.equal(full, full.mT)
+    part = rows[2:4].clone()
+    assert torch.equal(tree.entries(part, part, lib), full[2:4])
+    perm = torch.randperm(23, generator=rng)
+    shuffled = rows[:, perm].contiguous()
+    assert torch.equal(tree.entries(shuffled, shuffled, lib), full[:, perm][:, :, perm])
+
+
+@pytest.mark.skipif(not sim.native.available(), reason="fused kernels unavailable")
+def test_ipf_kernels_wide_clones_equal_the_default_build(tmp_path) -> None:
+    """The AVX2 clones of the IPF kernels (``AGV_WIDE``) only widen elementwise loops: a
+    build without clones gives bit-identical entries, Schur blocks and potentials."""
+    import ctypes
+    import subprocess
+
+    from sim import native as sim_native
+
+    cc = sim_native._compiler()
+    if cc is None:
+        pytest.skip("no C compiler")
+    out = tmp_path / "plain.so"
+    subprocess.run([cc, *sim_native.FLAGS, "-DAGV_NO_CLONES", str(sim_native.SOURCE), "-o",
+                    str(out), "-lm"], check=True, capture_output=True)
+    plain = ctypes.CDLL(str(out))
+    for name, (restype, argtypes) in sim_native.signatures().items():
+        fn = getattr(plain, name)
+        fn.restype, fn.argtypes = restype, argtypes
+    grid = IPFGrid(SMALL_WAREHOUSE, 0.05, max_bytes=8)
+    tree = grid.tree.build()
+    rows = torch.randint(0, grid.num_free + 1, (5, 17), generator=torch.Generator().manual_seed(2))
+    assert torch.equal(tree.entries(rows, rows, plain),
+                       tree.entries(rows, rows, sim_native.library()))
+    agents, pickups, open_, drops, loaded = lifelong_scene(SMALL_WAREHOUSE, 3, 9, 7, seed=6)
+    args = [torch.from_numpy(x) for x in (agents, pickups, open_, drops, loaded)]
+    wide = grid.lifelong_potentials(*args, dtype=torch.float64)
+    saved = sim_native._lib
+    try:
+        sim_native._lib = plain
+        narrow = grid.lifelong_potentials(*args, dtype=torch.float64)
+    finally:
+        sim_native._lib = saved
+    assert torch.equal(wide, narrow)
+
+
 def lifelong_scene(world, B, N, Q, seed, coincide=True):
     rng = np.random.default_rng(seed)
     agents = np.stack([free_points(world, N, rng) for _ in range(B)])
