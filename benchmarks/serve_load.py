@@ -220,10 +220,11 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
         while time.perf_counter() < end:
             tick = time.perf_counter()
             entry = plan.get(aid)
-            if entry is not None and entry.get("order") and entry.get("path"):
-                # Move along the path by speed x 1 s.
+            if entry is not None and entry.get("order") and entry.get("goal"):
+                # Move along the path (straight to the goal while it has none) by speed x 1 s.
                 budget = args.speed
-                path = [np.asarray(p) for p in entry["path"][1:]]
+                path = [np.asarray(p) for p in entry["path"][1:]] if entry["path"] else \
+                    [np.asarray(entry["goal"])]
                 for wp in path:
                     d = float(np.linalg.norm(wp - pos[i]))
                     if d <= budget:
@@ -232,7 +233,7 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
                     else:
                         pos[i] = pos[i] + (wp - pos[i]) * (budget / d)
                         break
-                goal = np.asarray(entry["path"][-1])
+                goal = np.asarray(entry["goal"])
                 if np.linalg.norm(goal - pos[i]) < 1e-6:
                     order = entry["order"]
                     if entry["leg"] == "pickup" and aid not in loaded:
@@ -247,7 +248,7 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
                                                          "order": order})
                         if r is not None and r.status_code == 200:
                             loaded.pop(aid, None)
-                    entry["path"] = []
+                    entry["goal"] = None
                 status = "busy"
             elif aid not in loaded:
                 status = "idle"
@@ -260,13 +261,13 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
         period = 1.0 / args.plan_hz
         while time.perf_counter() < end:
             tick = time.perf_counter()
-            r = await call("get_plan", "GET", "/v1/plan", (200,), conns["plan"])
+            r = await call("get_plan", "GET", "/v1/plan?orders=false", (200,), conns["plan"])
             if r is not None and r.status_code == 200:
                 for a in r.json()["agents"]:
                     old = plan.get(a["id"])
-                    # Keep a consumed path until the plan moves on.
+                    # Keep a reached goal cleared until the plan moves on.
                     if old is not None and old.get("order") == a["order"] and \
-                            old.get("leg") == a["leg"] and not old.get("path"):
+                            old.get("leg") == a["leg"] and not old.get("goal"):
                         continue
                     plan[a["id"]] = a
             await asyncio.sleep(max(0.0, period - (time.perf_counter() - tick)))
@@ -284,9 +285,9 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
                 return
             if r is not None and r.status_code < 500:
                 return  # refused for good (counted as unexpected)
-            if time.perf_counter() > end + 60:
+            if time.perf_counter() > end + 120:
                 return
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(min(2.0, 0.1 * 2 ** min(tries, 5)))  # back off
 
     async def order_loop() -> None:
         period = 1.0 / args.orders_per_s

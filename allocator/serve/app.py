@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import Annotated, Any, Literal
 
-from fastapi import FastAPI, Path, Request
+from fastapi import FastAPI, Path, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
@@ -117,7 +117,9 @@ class PlanAgent(BaseModel):
     status: str
     order: str | None
     leg: Literal["pickup", "dropoff"] | None
-    path: list[list[float]]
+    goal: list[float] | None = Field(description="the point the AGV drives to")
+    path: list[list[float]] = Field(description="waypoints from the AGV to its goal ([] while "
+                                    "not computed yet)")
 
 
 class PlanOrder(BaseModel):
@@ -133,7 +135,7 @@ class Plan(BaseModel):
     version: int
     time: float
     agents: list[PlanAgent]
-    orders: list[PlanOrder]
+    orders: list[PlanOrder] | None = None
     stats: dict[str, Any]
 
 
@@ -224,7 +226,7 @@ class _Limits:
 
 
 def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None = None,
-               worker: Any = None) -> FastAPI:
+               worker: Any = None, worker_ready: Any = None) -> FastAPI:
     """The FastAPI application of one fleet.
 
     Parameters
@@ -237,8 +239,11 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
     worker : concurrent.futures.Executor, optional
         A planning process (:func:`allocator.serve.fleet.start_worker`); default: plan in a
         thread of this process.
+    worker_ready : concurrent.futures.Future, optional
+        Done when the planning process is ready; until then requests are served and stored
+        but no plan is made.
     """
-    dispatch = DispatchLoop(fleet, config, worker)
+    dispatch = DispatchLoop(fleet, config, worker, worker_ready)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -312,8 +317,9 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
     @app.get("/healthz", tags=["service"])
     async def healthz() -> dict[str, Any]:
         """Liveness (no key needed)."""
-        return {"ok": True, "agents": len(fleet.agents), "open_orders": len(fleet.orders),
-                "plan_version": fleet.plan_version}
+        ready = dispatch.worker_ready is None or dispatch.worker_ready.done()
+        return {"ok": True, "planner_ready": ready, "agents": len(fleet.agents),
+                "open_orders": len(fleet.orders), "plan_version": fleet.plan_version}
 
     @app.put("/v1/agents/{agent_id}", tags=["agents"], response_model=AgentOut,
              responses={**_ERRORS, 201: {"model": AgentOut}})
@@ -386,10 +392,11 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
         return out
 
     @app.get("/v1/plan", tags=["plan"], response_model=Plan, responses=_ERRORS)
-    async def get_plan() -> Any:
-        """The current plan: each AGV's order, leg and path waypoints; the active orders;
-        throughput and wait figures."""
-        return JSONResponse(fleet.plan_view())
+    async def get_plan(orders: bool = Query(True, description="include the active orders "
+                                            "(false: the AGVs' part only, smaller)")) -> Any:
+        """The current plan: each AGV's order, leg, goal point and path waypoints; the
+        active orders; throughput and wait figures."""
+        return JSONResponse(fleet.plan_view(orders=orders))
 
     @app.get("/v1/events", tags=["plan"], responses={
         **_ERRORS, 200: {"content": {"text/event-stream": {}},
@@ -439,10 +446,12 @@ class DispatchLoop:
     """Re-plan after changes (debounced) and on a slow timer as AGVs move; push each new
     plan to the event-stream subscribers."""
 
-    def __init__(self, fleet: Fleet, config: ServiceConfig, worker: Any = None) -> None:
+    def __init__(self, fleet: Fleet, config: ServiceConfig, worker: Any = None,
+                 worker_ready: Any = None) -> None:
         self.fleet = fleet
         self.config = config
         self.worker = worker
+        self.worker_ready = worker_ready
         self.subscribers: set[asyncio.Queue] = set()
         self.closing = False
         self.planned_epoch = -1
@@ -484,6 +493,10 @@ class DispatchLoop:
         if self._event is None:
             self._event = asyncio.Event()
         fleet = self.fleet
+        if self.worker_ready is not None:
+            ok = await asyncio.wrap_future(self.worker_ready)
+            if not ok:  # pragma: no cover
+                raise RuntimeError("the planning process did not start")
         while not self.closing:
             try:
                 await asyncio.wait_for(self._event.wait(), self.config.refresh_interval)

@@ -132,7 +132,11 @@ def build_service(args: argparse.Namespace) -> tuple[Any, Any]:
 
         worker, ready = start_worker(floor, args.method)
     store = Store(args.db, sync=args.sync)
-    fleet = Fleet(world, dispatcher, store, FloorDistances(world))
+    # With a planning process, this one only checks orders' trips: no table of the fixed
+    # points' distance fields (the slow part of start-up on a large floor), fields on demand.
+    distances = FloorDistances(world, table_bytes=0) if worker is not None else \
+        FloorDistances(world)
+    fleet = Fleet(world, dispatcher, store, distances)
     background = []
     if args.simulate:
         from allocator.serve.simulate import SimulatedFleet
@@ -140,9 +144,9 @@ def build_service(args: argparse.Namespace) -> tuple[Any, Any]:
         sim_fleet = SimulatedFleet(fleet, args.simulate, rate=args.sim_rate,
                                    faults=args.sim_faults, seed=args.sim_seed)
         background.append(sim_fleet.run)
-    if ready is not None and not ready.result():  # pragma: no cover
-        raise RuntimeError("the planning process did not start")
-    app = create_app(fleet, ServiceConfig(api_key=key), background=background, worker=worker)
+    # The service answers at once; plans start when the planning process is ready.
+    app = create_app(fleet, ServiceConfig(api_key=key), background=background, worker=worker,
+                     worker_ready=ready)
     app.state.worker = worker
     return app, fleet
 

@@ -355,6 +355,7 @@ class Fleet:
         self.waits: deque[float] = deque(maxlen=2000)
         self.leads: deque[float] = deque(maxlen=2000)
         self.deliveries: deque[float] = deque(maxlen=100_000)
+        self._trips_ok: set[tuple[float, float, float, float]] = set()
         self._load()
 
     # ------------------------------------------------------------------ start-up
@@ -402,6 +403,21 @@ class Fleet:
             raise Invalid(loc, f"{list(point)} is not a free point for an AGV (a shelf or a "
                           "wall is within the AGV radius)")
 
+    def _check_trip(self, pickup: tuple, dropoff: tuple, prefix: tuple[Any, ...]) -> None:
+        """Pickup and drop-off free, and the drop-off reachable from the pickup (pairs that
+        passed are remembered: most orders run between the floor's fixed points)."""
+        key = (float(pickup[0]), float(pickup[1]), float(dropoff[0]), float(dropoff[1]))
+        if key in self._trips_ok:
+            return
+        self._check_point(pickup, (*prefix, "pickup"), free=True)
+        self._check_point(dropoff, (*prefix, "dropoff"), free=True)
+        d = self.distances.distance(np.asarray([pickup]), np.asarray([dropoff]))[0, 0]
+        if not np.isfinite(d):
+            raise Invalid((*prefix, "dropoff"), "cannot be reached from the pickup")
+        if len(self._trips_ok) >= 100_000:
+            self._trips_ok.clear()
+        self._trips_ok.add(key)
+
     # ------------------------------------------------------------------ orders
     def get_order(self, order_id: str) -> dict[str, Any]:
         o = self.orders.get(order_id)
@@ -448,11 +464,7 @@ class Fleet:
                                    "names one order for good")
                 results.append((oid, old if old is not None else old_row, False))
                 continue
-            self._check_point(pickup, (*prefix, "pickup"), free=True)
-            self._check_point(dropoff, (*prefix, "dropoff"), free=True)
-            d = self.distances.distance(np.asarray([pickup]), np.asarray([dropoff]))[0, 0]
-            if not np.isfinite(d):
-                raise Invalid((*prefix, "dropoff"), "cannot be reached from the pickup")
+            self._check_trip(pickup, dropoff, prefix)
             seq += 1
             o = Order(id=oid, seq=seq, body=body, pickup=(float(pickup[0]), float(pickup[1])),
                       dropoff=(float(dropoff[0]), float(dropoff[1])),
@@ -719,19 +731,27 @@ class Fleet:
         self.plan_time = self.clock()
         return changed
 
-    def plan_view(self) -> dict[str, Any]:
-        """The current plan: every AGV with its order, leg and path; the active orders;
-        the service's figures."""
+    def plan_view(self, orders: bool = True) -> dict[str, Any]:
+        """The current plan: every AGV with its order, leg, goal point and path; the active
+        orders (unless ``orders=False``); the service's figures."""
         agents = []
         for a in sorted(self.agents.values(), key=lambda a: a.id):
-            leg = None if a.order is None else ("dropoff" if a.loaded else "pickup")
+            leg = goal = None
+            o = self.orders.get(a.order) if a.order is not None else None
+            if o is not None:
+                leg = "dropoff" if a.loaded else "pickup"
+                goal = list(o.dropoff if a.loaded else o.pickup)
             agents.append({"id": a.id, "position": [a.x, a.y], "status": a.status,
-                           "order": a.order, "leg": leg, "path": a.path})
-        orders = [{"id": o.id, "status": o.status, "pickup": list(o.pickup),
-                   "dropoff": list(o.dropoff), "priority": o.priority, "agent": o.agent}
-                  for o in sorted(self.orders.values(), key=lambda o: o.seq)]
-        return {"version": self.plan_version, "time": self.plan_time, "agents": agents,
-                "orders": orders, "stats": self.stats()}
+                           "order": a.order, "leg": leg, "goal": goal, "path": a.path})
+        view: dict[str, Any] = {"version": self.plan_version, "time": self.plan_time,
+                                "agents": agents}
+        if orders:
+            view["orders"] = [{"id": o.id, "status": o.status, "pickup": list(o.pickup),
+                               "dropoff": list(o.dropoff), "priority": o.priority,
+                               "agent": o.agent}
+                              for o in sorted(self.orders.values(), key=lambda o: o.seq)]
+        view["stats"] = self.stats()
+        return view
 
     def stats(self) -> dict[str, Any]:
         now = self.clock()
