@@ -94,10 +94,8 @@ def make_controller(mode: str) -> Any:
     from allocator.controller import AllocatorController
 
     if mode == "orca":  # the ORCA QP alone (no braking shield, no deadlock resolution)
-        try:
-            return AllocatorController(AntipodalAllocator(), shield=False, liveness=False)
-        except TypeError:
-            return AllocatorController(AntipodalAllocator())
+        return AllocatorController(AntipodalAllocator(),
+                                   avoidance_options={"shield": False, "liveness": False})
     return AllocatorController(AntipodalAllocator())
 
 
@@ -187,6 +185,25 @@ def run_scenes(mode: str, scale: float = 1.0) -> list[dict[str, Any]]:
     return rows
 
 
+def run_lifelong(steps: int, driver_name: str, rate: float = 1e-3,
+                 repair_steps: int = 50) -> dict[str, Any]:
+    """``warehouse-50`` with breakdowns under ``HungarianDispatcher`` and the given driver."""
+    import sim
+    from allocator.dispatch import HungarianDispatcher
+    from allocator.traffic import SafeDriver
+
+    drv = SafeDriver() if driver_name == "safe" else None
+    t0 = time.time()
+    m = sim.evaluate_lifelong(HungarianDispatcher(driver=drv), "warehouse-50", steps=steps,
+                              seed=0, faults=sim.Breakdowns(rate=rate, repair_steps=repair_steps))
+    return dict(driver="SafeDriver" if drv else "WaypointDriver", steps=steps,
+                breakdown_rate=rate, repair_steps=repair_steps, throughput=m.throughput,
+                throughput_bound=m.throughput_bound, collisions_per_1000=m.collisions_per_1000,
+                lost=m.lost, wait_p95=m.wait_p95, wall_s=time.time() - t0,
+                driver_ms_per_step=(1e3 * drv.timing["total"] / max(1, drv.steps))
+                if drv else None, shield_brakes=drv.braked if drv else None)
+
+
 def atomic_write(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
@@ -205,12 +222,22 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--max-steps", type=int, default=300)
     p.add_argument("--large", type=int, default=0, help="also a circle of this many AGVs")
     p.add_argument("--scenes", action="store_true", help="the paper's scenes instead")
+    p.add_argument("--lifelong", type=int, default=0,
+                   help="warehouse-50 with breakdowns for this many steps instead")
+    p.add_argument("--driver", default="safe", choices=["safe", "waypoint"])
     p.add_argument("--scale", type=float, default=1.0, help="episodes factor for --scenes")
     p.add_argument("--figure", action="store_true", help="docs/figures/safety_antipodal.png")
     args = p.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)
+    if args.lifelong:
+        row = run_lifelong(args.lifelong, args.driver)
+        row["command"] = "python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:])
+        print(json.dumps(row), flush=True)
+        atomic_write(OUT / f"lifelong-{args.driver}-{args.lifelong}.json",
+                     json.dumps(row, indent=1))
+        return
     if args.scenes:
         rows = run_scenes(args.mode, args.scale)
         doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),

@@ -13,12 +13,12 @@ from allocator.traffic import SafeDriver
 
 def test_safe_driver_drives_a_lifelong_floor_without_collisions() -> None:
     driver = SafeDriver()
-    m = sim.evaluate_lifelong(HungarianDispatcher(driver=driver), "warehouse-20", steps=150,
+    m = sim.evaluate_lifelong(HungarianDispatcher(driver=driver), "warehouse-20", steps=100,
                               seed=0, faults=sim.Breakdowns(rate=2e-3, repair_steps=30))
     assert m.collisions_per_1000 == 0.0
     assert m.lost == 0
     assert m.throughput > 0
-    assert driver.steps == 150
+    assert driver.steps == 100
 
 
 def test_safe_driver_actions_have_the_interface_of_waypoint_driver() -> None:

@@ -57,12 +57,12 @@ def test_segment_distance_against_dense_sampling() -> None:
     rng = np.random.default_rng(1)
     a0, a1, b0, b1 = (rng.uniform(-1, 1, (200, 2)) for _ in range(4))
     d = segment_distance(a0, a1, b0, b1)
-    t = np.linspace(0, 1, 201)
+    t = np.linspace(0, 1, 101)
     pa = a0[:, None] + t[None, :, None] * (a1 - a0)[:, None]
     pb = b0[:, None] + t[None, :, None] * (b1 - b0)[:, None]
     sampled = np.linalg.norm(pa[:, :, None] - pb[:, None, :], axis=-1).min(axis=(1, 2))
     assert np.all(d <= sampled + 1e-12)
-    assert np.all(sampled - d < 0.02)
+    assert np.all(sampled - d < 0.04)
 
 
 def _random_safe_state(rng, n, half, margin):
@@ -73,14 +73,11 @@ def _random_safe_state(rng, n, half, margin):
     while len(pos) < n:
         p = rng.uniform(-half + R + 0.4, half - R - 0.4, 2)
         v = rng.uniform(-2, 2, 2) * rng.integers(0, 2)
-        q = p + v * DT
-        e = q + braking_offset(braking_velocity(v[None], C, G), DT, C, G)[0]
-        ok = all(segment_distance(p, e, p2, e2) >= 2 * R + margin for p2, e2 in
-                 ((a, a + braking_offset(b[None], DT, C, G)[0]) for a, b in zip(pos, vel)))
-        # the whole segment from p (the current state's), wall clearance
-        e_full = p + braking_offset(v[None], DT, C, G)[0]
-        ok = ok and all(segment_distance(p, e_full, p2, p2 + braking_offset(
-            b[None], DT, C, G)[0]) >= 2 * R + margin for p2, b in zip(pos, vel))
+        # the state's whole braking segment, the committed move v dt included
+        end = p + braking_offset(v[None], DT, C, G)[0]
+        ok = all(segment_distance(p, end, p2, p2 + braking_offset(b[None], DT, C, G)[0])
+                 >= 2 * R + margin for p2, b in zip(pos, vel, strict=True))
+        ok = ok and bool(np.all(np.abs(end) <= half - R - shield.static_margin))
         if ok:
             pos.append(p)
             vel.append(v)
