@@ -12,7 +12,8 @@ driver::
 Each step:
 
 1. preferred velocities along the floor's shortest paths (the first corner of
-   :meth:`allocator.distances.FloorDistances.next_waypoint`, slowing down on the last metres);
+   :meth:`allocator.distances.FloorDistances.next_waypoint`, cached while an AGV drives to it,
+   slowing down on the last metres);
    AGVs without a target prefer to stand;
 2. liveness (:class:`~allocator.avoidance.liveness.DeadlockResolver`): perturbation, stall
    detection (no progress: slower than 10% of the cruise speed while wanting to move), priority
@@ -101,6 +102,8 @@ class SafeDriver:
         self.timing = {"path": 0.0, "avoid": 0.0, "shield": 0.0, "total": 0.0}
         self.braked = 0
         self.steps = 0
+        self.refresh_distance = 0.3
+        self.refresh_steps = 10
 
     def reset(self, env: Any) -> None:
         """Bind to the env's floor (distance table, avoidance QP, shield, resolver)."""
@@ -117,6 +120,7 @@ class SafeDriver:
         self.resolver = DeadlockResolver(env.num_envs, env.num_agents, world.agent_radius,
                                          seed=self.seed, perturbation=self.perturbation)
         self.timing = {k: 0.0 for k in self.timing}
+        self._wp = None
         self.braked = 0
         self.steps = 0
 
@@ -157,8 +161,8 @@ class SafeDriver:
         go = has & movable
         pref = np.zeros_like(pos)
         if go.any():
-            a = ahead[go]
-            pref[go] = (self.distances.next_waypoint(a, target[go]) - a) * self.gain
+            wp = self._waypoints(ahead, target, go)
+            pref[go] = (wp[go] - ahead[go]) * self.gain
         speed = np.linalg.norm(pref, axis=-1, keepdims=True)
         pref = pref * (self.max_speed / np.maximum(speed, self.max_speed))
         self.timing["path"] += time.perf_counter() - t0
@@ -188,6 +192,29 @@ class SafeDriver:
         self.timing["total"] += time.perf_counter() - t_start
         self.steps += 1
         return torch.as_tensor(res.action, dtype=torch.float32)
+
+    def _waypoints(self, ahead: np.ndarray, target: np.ndarray, go: np.ndarray) -> np.ndarray:
+        """The first corner of every driving AGV's path, (B, N, 2), from a cache.
+
+        :meth:`FloorDistances.next_waypoint` is the costly part of a step, and a corner stays
+        the same while an AGV drives towards it, so it is looked up again only for AGVs whose
+        target changed, that came within ``refresh_distance`` of their corner, or whose corner
+        is ``refresh_steps`` old.
+        """
+        B, N, _ = ahead.shape
+        if getattr(self, "_wp", None) is None or self._wp.shape != (B, N, 2):
+            self._wp = np.zeros((B, N, 2))
+            self._wp_target = np.full((B, N, 2), np.nan)
+            self._wp_age = np.zeros((B, N), dtype=np.int64)
+        stale = go & ((self._wp_target != target).any(-1)
+                      | (np.linalg.norm(self._wp - ahead, axis=-1) < self.refresh_distance)
+                      | (self._wp_age >= self.refresh_steps))
+        if stale.any():
+            self._wp[stale] = self.distances.next_waypoint(ahead[stale], target[stale])
+            self._wp_target[stale] = target[stale]
+            self._wp_age[stale] = 0
+        self._wp_age += 1
+        return self._wp
 
     def _clip_to_walls(self, pts: np.ndarray) -> None:
         w = self.world
