@@ -149,6 +149,7 @@ class Recorder:
         self.failures: dict[str, int] = {}
         self.failures_in_chaos: dict[str, int] = {}
         self.chaos_window: tuple[float, float] | None = None
+        self.planner_again: float | None = None
         self.down = False
 
     def add(self, kind: str, seconds: float, status: int, server_ms: float | None) -> None:
@@ -317,6 +318,7 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
         await asyncio.to_thread(svc.start)
         rec.down = False
         rec.chaos_window = (t - t0, time.perf_counter() - t0)
+        rec.planner_again = await asyncio.to_thread(wait_planner, svc) - t0
 
     jobs = [asyncio.create_task(agent_loop(i)) for i in range(N)]
     jobs.append(asyncio.create_task(plan_loop()))
@@ -329,6 +331,21 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
         c.close()
     return {"posted": posted, "unexpected": unexpected,
             "elapsed_s": round(time.perf_counter() - t0, 2)}
+
+
+def wait_planner(svc: Any, timeout: float = 300.0) -> float:
+    """Wait until the service's planning process is ready; the time it was seen ready."""
+    import httpx
+
+    deadline = time.perf_counter() + timeout
+    while time.perf_counter() < deadline:
+        try:
+            if httpx.get(svc.url + "/healthz", timeout=2.0).json().get("planner_ready"):
+                return time.perf_counter()
+        except (httpx.HTTPError, ValueError):
+            pass
+        time.sleep(0.2)
+    raise RuntimeError("the planner did not get ready")
 
 
 def verify(svc: Any, acked: dict[str, dict]) -> dict[str, Any]:
@@ -367,6 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     t = time.perf_counter()
     svc.start(timeout=300)
     startup = time.perf_counter() - t
+    planner_ready = wait_planner(svc) - t
     rec = Recorder()
     acked: dict[str, dict] = {}
     retried: set[str] = set()
@@ -386,6 +404,8 @@ def main(argv: list[str] | None = None) -> int:
                     "platform": platform.platform()},
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "startup_s": round(startup, 2),
+        "planner_ready_s": round(planner_ready, 2),
+        "planner_ready_again_s": rec.planner_again,
         "latency": lat,
         "failed_requests": rec.failures,
         "failed_during_chaos": rec.failures_in_chaos,
@@ -409,7 +429,8 @@ def main(argv: list[str] | None = None) -> int:
              "the load generator)", "",
              f"{args.agents} AGVs reporting at 1 Hz, {args.orders_per_s:g} orders/s, "
              f"{args.plan_hz:g} plan reads/s for {args.duration:g} s on {args.floor} "
-             f"({args.method}); service start-up {startup:.1f} s.", "",
+             f"({args.method}); the service answered {startup:.1f} s after its start and "
+             f"planned from {planner_ready:.1f} s (the load starts then).", "",
              "Client: from the request written to the answer read, in this (Python) load "
              "generator; server: the service's own Server-Timing (arrival at the application "
              "to the answer).", "",
@@ -427,7 +448,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{result['p99_target_met']}"]
     if args.chaos:
         lines += [f"- kill -9 at {rec.chaos_window[0]:.1f} s, answering again at "
-                  f"{rec.chaos_window[1]:.1f} s; requests failed meanwhile "
+                  f"{rec.chaos_window[1]:.1f} s and planning again at "
+                  f"{rec.planner_again:.1f} s; requests failed meanwhile "
                   f"{rec.failures_in_chaos}; orders acknowledged only after a retry "
                   f"{len(retried)}"]
     (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")

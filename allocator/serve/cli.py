@@ -132,6 +132,7 @@ def build_service(args: argparse.Namespace) -> tuple[Any, Any]:
 
         worker, ready = start_worker(floor, args.method)
     store = Store(args.db, sync=args.sync)
+    store.start_checkpointer()
     # With a planning process, this one only checks orders' trips: no table of the fixed
     # points' distance fields (the slow part of start-up on a large floor), fields on demand.
     distances = FloorDistances(world, table_bytes=0) if worker is not None else \
@@ -168,6 +169,10 @@ def run_serve(args: argparse.Namespace) -> int:
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level,
                             access_log=False, timeout_graceful_shutdown=2,
                             lifespan="on", server_header=False)
+    import gc
+
+    gc.collect()
+    gc.freeze()  # the floor and the loaded state: out of the collector's way from now on
     try:
         uvicorn.Server(config).run()
     finally:

@@ -711,7 +711,9 @@ class Fleet:
                 changed = True
         for aid, oid in want.items():
             a = self.agents.get(aid)
-            if oid is None or a is None or self._code(a) != _FREE:
+            # Free now, or released just above (it may report busy while on its way).
+            if oid is None or a is None or a.loaded or a.order is not None \
+                    or a.status in ("broken", "charging"):
                 continue
             o = self.orders.get(oid)
             if o is None or o.status != "open":

@@ -16,6 +16,7 @@ state and is rebuilt from these after a restart.
 from __future__ import annotations
 
 import sqlite3
+import threading
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -101,6 +102,33 @@ class Store:
             raise ValueError(f"the database {self.path} has schema version {row[0]}, this "
                              f"service reads version {SCHEMA_VERSION}")
         self.journal_mode = str(mode).lower()
+        self.sync = sync
+        self._checkpointer: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    def start_checkpointer(self, interval: float = 2.0) -> None:
+        """Move the write-ahead log into the database from a background thread (its own
+        connection, ``PASSIVE`` checkpoints every ``interval`` seconds) instead of inside a
+        commit, where its fsync would hold up the request that triggered it."""
+        if self.path == ":memory:" or self._checkpointer is not None:
+            return
+        self.db.execute("PRAGMA wal_autocheckpoint=0")
+
+        def run() -> None:
+            db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            db.execute(f"PRAGMA synchronous={self.sync.upper()}")
+            try:
+                while not self._stop.wait(interval):
+                    try:
+                        db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+                    except sqlite3.Error:  # busy now: the next round catches up
+                        pass
+            finally:
+                db.close()
+
+        self._checkpointer = threading.Thread(target=run, daemon=True,
+                                              name="agv-serve-checkpoint")
+        self._checkpointer.start()
 
     # ------------------------------------------------------------------ transactions
     def write(self, statements: Iterable[tuple[str, tuple[Any, ...]]]) -> None:
@@ -187,5 +215,8 @@ class Store:
         return {status: int(n) for status, n in rows}
 
     def close(self) -> None:
-        """Close the connection (a checkpoint of the WAL happens here)."""
+        """Stop the checkpoints and close the connection (SQLite checkpoints the WAL here)."""
+        self._stop.set()
+        if self._checkpointer is not None:
+            self._checkpointer.join(5)
         self.db.close()

@@ -238,12 +238,14 @@ def test_events_stream_sends_the_floor_then_plans(service, client: httpx.Client)
                       timeout=10.0) as r:
         assert r.status_code == 200
         assert r.headers["content-type"].startswith("text/event-stream")
-        client.post("/v1/orders", json={"id": uid("sse"), "pickup": PICK, "dropoff": DROP})
+        oid = uid("sse")
+        client.post("/v1/orders", json={"id": oid, "pickup": PICK, "dropoff": DROP})
         for line in r.iter_lines():
             if line.startswith("event: "):
                 seen.append(line[7:])
             if seen.count("plan") >= 2:
                 break
+    client.delete(f"/v1/orders/{oid}")
     assert seen[0] == "floor" and seen[1] == "plan"
 
 
@@ -253,3 +255,26 @@ def test_dashboard_page_is_static_and_self_contained(service) -> None:
     assert "connect-src 'self'" in r.headers["content-security-policy"]
     assert "http://" not in r.text and "https://" not in r.text  # no CDN, nothing external
     assert "<canvas" in r.text
+
+
+def test_a_busy_agv_on_its_way_can_be_given_a_better_order(client: httpx.Client) -> None:
+    """An AGV that reports busy on its way to a pickup is still planned (and re-planned)."""
+    a = uid("agv")
+    far, near = W.pickups[47].tolist(), W.pickups[0].tolist()
+    client.put(f"/v1/agents/{a}", json={"position": DROP, "status": "idle"})
+    o1 = uid("far")
+    client.post("/v1/orders", json={"id": o1, "pickup": far, "dropoff": DROP})
+    wait_for(lambda: client.get(f"/v1/orders/{o1}").json()["agent"] == a)
+    client.put(f"/v1/agents/{a}", json={"position": DROP, "status": "busy"})
+    # A second free AGV near the far pickup: the plan swaps, and the busy one gets the
+    # near order instead of nothing.
+    b = uid("agv")
+    client.put(f"/v1/agents/{b}", json={"position": far, "status": "idle"})
+    o2 = uid("near")
+    client.post("/v1/orders", json={"id": o2, "pickup": near, "dropoff": DROP})
+    wait_for(lambda: client.get(f"/v1/orders/{o1}").json()["agent"] == b
+             and client.get(f"/v1/orders/{o2}").json()["agent"] == a)
+    for o in (o1, o2):
+        client.delete(f"/v1/orders/{o}")
+    for x in (a, b):
+        client.put(f"/v1/agents/{x}", json={"position": DROP, "status": "charging"})
