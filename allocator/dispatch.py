@@ -432,31 +432,39 @@ class MatchingDispatcher(LifelongDispatcher):
             remaining = self.distances.pairwise(origin[is_loaded], drop)
             lag[is_loaded] += remaining / speed + self.service_steps
             origin[is_loaded] = drop
-        travel = self.distances.distance(origin, pickup[orders])  # (A, O)
-        cost = travel + (speed * lag)[:, None]
+        cost = self.distances.distance(origin, pickup[orders])  # (A, O) travel, then cost
+        # Every term below adds a row or a column vector, in place (no (A, O) temporaries but
+        # on the few columns with a deadline): the matrix is the re-plan's main memory cost.
+        column = np.zeros(len(orders))
         if self.priority_weight:
-            cost -= self.priority_weight * priority[orders][None, :]
+            column -= self.priority_weight * priority[orders]
         if deadline is not None and (deadline[orders] >= 0).any():
-            due = deadline[orders] >= 0
-            latest = np.full(len(orders), np.inf)
-            trip = np.zeros(int(due.sum()))
-            if dropoff is not None:
-                sel = orders[due]
-                trip = self.distances.pairwise(pickup[sel], dropoff[sel]) / speed
-            latest[due] = deadline[orders][due] - now - trip - 2 * self.service_steps
-            eta = travel / speed + lag[:, None]
+            due = np.flatnonzero(deadline[orders] >= 0)
+            sel = orders[due]
+            trip = np.zeros(len(due)) if dropoff is None else \
+                self.distances.pairwise(pickup[sel], dropoff[sel]) / speed
+            latest = deadline[sel] - now - trip - 2 * self.service_steps
+            eta = cost[:, due] / speed + lag[:, None]  # (A, D), D the orders with deadline
             if self.lateness_weight:
-                cost += self.lateness_weight * speed * lateness(eta, latest)
+                cost[:, due] += self.lateness_weight * speed * lateness(eta, latest)
             if self.deadline_bonus:
-                cost -= self.deadline_bonus * at_risk(eta, latest, self.deadline_horizon)[None]
+                column[due] -= self.deadline_bonus * at_risk(eta, latest,
+                                                             self.deadline_horizon)
+        cost += column[None, :]
+        cost += (speed * lag)[:, None]
         if returned is not None and returned[orders].any():
             # Taken from a broken AGV: first to the AGVs free now (ahead of any travel).
-            cost -= _RETURNED_BONUS * (returned[orders][None, :] & ~is_loaded[:, None])
+            back = np.flatnonzero(returned[orders])
+            free_rows = np.flatnonzero(~is_loaded)
+            cost[np.ix_(free_rows, back)] -= _RETURNED_BONUS
         mine = np.where(plan[agents] >= 0, plan[agents], held[agents])
         mine = np.where(is_loaded, held[agents], mine)
-        keep = mine[:, None] == orders[None, :]
-        cost += self.switching_cost * ~keep
-        cost = np.where(np.isfinite(cost), cost, _BIG)
+        col_of = np.full(len(order_status), -1, dtype=np.int64)
+        col_of[orders] = np.arange(len(orders))
+        kept = np.flatnonzero((mine >= 0) & (col_of[np.maximum(mine, 0)] >= 0))
+        cost += self.switching_cost  # every pair but the kept ones pays it
+        cost[kept, col_of[mine[kept]]] -= self.switching_cost
+        np.nan_to_num(cost, copy=False, nan=_BIG, posinf=_BIG)
         self.last_cost = cost
         rows, cols = self._match(cost, pos[agents], pickup[orders])
         ok = cost[rows, cols] < _BIG / 2

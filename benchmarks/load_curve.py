@@ -16,7 +16,7 @@ scenario's backlog: ceil(1.5 N) open orders at all times, as the League of Robot
 reveals them); at saturation once more with breakdowns, for the faulted / fault-free ratio.
 Every run of one floor sees the same seed, so the same orders and breakdowns. Each floor's
 part is written after every run (``load_curve.<floor>.json``), so a run cut short keeps what
-it measured.
+it measured, and a new run of the same configuration resumes it (saturation first).
 """
 
 from __future__ import annotations
@@ -122,10 +122,19 @@ def measure_floor(floor: str, fractions: list[float], dispatchers: list[str], st
         config.update(map=str(KIVA.relative_to(ROOT)), cell_size=0.4, num_agents=24)
     part = OUT / f"load_curve.{floor}.json"
     rows: list[dict] = []
-    loads: list[tuple[float | None, bool]] = [(r, False) for r in config["rates"]]
-    loads += [(None, False), (None, True)]
+    if part.exists():  # resume: keep the runs of the same configuration already measured
+        old = json.loads(part.read_text())
+        same = all(old["config"].get(k) == config[k] for k in ("steps", "seed", "faults",
+                                                                "comm_range"))
+        rows = old["results"] if same else []
+    done = {(r["dispatcher"], r["rate"], r["faults"]) for r in rows}
+    # Saturation first (the targets), then the Poisson rates from the heaviest down.
+    loads: list[tuple[float | None, bool]] = [(None, False), (None, True)]
+    loads += [(r, False) for r in sorted(config["rates"], reverse=True)]
     for rate, faults in loads:
         for name in dispatchers:
+            if (name, rate, faults) in done:
+                continue
             row = run_one(floor, name, rate, faults, steps, seed)
             rows.append(row)
             print(json.dumps(row), flush=True)
