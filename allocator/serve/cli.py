@@ -95,7 +95,10 @@ def load_world(floor: str) -> Any:
             raise ValueError(f"--floor {floor}: not a lifelong floor (use a floor file or a "
                              "warehouse-N scenario)")
         return world
-    return sim.load_floor(floor)
+    try:
+        return sim.load_floor(floor)
+    except OSError as err:
+        raise ValueError(f"--floor {floor}: {err}") from None
 
 
 def make_dispatcher(method: str) -> Any:

@@ -110,3 +110,17 @@ def test_help_does_not_import_fastapi() -> None:
     r = subprocess.run([sys.executable, "-m", "allocator.cli", "serve", "--help"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "--api-key-file" in r.stdout and "127.0.0.1" in r.stdout
+
+
+def test_bad_floor_and_method_are_one_line_errors(tmp_path) -> None:
+    kf = tmp_path / "key"
+    kf.write_text("k" * 32)
+    os.chmod(kf, 0o600)
+    for extra, needle in ((["--floor", str(tmp_path / "nope.map")], "does not exist"),
+                          (["--floor", "warehouse-20", "--method", "bicnet-ipf"],
+                           "no lifelong dispatcher")):
+        r = subprocess.run([sys.executable, "-m", "allocator.cli", "serve", "--db",
+                            str(tmp_path / "x.db"), "--api-key-file", str(kf), *extra],
+                           capture_output=True, text=True, timeout=120,
+                           env=dict(os.environ, OMP_NUM_THREADS="1"))
+        assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr
