@@ -320,7 +320,18 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
         rec.chaos_window = (t - t0, time.perf_counter() - t0)
         rec.planner_again = await asyncio.to_thread(wait_planner, svc) - t0
 
+    lags: list[float] = []
+
+    async def lag_monitor() -> None:
+        """This generator's own event-loop lag: how late a 10 ms sleep wakes up (a part of
+        every client-side figure)."""
+        while time.perf_counter() < end:
+            t = time.perf_counter()
+            await asyncio.sleep(0.01)
+            lags.append(time.perf_counter() - t - 0.01)
+
     jobs = [asyncio.create_task(agent_loop(i)) for i in range(N)]
+    jobs.append(asyncio.create_task(lag_monitor()))
     jobs.append(asyncio.create_task(plan_loop()))
     order_job = asyncio.create_task(order_loop())
     if args.chaos:
@@ -329,7 +340,11 @@ async def run_load(args: argparse.Namespace, svc: Any, world: Any, rec: Recorder
     posted = await order_job
     for c in [*conns.values(), *order_conns]:
         c.close()
+    lag = np.asarray(lags) * 1e3 if lags else np.zeros(1)
     return {"posted": posted, "unexpected": unexpected,
+            "generator_lag_ms": {"p50": round(float(np.percentile(lag, 50)), 2),
+                                 "p99": round(float(np.percentile(lag, 99)), 2),
+                                 "max": round(float(lag.max()), 2)},
             "elapsed_s": round(time.perf_counter() - t0, 2)}
 
 
@@ -366,9 +381,10 @@ def verify(svc: Any, acked: dict[str, dict]) -> dict[str, Any]:
             if c.get(f"/v1/orders/{oid}").status_code != 200:
                 api_missing += 1
         stats = c.get("/v1/plan").json()["stats"]
+        health = c.get("/healthz").json()
     return {"acknowledged": len(acked), "stored": len(stored), "lost": len(lost),
             "lost_ids": lost[:10], "duplicated": dup, "api_missing": api_missing,
-            "stored_by_status": statuses, "service_stats": stats}
+            "stored_by_status": statuses, "service_stats": stats, "service_health": health}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -411,6 +427,7 @@ def main(argv: list[str] | None = None) -> int:
         "failed_during_chaos": rec.failures_in_chaos,
         "chaos_window_s": rec.chaos_window,
         "unexpected_status": info["unexpected"],
+        "generator_loop_lag_ms": info["generator_lag_ms"],
         "errors": errors,
         "orders_posted": info["posted"],
         "orders_retried_after_failure": len(retried),
@@ -424,9 +441,15 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     name = "chaos" if args.chaos else "load"
     (args.out / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # pragma: no cover
+        load = float("nan")
+    result["machine"]["load_average_1min_at_end"] = round(load, 2)
     lines = [f"# agv serve {'chaos' if args.chaos else 'load'} test", "",
-             f"`{result['command']}` ({result['date']}, {os.cpu_count()} CPUs shared with "
-             "the load generator)", "",
+             f"`{result['command']}` ({result['date']}; {os.cpu_count()} CPUs shared by the "
+             f"service, its planning process, this load generator and other work: load "
+             f"average {load:.1f} at the end)", "",
              f"{args.agents} AGVs reporting at 1 Hz, {args.orders_per_s:g} orders/s, "
              f"{args.plan_hz:g} plan reads/s for {args.duration:g} s on {args.floor} "
              f"({args.method}); the service answered {startup:.1f} s after its start and "
@@ -439,7 +462,14 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in lat.items():
         lines.append(f"| {k} | {v['n']} | {v['p50_ms']} | {v['p99_ms']} | {v['max_ms']} | "
                      f"{v['server_p50_ms']} | {v['server_p99_ms']} |")
-    lines += ["", f"- errors: {errors} (failed requests outside the chaos window "
+    g = info["generator_lag_ms"]
+    lines += ["", f"- the load generator's own event-loop lag (in every client figure): p50 "
+              f"{g['p50']} ms, p99 {g['p99']} ms, max {g['max']} ms",
+              f"- the service's event-loop lag over the last minute (/healthz): "
+              f"{check['service_health'].get('loop_lag_ms')}; {check['service_health']['replans']}"
+              f" plans since its (re)start, {check['service_health']['plan_seconds_mean']} s "
+              "each in its planning process",
+              f"- errors: {errors} (failed requests outside the chaos window "
               f"{rec.failures}, unexpected statuses {info['unexpected']})",
               f"- orders posted {info['posted']}, acknowledged {check['acknowledged']}, "
               f"stored {check['stored']}: lost {check['lost']}, duplicated "

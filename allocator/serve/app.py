@@ -15,6 +15,7 @@ list, whose ``loc`` names the field.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import hmac
 import json
@@ -247,7 +248,7 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        tasks = [asyncio.create_task(dispatch.run())]
+        tasks = [asyncio.create_task(dispatch.run()), asyncio.create_task(dispatch.watch_lag())]
         for fn in background or []:
             tasks.append(asyncio.create_task(fn(app)))
         dispatch.wake()
@@ -319,7 +320,10 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
         """Liveness (no key needed)."""
         ready = dispatch.worker_ready is None or dispatch.worker_ready.done()
         return {"ok": True, "planner_ready": ready, "agents": len(fleet.agents),
-                "open_orders": len(fleet.orders), "plan_version": fleet.plan_version}
+                "open_orders": len(fleet.orders), "plan_version": fleet.plan_version,
+                "replans": dispatch.replans,
+                "plan_seconds_mean": round(dispatch.plan_seconds / max(1, dispatch.replans), 4),
+                "loop_lag_ms": dispatch.lag_ms()}
 
     @app.put("/v1/agents/{agent_id}", tags=["agents"], response_model=AgentOut,
              responses={**_ERRORS, 201: {"model": AgentOut}})
@@ -460,6 +464,21 @@ class DispatchLoop:
         self.replans = 0
         self.plan_seconds = 0.0
         self._last = 0.0
+        self.lags: collections.deque[float] = collections.deque(maxlen=1200)
+
+    async def watch_lag(self, every: float = 0.05) -> None:
+        """The event loop's lag: how late a short sleep wakes up (last minute, /healthz)."""
+        while not self.closing:
+            t = time.perf_counter()
+            await asyncio.sleep(every)
+            self.lags.append(time.perf_counter() - t - every)
+
+    def lag_ms(self) -> dict[str, float | None]:
+        if not self.lags:
+            return {"p50": None, "p99": None, "max": None}
+        v = sorted(self.lags)
+        pick = lambda q: round(1e3 * v[min(len(v) - 1, int(q * len(v)))], 2)  # noqa: E731
+        return {"p50": pick(0.5), "p99": pick(0.99), "max": round(1e3 * v[-1], 2)}
 
     def subscribe(self) -> asyncio.Queue:
         q: asyncio.Queue = asyncio.Queue(maxsize=self.config.sse_queue)
