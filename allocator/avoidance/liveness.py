@@ -10,9 +10,10 @@ do not guarantee):
    *stalled*; a neighbour within ``reach`` in front of it (inside a 145-degree cone around its
    preferred direction) *blocks* it (the wait-for relation);
 3. priority yielding: every AGV has a distinct seeded random priority; a stalled AGV blocked by a
-   higher-priority active AGV (parked and broken ones are obstacles, not yielded to) yields for ``yield_steps`` steps: it sidesteps to its right and backs
-   off from its higher-priority blockers at half speed. The highest-priority AGV of a wait-for
-   cycle never yields to the others of the cycle, so the cycle is broken;
+   higher-priority active AGV (parked and broken ones are obstacles, never yielded to) yields
+   for ``yield_steps`` steps: it sidesteps to its right and backs off from its higher-priority
+   blockers at half speed. In a wait-for cycle at least one AGV yields and the cycle's
+   highest-priority AGV does not yield to its successor, so the cycle is broken;
 4. roundabout: a stalled, blocked AGV that does not yield turns its preferred velocity to the
    right by 15 degrees per stalled step (at most 90), so that a symmetric jam rotates.
 
