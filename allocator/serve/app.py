@@ -268,7 +268,8 @@ def create_app(fleet: Fleet, config: ServiceConfig, background: list[Any] | None
     app = FastAPI(title="agv serve: fleet dispatch", version="1",
                   description="Dispatch for a fleet of AGVs: report AGV states and events, "
                   "post transport orders, read the plan. Every path but /healthz needs "
-                  "`Authorization: Bearer <key>`.", lifespan=lifespan)
+                  "`Authorization: Bearer <key>`.", lifespan=lifespan,
+                  docs_url=None, redoc_url=None)  # their pages load scripts from a CDN
     app.state.fleet = fleet
 
     def openapi() -> dict[str, Any]:
