@@ -472,7 +472,8 @@ int agv_ipf_lifelong_block(int64_t B, int64_t N, int64_t Q, const double *gap,
                 sb[i * N + k] = v;
                 sb[k * N + i] = v;
             }
-        for (int64_t j = 0; j < N; j++) r[b * N + j] = va[b * N + j] - ipf_dot_pair(x + j * Q, ub, Q);
+        for (int64_t j = 0; j < N; j++)
+            r[b * N + j] = va[b * N + j] - ipf_dot_pair(x + j * Q, ub, Q);
     }
     return 0;
 }
@@ -539,13 +540,11 @@ int agv_ipf_tree_gram(int64_t B, int64_t J, const int64_t *rows, const double *y
     return 0;
 }
 
-/* The factor and inverse of the SPD n x n block `a` (row-major, read from its upper triangle)
- * in vectorizable row operations: u = C^T (upper, row-major, in place of a) with C C^T = a,
- * inv[k] = 1 / C_kk, and y = C^-1 (lower, row-major; above the diagonal undefined). Then the
- * column sums d[c] = sum_a y[a][c]^2 = (a^-1)_cc. Returns 1 when the block is not positive
- * definite. */
-static inline __attribute__((always_inline)) int ipf_factor_inverse(int64_t n, double *restrict u, double *restrict y,
-                              double *restrict inv, double *restrict d) {
+/* The Cholesky factor of the SPD n x n block u (row-major, read from its upper triangle) in
+ * place: u = C^T (upper), inv[k] = 1 / C_kk. Returns 1
+ * when the block is not positive definite. */
+static inline __attribute__((always_inline)) int ipf_cholesky(int64_t n, double *restrict u,
+                                                             double *restrict inv) {
     int status = 0;
     for (int64_t k = 0; k < n; k++) {
         double *uk = u + k * n;
@@ -560,6 +559,17 @@ static inline __attribute__((always_inline)) int ipf_factor_inverse(int64_t n, d
             for (int64_t j = i; j < n; j++) ui[j] -= f * uk[j];
         }
     }
+    return status;
+}
+
+/* The factor and inverse of the SPD n x n block `a` (row-major, read from its upper triangle)
+ * in vectorizable row operations: u = C^T (upper, row-major, in place of a) with C C^T = a,
+ * inv[k] = 1 / C_kk, and y = C^-1 (lower, row-major; above the diagonal undefined). Then the
+ * column sums d[c] = sum_a y[a][c]^2 = (a^-1)_cc. Returns 1 when the block is not positive
+ * definite. */
+static inline __attribute__((always_inline)) int ipf_factor_inverse(
+    int64_t n, double *restrict u, double *restrict y, double *restrict inv, double *restrict d) {
+    const int status = ipf_cholesky(n, u, inv);
     for (int64_t c = 0; c < n; c++) d[c] = 0.0;
     for (int64_t a = 0; a < n; a++) {
         double *ya = y + a * n;
@@ -574,19 +584,6 @@ static inline __attribute__((always_inline)) int ipf_factor_inverse(int64_t n, d
         for (int64_t c = 0; c <= a; c++) d[c] += ya[c] * ya[c];
     }
     return status;
-}
-
-/* z = y r for the lower triangular y (n x n, row-major), then p[c] = sum_a y[a][c] z[a]. */
-static inline __attribute__((always_inline)) void ipf_apply(int64_t n, const double *restrict y, const double *restrict r,
-                      double *restrict z, double *restrict p) {
-    for (int64_t c = 0; c < n; c++) p[c] = 0.0;
-    for (int64_t a = 0; a < n; a++) {
-        const double *ya = y + a * n;
-        double sum = 0.0;
-        for (int64_t c = 0; c <= a; c++) sum += ya[c] * r[c];
-        z[a] = sum;
-        for (int64_t c = 0; c <= a; c++) p[c] += ya[c] * sum;
-    }
 }
 
 /* Factors of a batch of SPD blocks (B, n, n), row-major, read from their upper triangles:
@@ -607,6 +604,72 @@ int agv_ipf_inverse_factors(int64_t B, int64_t n, const double *blocks, double *
             for (int64_t c = a + 1; c < n; c++) yb[a * n + c] = 0.0;
     }
     return status;
+}
+
+/* perm: the AGVs that are not targets first, then the targets (candidates with loaded ==
+ * want), each group in index order; returns the number of targets. */
+static inline __attribute__((always_inline)) int64_t ipf_targets_last(
+    int64_t N, const uint8_t *ld, const uint8_t *ac, int want, int64_t *perm) {
+    int64_t k = 0, m = 0;
+    for (int64_t i = 0; i < N; i++)
+        if (!(ac[i] && (ld[i] != 0) == want)) perm[k++] = i;
+    for (int64_t i = 0; i < N; i++)
+        if (ac[i] && (ld[i] != 0) == want) perm[k++] = i, m++;
+    return m;
+}
+
+/* u = P a P^T (row-major n x n): u[i][j] = a[perm[i]][perm[j]]. */
+static inline __attribute__((always_inline)) void ipf_permuted(
+    int64_t n, const double *a, const int64_t *perm, double *restrict u) {
+    for (int64_t i = 0; i < n; i++) {
+        const double *ai = a + perm[i] * n;
+        double *ui = u + i * n;
+        for (int64_t j = 0; j < n; j++) ui[j] = ai[perm[j]];
+    }
+}
+
+/* x = C^-1 x in place for the n x k right-hand sides x (row-major), C = u^T from
+ * ipf_cholesky: row k is final once the rows above it are, then leaves the rows below. */
+static inline __attribute__((always_inline)) void ipf_forward(int64_t n, const double *u,
+                                                             const double *inv,
+                                                             double *restrict x, int64_t k) {
+    for (int64_t a = 0; a < n; a++) {
+        double *xa = x + a * k;
+        for (int64_t t = 0; t < k; t++) xa[t] *= inv[a];
+        const double *ua = u + a * n;
+        for (int64_t c = a + 1; c < n; c++) {
+            const double f = ua[c];
+            double *xc = x + c * k;
+            for (int64_t t = 0; t < k; t++) xc[t] -= f * xa[t];
+        }
+    }
+}
+
+/* The trailing m x m block of Y = C^-1 (yt, lower, row-major: the inverse of C's trailing
+ * block, since C is lower triangular), its column sums of squares d[t] = (A^-1)_tt over the
+ * last m places, and p[t] = (Y^T z)_t there for z = C^-1 r (zf, the full forward solve):
+ * (A^-1 r)_t. */
+static inline __attribute__((always_inline)) void ipf_trailing(
+    int64_t n, int64_t m, const double *u, const double *inv, const double *zf,
+    double *restrict yt, double *restrict d, double *restrict p) {
+    const int64_t o = n - m;
+    for (int64_t c = 0; c < m; c++) d[c] = p[c] = 0.0;
+    for (int64_t a = 0; a < m; a++) {
+        double *ya = yt + a * m;
+        for (int64_t c = 0; c < m; c++) ya[c] = 0.0;
+        for (int64_t k = 0; k < a; k++) {  /* C[o + a][o + k] = u[o + k][o + a] */
+            const double f = u[(o + k) * n + o + a];
+            const double *yk = yt + k * m;
+            for (int64_t c = 0; c <= k; c++) ya[c] -= f * yk[c];
+        }
+        for (int64_t c = 0; c < a; c++) ya[c] *= inv[o + a];
+        ya[a] = inv[o + a];
+        const double za = zf[o + a];
+        for (int64_t c = 0; c <= a; c++) {
+            d[c] += ya[c] * ya[c];
+            p[c] += ya[c] * za;
+        }
+    }
 }
 
 /* The dense part of IPFGrid.lifelong_potentials (the torch code there is the reference), one
@@ -633,11 +696,11 @@ int agv_ipf_lifelong(int64_t B, int64_t N, int64_t Q, const double *schur, const
                      const uint8_t *acand, const uint8_t *popen, const uint8_t *dfree,
                      const uint8_t *active, double agent_value, double task_value,
                      double *out) {
-    double *u = arena_reserve(8 * (size_t)(4 * N * N + 8 * N + 1) + 8 * (size_t)N);
+    double *u = arena_reserve(8 * (size_t)(3 * N * N + 8 * N + 1) + 8 * (size_t)N);
     if (u == NULL) return -1;
-    double *y = u + N * N, *wl = y + N * N, *gl = wl + N * N, *inv = gl + N * N;
-    double *d = inv + N, *z = d + N, *p = z + N, *ww = p + N, *hv = ww + N, *hh = hv + N;
-    int64_t *slot = (int64_t *)(hh + N);
+    double *yt = u + N * N, *wl = yt + N * N, *inv = wl + N * N;
+    double *d = inv + N, *z = d + N, *rp = z + N, *ww = rp + N, *hv = ww + N, *hh = hv + N;
+    int64_t *perm = (int64_t *)(hh + N);
     int status = 0;
     for (int64_t b = 0; b < B; b++) {
         double *ob = out + b * N;
@@ -645,48 +708,58 @@ int agv_ipf_lifelong(int64_t B, int64_t N, int64_t Q, const double *schur, const
         if (active != NULL && !active[b]) continue;
         const uint8_t *ld = loaded + b * N, *ds = dsrc + b * N, *ac = acand + b * N;
         const double *vb = va + b * N;
-        int64_t nl = 0;
-        for (int64_t i = 0; i < N; i++)
-            if (ld[i] && ac[i]) slot[nl++] = i;
-        int unloaded = 0;
-        for (int64_t i = 0; i < N; i++) unloaded |= !ld[i] && ac[i];
-        if (unloaded && schur != NULL) {
-            memcpy(u, schur + b * N * N, 8 * (size_t)(N * N));
-            status |= ipf_factor_inverse(N, u, y, inv, d);
-            ipf_apply(N, y, r + b * N, z, p);
-            for (int64_t i = 0; i < N; i++)
-                if (!ld[i] && ac[i]) ob[i] = vb[i] - p[i] / d[i];
-        }
-        if (nl > 0 && gad != NULL) {
-            memcpy(u, gaa + b * N * N, 8 * (size_t)(N * N));
-            status |= ipf_factor_inverse(N, u, y, inv, d);
-            ipf_apply(N, y, vb, z, p);  /* z = e = Y v_A, p = Q v_A */
-            const double *gb = gad + b * N * N;
-            for (int64_t c = 0; c < N; c++)
-                for (int64_t s = 0; s < nl; s++) gl[c * nl + s] = gb[c * N + slot[s]];
-            for (int64_t s = 0; s < nl; s++) ww[s] = hv[s] = hh[s] = 0.0;
-            for (int64_t a = 0; a < N; a++) {  /* W = Y G[A, d_loaded], row by row */
-                const double *ya = y + a * N;
-                double *wa = wl + a * nl;
-                for (int64_t s = 0; s < nl; s++) wa[s] = 0.0;
-                for (int64_t c = 0; c <= a; c++) {
-                    const double f = ya[c];
-                    const double *gc = gl + c * nl;
-                    for (int64_t s = 0; s < nl; s++) wa[s] += f * gc[s];
+        /* the AGVs whose potential a factor serves go last (perm), so that only the trailing
+         * block of its inverse is needed: m targets among N */
+        int64_t m = 0;
+        if (schur != NULL) {
+            m = ipf_targets_last(N, ld, ac, 0, perm);
+            if (m > 0) {
+                const double *sb = schur + b * N * N, *rb = r + b * N;
+                ipf_permuted(N, sb, perm, u);
+                status |= ipf_cholesky(N, u, inv);
+                for (int64_t a = 0; a < N; a++) rp[a] = rb[perm[a]];
+                ipf_forward(N, u, inv, rp, 1);  /* z = C^-1 r, in place */
+                ipf_trailing(N, m, u, inv, rp, yt, d, z);  /* d = diag(S^-1), z = S^-1 r */
+                for (int64_t t = 0; t < m; t++) {
+                    const int64_t i = perm[N - m + t];
+                    ob[i] = vb[i] - z[t] / d[t];
                 }
-                const double ea = z[a];
-                for (int64_t s = 0; s < nl; s++) {
-                    ww[s] += wa[s] * wa[s];
-                    hv[s] += wa[s] * ea;
-                }
-                for (int64_t s = 0; s < nl && slot[s] <= a; s++) hh[s] += ya[slot[s]] * wa[s];
             }
-            for (int64_t s = 0; s < nl; s++) {
-                const int64_t i = slot[s];
-                const double sv = ds[i] ? gamma[b * N + i] - ww[s] : 1.0;
+        }
+        m = gad != NULL ? ipf_targets_last(N, ld, ac, 1, perm) : 0;
+        if (m > 0) {
+            ipf_permuted(N, gaa + b * N * N, perm, u);
+            status |= ipf_cholesky(N, u, inv);
+            for (int64_t a = 0; a < N; a++) rp[a] = vb[perm[a]];
+            ipf_forward(N, u, inv, rp, 1);  /* e = C^-1 v_A */
+            /* W = C^-1 G[A, d_targets]: column t is G[a, d_i] over the permuted AGVs a */
+            const double *gb = gad + b * N * N;
+            for (int64_t a = 0; a < N; a++)
+                for (int64_t t = 0; t < m; t++) wl[a * m + t] = gb[perm[a] * N + perm[N - m + t]];
+            ipf_forward(N, u, inv, wl, m);
+            for (int64_t t = 0; t < m; t++) ww[t] = hv[t] = 0.0;
+            for (int64_t a = 0; a < N; a++) {
+                const double *wa = wl + a * m;
+                const double ea = rp[a];
+                for (int64_t t = 0; t < m; t++) {
+                    ww[t] += wa[t] * wa[t];
+                    hv[t] += wa[t] * ea;
+                }
+            }
+            ipf_trailing(N, m, u, inv, rp, yt, d, z);  /* d = diag(Q), z = (Q v_A) */
+            /* h_t = Y[:, i_t] . w_t over the trailing rows (Y is zero above its diagonal) */
+            for (int64_t t = 0; t < m; t++) hh[t] = 0.0;
+            for (int64_t a = 0; a < m; a++) {
+                const double *ya = yt + a * m;
+                const double *wa = wl + (N - m + a) * m;
+                for (int64_t t = 0; t <= a; t++) hh[t] += ya[t] * wa[t];
+            }
+            for (int64_t t = 0; t < m; t++) {
+                const int64_t i = perm[N - m + t];
+                const double sv = ds[i] ? gamma[b * N + i] - ww[t] : 1.0;
                 const double vd = ds[i] ? task_value : 0.0;
-                const double pii = d[i] + hh[s] * hh[s] / sv;
-                ob[i] = vb[i] - (p[i] + hh[s] * (hv[s] - vd) / sv) / pii;
+                const double pii = d[t] + hh[t] * hh[t] / sv;
+                ob[i] = vb[i] - (z[t] + hh[t] * (hv[t] - vd) / sv) / pii;
             }
         }
         const int64_t *cab = ca + b * N, *cpb = cp + b * Q, *cdb = cd + b * N;
