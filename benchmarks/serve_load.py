@@ -60,6 +60,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--chaos", action="store_true", help="kill -9 and restart mid-run")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "serve")
+    p.add_argument("--name", default=None,
+                   help="result file name (default load, or chaos with --chaos)")
     return p.parse_args(argv)
 
 
@@ -439,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                          "post_order")
                                    if k in lat)
     args.out.mkdir(parents=True, exist_ok=True)
-    name = "chaos" if args.chaos else "load"
+    name = args.name or ("chaos" if args.chaos else "load")
     (args.out / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
     try:
         load = os.getloadavg()[0]
