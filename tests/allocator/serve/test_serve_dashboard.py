@@ -1,6 +1,7 @@
 """The dashboard in a real headless Chromium (Debian's ``chromium``, driven by Playwright):
 loaded from a running ``agv serve --simulate``, its AGVs appear and move; a screenshot is
-saved to ``docs/figures/service_dashboard.png``."""
+saved (to the test's folder; with ``AGV_UPDATE_FIGURES=1`` also to
+``docs/figures/service_dashboard.png``, the figure of docs/service.md)."""
 
 from __future__ import annotations
 
@@ -69,8 +70,12 @@ def test_dashboard_shows_agvs_moving(tmp_path) -> None:
                 assert painted > 10_000
                 time.sleep(2.0)
                 assert int(page.text_content("#f-agents")) == 20
-                FIGURE.parent.mkdir(parents=True, exist_ok=True)
-                page.screenshot(path=str(FIGURE))
+                shot = tmp_path / "service_dashboard.png"
+                page.screenshot(path=str(shot))
+                assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+                if os.environ.get("AGV_UPDATE_FIGURES") == "1":
+                    FIGURE.parent.mkdir(parents=True, exist_ok=True)
+                    FIGURE.write_bytes(shot.read_bytes())
                 assert not errors, errors
             finally:
                 browser.close()
