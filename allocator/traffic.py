@@ -71,6 +71,9 @@ class SafeDriver:
     avoidance_options : dict, optional
         Overrides of :class:`~allocator.avoidance.AvoidanceConfig` (defaults here: margin
         0.02, time horizon 0.5 s).
+    keep_right : float
+        Angle (radians) by which the preferred velocity turns right of the path: lanes form
+        in two-way aisles (0: none).
 
     Attributes
     ----------
@@ -84,7 +87,8 @@ class SafeDriver:
 
     def __init__(self, gain: float = 4.0, max_speed: float = 1.2, avoidance: bool = True,
                  margin: float = 0.01, perturbation: float = 1e-4, seed: int = 0,
-                 avoidance_options: dict[str, Any] | None = None) -> None:
+                 avoidance_options: dict[str, Any] | None = None,
+                 keep_right: float = 0.8) -> None:
         self.gain = _positive("gain", gain)
         self.max_speed = _positive("max_speed", max_speed)
         if not isinstance(avoidance, (bool, np.bool_)):
@@ -98,6 +102,7 @@ class SafeDriver:
         if avoidance_options is not None and not isinstance(avoidance_options, dict):
             raise ValueError(f"avoidance_options must be a dict, got {avoidance_options!r}")
         self.avoidance_options = dict(avoidance_options or {})
+        self.keep_right = _positive("keep_right", keep_right, zero=True)
         self.distances: FloorDistances | None = None
         self.timing = {"path": 0.0, "avoid": 0.0, "shield": 0.0, "total": 0.0}
         self.braked = 0
@@ -165,11 +170,18 @@ class SafeDriver:
             pref[go] = (wp[go] - ahead[go]) * self.gain
         speed = np.linalg.norm(pref, axis=-1, keepdims=True)
         pref = pref * (self.max_speed / np.maximum(speed, self.max_speed))
+        if self.keep_right:
+            # lane discipline: drive a little to the right of the path, so that opposite
+            # flows in an aisle pass each other instead of meeting head on
+            c, s = np.cos(self.keep_right), np.sin(self.keep_right)
+            pref = np.stack([c * pref[..., 0] + s * pref[..., 1],
+                             -s * pref[..., 0] + c * pref[..., 1]], -1)
         self.timing["path"] += time.perf_counter() - t0
         # 2. liveness
         wants = go & (np.linalg.norm(pref, axis=-1) > 0.2 * self.max_speed)
         progress = np.linalg.norm(vel, axis=-1) > 0.1 * self.max_speed
-        pref = self.resolver.apply(ahead, pref, wants, progress, self.max_speed)
+        pref = self.resolver.apply(ahead, pref, wants, progress, self.max_speed,
+                                   pushable=movable & ~has)
         # 3. ORCA
         t0 = time.perf_counter()
         if self.avoidance:

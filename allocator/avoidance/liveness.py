@@ -105,7 +105,8 @@ class DeadlockResolver:
         self.yields = 0
 
     def apply(self, pos: np.ndarray, preferred: np.ndarray, active: np.ndarray,
-              progress: np.ndarray, speed: float) -> np.ndarray:
+              progress: np.ndarray, speed: float,
+              pushable: np.ndarray | None = None) -> np.ndarray:
         """The preferred velocities (B, N, 2) after the rules.
 
         Parameters
@@ -119,6 +120,9 @@ class DeadlockResolver:
             AGVs that made progress towards their goal in the last step.
         speed : float
             Cruise speed (the yielding speed is half of it).
+        pushable : np.ndarray of bool, shape (B, N), optional
+            AGVs without a goal that can move (lifelong: idle ones). One that blocks a stalled
+            AGV steps out of its way at half speed (to the side and forwards).
         """
         B, N, _ = pos.shape
         if preferred.shape != (B, N, 2) or active.shape != (B, N) or progress.shape != (B, N):
@@ -177,6 +181,27 @@ class DeadlockResolver:
             c, s = np.cos(turn), np.sin(turn)  # clockwise: a right turn
             rot = np.concatenate([c * pref[..., :1] + s * pref[..., 1:],
                                   -s * pref[..., :1] + c * pref[..., 1:]], -1)
+            if pushable is not None and pushable.any():
+                push = pushable.reshape(-1)
+                shove = np.zeros((B * N, 2))
+                for a, b in ((pairs[:, 0], pairs[:, 1]), (pairs[:, 1], pairs[:, 0])):
+                    rel = flat_pos[b] - flat_pos[a]
+                    unit = rel / np.maximum(np.linalg.norm(rel, axis=1), 1e-9)[:, None]
+                    hit = st[a] & push[b] & ((unit * dirn[a]).sum(1) > self.cone)
+                    d = dirn[a[hit]]
+                    u = unit[hit]
+                    side = u - (u * d).sum(1, keepdims=True) * d
+                    right = np.stack([d[:, 1], -d[:, 0]], -1)
+                    small = np.linalg.norm(side, axis=1) < 0.2
+                    side = np.where(small[:, None], right, side)
+                    side /= np.maximum(np.linalg.norm(side, axis=1), 1e-9)[:, None]
+                    np.add.at(shove, b[hit], side + 0.5 * d)
+                moved = np.linalg.norm(shove, axis=1) > 0
+                if moved.any():
+                    shove /= np.maximum(np.linalg.norm(shove, axis=1), 1e-9)[:, None]
+                    flat = pref.reshape(-1, 2)
+                    flat[moved] = 0.5 * speed * shove[moved]
+                    pref = flat.reshape(B, N, 2)
             turning = stalled & blocked.reshape(B, N)
             pref = np.where(turning[..., None], rot, pref)
         yielding = (self.yield_left > 0) & active
