@@ -41,6 +41,7 @@ def test_act_before_reset_is_refused() -> None:
     (dict(gain=0), "gain"), (dict(max_speed=-1.0), "max_speed"), (dict(margin=-0.1), "margin"),
     (dict(perturbation=float("nan")), "perturbation"), (dict(seed=-1), "seed"),
     (dict(avoidance="yes"), "avoidance"), (dict(avoidance_options=3), "avoidance_options"),
+    (dict(keep_right=-0.1), "keep_right"),
 ])
 def test_bad_parameters_name_the_argument(kwargs, name) -> None:
     with pytest.raises(ValueError, match=name):
