@@ -285,12 +285,14 @@ class Planner:
 _WORKER: Planner | None = None
 
 
-def _worker_init(floor: str, method: str) -> None:
+def _worker_init(floor: str, method: str, parent: int) -> None:
     global _WORKER
     import os
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    _exit_with_parent(os.getppid())
+    # The service may have died while this process was still importing: then its parent is
+    # already another process, and it must not wait for work that will never come.
+    _exit_with_parent(parent)
     from allocator.distances import FloorDistances
     from allocator.serve.cli import load_world, make_dispatcher
 
@@ -311,6 +313,9 @@ def _exit_with_parent(parent: int) -> None:
         libc.prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # pragma: no cover - not Linux
         pass
+
+    if os.getppid() != parent:
+        os._exit(0)
 
     def watch() -> None:
         import time as _time
@@ -337,10 +342,12 @@ def start_worker(floor: str, method: str) -> tuple[Any, Any]:
     """A one-process pool (spawned, not forked) holding the floor and the dispatcher, and a
     future that is done when it is ready (it builds the floor's distances meanwhile)."""
     import multiprocessing
+    import os
     from concurrent.futures import ProcessPoolExecutor
 
     pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_worker_init, initargs=(floor, method))
+                               initializer=_worker_init,
+                               initargs=(floor, method, os.getpid()))
     return pool, pool.submit(_worker_ping)
 
 

@@ -19,6 +19,43 @@ from allocator.serve.process import ServiceProcess
 W = sim.warehouse_floor(20)
 
 
+def _children(pid: int) -> list[int]:
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            if ppid == pid:
+                out.append(int(entry))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+def test_planning_process_ends_with_the_service(tmp_path) -> None:
+    """Killed at once (its planning process still starting) or later: no process is left."""
+    for wait in (0.0, 8.0):
+        svc = ServiceProcess(tmp_path / f"w{wait:g}", ["--floor", "warehouse-20"]).start()
+        time.sleep(wait)
+        kids = _children(svc.proc.pid)
+        assert kids, "the planning process was not started"
+        svc.kill()
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.5)
+        assert not any(_alive(k) for k in kids), f"left behind: {kids}"
+
+
 def test_kill9_loses_no_accepted_order(tmp_path) -> None:
     svc = ServiceProcess(tmp_path, ["--floor", "warehouse-20"]).start()
     accepted: list[str] = []
