@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import stat
 import sys
 from pathlib import Path
 from typing import Any
+
+from allocator.serve.floor import load_world, make_dispatcher
 
 __all__ = ["add_serve_parser", "run_serve", "read_api_key", "load_world", "make_dispatcher"]
 
@@ -53,7 +54,8 @@ def add_serve_parser(sub: Any) -> argparse.ArgumentParser:
                    help="plan in a thread of the service's process instead of a separate "
                         "planning process (saves memory; slower answers under load)")
     p.add_argument("--log-level", default="warning",
-                   choices=("critical", "error", "warning", "info", "debug"))
+                   choices=("critical", "error", "warning", "info", "debug"),
+                   help="uvicorn's log level (default warning)")
     p.set_defaults(func=run_serve)
     return p
 
@@ -82,38 +84,6 @@ def read_api_key(path: str | Path) -> str:
         raise ValueError(f"the API key in {p} must be one word of at least 16 printable "
                          "characters")
     return key
-
-
-def load_world(floor: str) -> Any:
-    """A floor from a file (``.map``/JSON) or a lifelong scenario name."""
-    import sim
-
-    if re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", floor) and not Path(floor).is_file():
-        scen = sim.get_scenario(floor)
-        world = getattr(scen, "world", None)
-        if world is None or not getattr(world, "is_floor", False):
-            raise ValueError(f"--floor {floor}: not a lifelong floor (use a floor file or a "
-                             "warehouse-N scenario)")
-        return world
-    try:
-        return sim.load_floor(floor)
-    except OSError as err:
-        raise ValueError(f"--floor {floor}: {err}") from None
-
-
-def make_dispatcher(method: str) -> Any:
-    """The lifelong dispatcher of an allocator name."""
-    import allocator
-
-    try:
-        solver = allocator.make(method)
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"--method {method}: {err}") from None
-    make = getattr(solver, "lifelong_dispatcher", None)
-    if make is None:
-        raise ValueError(f"--method {method}: this allocator has no lifelong dispatcher "
-                         "(use hungarian, fifo or greedy)")
-    return make()
 
 
 def build_service(args: argparse.Namespace) -> tuple[Any, Any]:

@@ -294,7 +294,7 @@ def _worker_init(floor: str, method: str, parent: int) -> None:
     # already another process, and it must not wait for work that will never come.
     _exit_with_parent(parent)
     from allocator.distances import FloorDistances
-    from allocator.serve.cli import load_world, make_dispatcher
+    from allocator.serve.floor import load_world, make_dispatcher
 
     world = load_world(floor)
     _WORKER = Planner(make_dispatcher(method), FloorDistances(world))
