@@ -207,7 +207,8 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
 
 def test_every_subcommand_and_flag_has_a_description_and_help() -> None:
     subs = _subparsers(build_parser())
-    assert set(subs) == {"assign", "demo", "train", "evaluate", "bench", "render", "sweep"}
+    assert set(subs) == {"assign", "demo", "train", "evaluate", "bench", "render", "sweep",
+                         "serve"}
     for name, sub in subs.items():
         assert sub.description, name
         for action in sub._actions:
