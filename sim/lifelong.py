@@ -471,8 +471,8 @@ class LifelongEnv:
         self._reassignments = self._reassignments * keep
         self._keys = torch.where(rows, zero.index_put((idx,), keys.to(torch.int64)), self._keys)
         self._done = self._done & keep
+        self._orders, arrived = self._arrivals(rows)  # may grow the order table
         events = Events.none(B, self._orders.capacity, N, dev)
-        self._orders, arrived = self._arrivals(rows)
         events.arrived = arrived
         self._events = self._merge_events(events, rows)
         self._update_status()

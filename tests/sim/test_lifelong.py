@@ -212,6 +212,18 @@ def test_backlog_keeps_k_open() -> None:
     assert int(env.delivered.sum()) > 0
 
 
+def test_a_backlog_larger_than_the_order_table_grows_it_at_reset() -> None:
+    # The table starts with max(2 N, 8) slots; a backlog beyond it used to break the reset.
+    env = LifelongEnv(LifelongScenario(name="b", world=floor(), num_agents=3,
+                                       arrivals=Backlog(20)), num_envs=2, seed=0)
+    assert env.orders.capacity >= 20
+    assert torch.equal(env.orders.count(OPEN), torch.full((2,), 20))
+    assert env.events.arrived.shape == (2, env.orders.capacity)
+    env.reset(env_ids=[1])
+    env.step(still(env))
+    assert torch.equal(env.order_balance(), torch.zeros(2, dtype=torch.long))
+
+
 def test_a_trace_is_replayed_as_given(tmp_path) -> None:
     path = tmp_path / "day.csv"
     path.write_text("release,pickup_x,pickup_y,dropoff_x,dropoff_y,priority,deadline\n"
