@@ -51,6 +51,9 @@ __all__ = [
     "HungarianDispatcher",
     "AuctionDispatcher",
     "MatchingDispatcher",
+    "WaypointDriver",
+    "SafeDriver",
+    "BrakingShield",
 ]
 
 _LAZY = {  # imported on first use (scipy's graph and spatial modules, torch)
@@ -62,6 +65,9 @@ _LAZY = {  # imported on first use (scipy's graph and spatial modules, torch)
     "HungarianDispatcher": ("allocator.dispatch", "HungarianDispatcher"),
     "AuctionDispatcher": ("allocator.dispatch", "AuctionDispatcher"),
     "MatchingDispatcher": ("allocator.dispatch", "MatchingDispatcher"),
+    "WaypointDriver": ("allocator.dispatch", "WaypointDriver"),
+    "SafeDriver": ("allocator.traffic", "SafeDriver"),
+    "BrakingShield": ("allocator.avoidance.braking", "BrakingShield"),
 }
 
 

@@ -3,8 +3,11 @@
 A dispatcher is a lifelong controller (``reset(env)`` once, ``act(obs)`` each step, as
 :func:`sim.evaluate_lifelong` calls it). On every step where ``env.events.any`` says something
 happened in a floor (an arrival, a pickup, a delivery, a breakdown, a repair), it re-plans that
-floor and hands the plan to ``env.assign``; then :class:`WaypointDriver` drives every AGV that
-has a target along its obstacle-aware path (:class:`allocator.distances.FloorDistances`).
+floor and hands the plan to ``env.assign``; then a driver moves every AGV that has a target
+along its obstacle-aware path (:class:`allocator.distances.FloorDistances`): by default
+:class:`WaypointDriver`, which only follows paths (fast, for throughput studies; AGVs may
+touch), or ``driver=allocator.SafeDriver()`` (:mod:`allocator.traffic`: ORCA, the braking
+shield that keeps AGVs apart and the deadlock rules, ``docs/safety.md``).
 
 - :class:`FifoDispatcher`: the default strategy of OpenTCS, the oldest order (higher priority
   first) to its nearest idle AGV, one by one; an assignment stays until pickup.
