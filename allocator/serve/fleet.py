@@ -41,6 +41,9 @@ _ACTIVE = ("open", "assigned", "loaded")
 # orders 1 open, 2 assigned, 3 loaded.
 _FREE, _TO_PICKUP, _LOADED, _OUT = 0, 1, 2, 3
 _ORDER_CODE = {"open": 1, "assigned": 2, "loaded": 3}
+AGV_SPEED = 1.0
+"""AGV speed (world units per second) the dispatcher assumes when it weighs an order's
+deadline (wall-clock seconds) against the trip to its pickup."""
 
 
 class Conflict(Exception):
@@ -248,9 +251,12 @@ class Planner:
     interpreter lock, in a worker process (:func:`start_worker`, :func:`plan_in_worker`).
     """
 
-    def __init__(self, dispatcher: Any, distances: Any) -> None:
+    def __init__(self, dispatcher: Any, distances: Any, agv_speed: float = AGV_SPEED) -> None:
         self.dispatcher = dispatcher
         dispatcher.distances = distances
+        # the dispatcher's time unit is then the second: its trip estimates (distance / speed)
+        # are compared with the orders' deadlines in seconds from now
+        dispatcher.speed = float(agv_speed)
         self.distances = distances
         self.paths = PathPlanner(distances)
 
@@ -260,9 +266,15 @@ class Planner:
         plan = np.full(N, -1, dtype=np.int64)
         if N and len(s.order_ids):
             current = np.where(s.status == _LOADED, -1, s.current)
+            due = None
+            if s.deadline is not None and len(s.deadline) == len(s.order_ids):
+                due = np.where(np.isnan(s.deadline), -1,
+                               np.floor(np.clip(np.nan_to_num(s.deadline), 0.0, 1e12)))
+                due = due.astype(np.int64)
             plan = np.asarray(self.dispatcher.plan(
                 pos=s.pos, status=s.status, current=current, order_status=s.order_status,
-                pickup=s.pickup, order_id=s.order_seq, priority=s.priority), dtype=np.int64)
+                pickup=s.pickup, order_id=s.order_seq, priority=s.priority, deadline=due,
+                now=0), dtype=np.int64)
             loaded = s.status == _LOADED
             plan[loaded] = s.current[loaded]
             plan[s.status == _OUT] = -1
@@ -366,6 +378,8 @@ class PlanSnapshot:
     order_seq: np.ndarray
     priority: np.ndarray
     previous: dict[str, tuple[str | None, bool, list]]
+    deadline: np.ndarray | None = None
+    """Seconds from the snapshot to each order's deadline (NaN: none; negative: late)."""
 
 
 class Fleet:
@@ -722,6 +736,7 @@ class Fleet:
         orders = sorted(self.orders.values(), key=lambda o: o.seq)
         slot = {o.id: k for k, o in enumerate(orders)}
         N, Q = len(agents), len(orders)
+        now = self.clock()
         pos = np.array([[a.x, a.y] for a in agents], dtype=np.float64).reshape(N, 2)
         status = np.array([self._code(a) for a in agents], dtype=np.int64)
         current = np.array([slot.get(a.order, -1) if a.order is not None else -1
@@ -734,7 +749,9 @@ class Fleet:
             dropoff=np.array([o.dropoff for o in orders], dtype=np.float64).reshape(Q, 2),
             order_seq=np.array([o.seq for o in orders], dtype=np.int64),
             priority=np.array([o.priority for o in orders], dtype=np.int64),
-            previous={a.id: (a.order, a.loaded, a.path) for a in agents})
+            previous={a.id: (a.order, a.loaded, a.path) for a in agents},
+            deadline=np.array([np.nan if o.deadline is None else o.deadline - now
+                               for o in orders], dtype=np.float64).reshape(Q))
 
     def compute_plan(self, s: PlanSnapshot) -> tuple[np.ndarray, list[list]]:
         """The plan of a snapshot, in this process (see :class:`Planner`)."""

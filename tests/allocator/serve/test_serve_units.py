@@ -66,3 +66,21 @@ def test_paths_between_fixed_points_are_cached() -> None:
     pp.budget = -1.0
     out = pp.paths(np.array([[3.0, 0.6]]), w.pickups[[7]], [[[3.0, 0.6], [1.0, 1.0]]])
     assert out == [[[3.0, 0.6], [1.0, 1.0]]]
+
+
+def test_an_order_due_soon_goes_first(tmp_path) -> None:
+    # One idle AGV, two orders: the nearer one has no deadline, the farther one is due in
+    # 3 s (at the dispatcher's 1 unit/s the AGV reaches it in about 1.5 s). The plan serves
+    # the order due soon; without its deadline it would serve the nearer one.
+    w = sim.World(bounds=(0.0, 0.0, 4.0, 2.0))
+    clock = [1000.0]
+    for due, want in ((3.0, "late-soon"), (None, "near")):
+        fleet = Fleet(w, make_dispatcher("hungarian"), Store(tmp_path / f"d{due}.db"),
+                      FloorDistances(w), clock=lambda: clock[0])
+        fleet.put_agent("agv", (0.5, 1.0), "idle")
+        fleet.add_orders([{"id": "near", "pickup": [1.0, 1.0], "dropoff": [0.5, 0.5]},
+                          {"id": "late-soon", "pickup": [2.0, 1.0], "dropoff": [0.5, 0.5],
+                           "deadline": None if due is None else clock[0] + due}])
+        snap = fleet.snapshot()
+        plan, _ = fleet.compute_plan(snap)
+        assert snap.order_ids[int(plan[0])] == want, due
