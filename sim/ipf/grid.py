@@ -786,19 +786,22 @@ class IPFGrid:
         g_aa.diagonal(dim1=-2, dim2=-1).add_(f_a == F)  # non-sources decouple
         keep: dict[str, Tensor] = {"g_aa": g_aa.contiguous()}
         any_unloaded, any_loaded = bool((~loaded).any()), bool(loaded.any())
-        g_ap, g_ad = self._agent_rows(kernels, f_a, f_p if any_unloaded else None,
-                                      f_d if any_loaded else None)
         if any_unloaded:
             if cache is None:
                 cache = TaskBlockCache()
+            f_p, Qs = cache.compact(f_p, F)
+        g_ap, g_ad = self._agent_rows(kernels, f_a, f_p if any_unloaded else None,
+                                      f_d if any_loaded else None)
+        if any_unloaded:
+            assert cache is not None
             inv_chol_d, u = cache.update(self, f_p, task_value, recurring=True, kernels=kernels)
             inv_chol_d, u = inv_chol_d.contiguous(), u.contiguous()
             # S = G_AA - X X^T and r = v_A - X u with X = G[A, P] L_D^{-T}, in the kernel
             keep["schur"] = torch.empty(B, N, N, dtype=f64)
             keep["r"] = torch.empty(B, N, dtype=f64)
             if kernels.agv_ipf_lifelong_block(
-                    B, N, Q, ptr(g_ap, f64, (B, N, Q), "g_ap"),
-                    ptr(inv_chol_d, f64, (B, Q, Q), "inv_chol"), ptr(u, f64, (B, Q), "u"),
+                    B, N, Qs, ptr(g_ap, f64, (B, N, Qs), "g_ap"),
+                    ptr(inv_chol_d, f64, (B, Qs, Qs), "inv_chol"), ptr(u, f64, (B, Qs), "u"),
                     ptr(keep["g_aa"], f64, (B, N, N), "g_aa"), ptr(v_a, f64, (B, N), "v_a"),
                     keep["schur"].data_ptr(), keep["r"].data_ptr()) < 0:
                 raise MemoryError(f"IPF lifelong kernel: no memory for the scratch of N = {N}")
@@ -1090,6 +1093,26 @@ class TaskBlockCache:
         self.inv_chol: Tensor | None = None  # (B, M, M) float64
         self.u: Tensor | None = None  # (B, M) float64
         self._native: tuple[Any, ...] | None = None  # (grid, key, cells, factors, pointers)
+        self.width = 0  # the width of compact(): the most sources seen, a multiple of 4
+
+    def compact(self, f_tasks: Tensor, F: int) -> tuple[Tensor, int]:
+        """The source cells of ``f_tasks`` (B, M) first, in increasing order, the no-source
+        index ``F`` after them, cut to a width that only grows (the most sources seen, rounded
+        up to a multiple of 4): ``(cells (B, W), W)``.
+
+        The potentials do not depend on the order of the sources or on trailing non-sources
+        (identity rows of the factor, zero columns of the products, and with W a multiple of
+        4 the kernels' four-lane sums have no tail), so the values are the same whatever the
+        width, while the work shrinks with the slots that hold no open order.
+        """
+        need = int((f_tasks < F).sum(1).max()) if f_tasks.numel() else 0
+        width = max(self.width, 4 * ((max(need, 1) + 3) // 4))
+        self.width = width
+        cells = torch.sort(f_tasks, dim=1).values[:, :width]
+        if cells.shape[1] < width:
+            pad = cells.new_full((cells.shape[0], width - cells.shape[1]), F)
+            cells = torch.cat([cells, pad], dim=1)
+        return cells.contiguous(), width
 
     def native_buffers(self, grid: IPFGrid, B: int, M: int, task_value: float) -> tuple[int, int]:
         """Checked addresses of the fused kernel's per-environment task factors (see

@@ -330,6 +330,29 @@ def test_lifelong_kernel_equals_the_torch_reference(world, forced_tree) -> None:
     np.testing.assert_allclose(only_loaded.numpy(), want.numpy(), rtol=0, atol=1e-9)
 
 
+def test_lifelong_potentials_are_the_same_bits_whatever_the_batch_and_slot_order() -> None:
+    """The kernel path packs each environment's open pickups to a width set by the batch (the
+    most open pickups seen): an environment's values must not depend on it, nor on which
+    slots its orders sit in."""
+    if not sim.native.available():
+        pytest.skip("fused kernels unavailable")
+    grid = tree_grid(SMALL_WAREHOUSE, 0.1)
+    agents, pickups, open_, drops, loaded = lifelong_scene(SMALL_WAREHOUSE, 4, 9, 11, seed=8,
+                                                           coincide=False)
+    open_[0] = True  # 11 open: the batch's width is 12
+    open_[1] = False
+    open_[1, [2, 7]] = True  # 2 open: alone, its width is 4
+    args = [torch.from_numpy(x) for x in (agents, pickups, open_, drops, loaded)]
+    full = grid.lifelong_potentials(*args, dtype=torch.float64)
+    for b in range(4):
+        alone = grid.lifelong_potentials(*[a[b:b + 1] for a in args], dtype=torch.float64)
+        assert torch.equal(alone[0], full[b]), b
+    perm = torch.randperm(11, generator=torch.Generator().manual_seed(3))
+    shuffled = grid.lifelong_potentials(args[0], args[1][:, perm], args[2][:, perm], args[3],
+                                        args[4], dtype=torch.float64)
+    assert torch.equal(shuffled, full)
+
+
 def test_lifelong_potentials_zero_inactive_envs_and_agvs_on_fixed_cells() -> None:
     grid = IPFGrid(SHELVES, 0.1)
     agents, pickups, open_, drops, loaded = lifelong_scene(SHELVES, 2, 4, 3, seed=7,
