@@ -235,6 +235,13 @@ def test_ipf_kernels_wide_clones_equal_the_default_build(tmp_path) -> None:
     finally:
         sim_native._lib = saved
     assert torch.equal(wide, narrow)
+    # the episodic reward's kernel (agv_ipf, dense G) has clones too
+    dense = IPFGrid(SHELVES, 0.1)
+    rng = np.random.default_rng(9)
+    agents = torch.from_numpy(np.stack([free_points(SHELVES, 6, rng) for _ in range(4)]))
+    tasks = torch.from_numpy(np.stack([free_points(SHELVES, 6, rng) for _ in range(4)]))
+    assert torch.equal(dense.reward_potentials(agents, tasks, kernels=plain),
+                       dense.reward_potentials(agents, tasks, kernels=sim_native.library()))
 
 
 def lifelong_scene(world, B, N, Q, seed, coincide=True):
