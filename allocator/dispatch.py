@@ -41,6 +41,7 @@ from torch import Tensor
 
 from allocator.auction import check_comm_range, component_auction
 from allocator.distances import FloorDistances
+from allocator.lap import IncrementalLAP
 
 __all__ = ["AuctionDispatcher", "FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher",
            "MatchingDispatcher", "WaypointDriver", "at_risk", "lateness"]
@@ -184,6 +185,7 @@ class LifelongDispatcher:
         self.next_order = np.zeros((0, 0), dtype=np.int64)
         self.speed = 1.0
         self.service_steps = 0
+        self._floor = -1  # the floor being planned (-1: a direct plan() call)
 
     def reset(self, env: Any) -> None:
         """Bind to a lifelong env and plan every floor."""
@@ -229,6 +231,7 @@ class LifelongDispatcher:
         for b in np.flatnonzero(~floors):
             plan[b] = np.where(status[b] == _LOADED, -1, current[b])  # as they are
         for b in np.flatnonzero(floors):
+            self._floor = int(b)
             row, nxt = self._solve(pos[b], status[b], current[b], st[b], pickup[b],
                                    order_id[b], priority[b], dropoff=dropoff[b],
                                    release=release[b], deadline=deadline[b], now=int(now[b]),
@@ -236,6 +239,7 @@ class LifelongDispatcher:
                                    next_order=self.next_order[b], returned=returned[b])
             plan[b] = row
             self.next_order[b] = nxt
+        self._floor = -1
         env.assign(torch.as_tensor(plan))
         self.replans += int(floors.sum())
 
@@ -480,6 +484,7 @@ class MatchingDispatcher(LifelongDispatcher):
         cost[kept, col_of[mine[kept]]] -= self.switching_cost
         np.nan_to_num(cost, copy=False, nan=_BIG, posinf=_BIG)
         self.last_cost = cost
+        self._keys = (agents, order_id[orders])  # stable row / column identities
         rows, cols = self._match(cost, pos[agents], pickup[orders])
         ok = cost[rows, cols] < _BIG / 2
         rows, cols = rows[ok], cols[ok]
@@ -491,14 +496,57 @@ class MatchingDispatcher(LifelongDispatcher):
 
 
 class HungarianDispatcher(MatchingDispatcher):
-    """Min-sum (:func:`scipy.optimize.linear_sum_assignment`) over the AGVs and the orders not
-    yet picked up, on the costs of :class:`MatchingDispatcher`: loaded AGVs counted from where
-    and when they will be free, priorities, deadlines, a switching cost."""
+    """Min-sum over the AGVs and the orders not yet picked up, on the costs of
+    :class:`MatchingDispatcher`: loaded AGVs counted from where and when they will be free,
+    priorities, deadlines, a switching cost.
+
+    The matching is :class:`allocator.lap.IncrementalLAP`, one per floor: each re-plan starts
+    from the previous optimum and its dual potentials (rows keyed by AGV, columns by order
+    id), so an event that changes a few rows or columns costs a few shortest augmenting paths
+    instead of a full solve; the result is an optimum of the same cost matrix, as
+    :func:`scipy.optimize.linear_sum_assignment` would give (the same total cost; among tied
+    optima it may pick another).
+
+    Parameters
+    ----------
+    switching_cost, priority_weight, driver
+        As :class:`MatchingDispatcher`.
+    incremental : bool
+        Warm-start each re-plan from the previous one (default True); False solves every
+        re-plan from scratch with :func:`scipy.optimize.linear_sum_assignment`.
+    **options
+        The keyword options of :class:`MatchingDispatcher`.
+
+    Attributes
+    ----------
+    lap : dict of int to IncrementalLAP
+        The solver state per floor (key -1: direct :meth:`plan` calls).
+    """
 
     def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
-                 driver: WaypointDriver | None = None, **options: Any) -> None:
+                 driver: WaypointDriver | None = None, *, incremental: bool = True,
+                 **options: Any) -> None:
         super().__init__(linear_sum_assignment, switching_cost, priority_weight, driver,
                          **options)
+        if not isinstance(incremental, (bool, np.bool_)):
+            raise ValueError(f"incremental must be True or False, got {incremental!r}")
+        self.incremental = bool(incremental)
+        self.lap: dict[int, IncrementalLAP] = {}
+
+    def reset(self, env: Any) -> None:
+        """Bind to a lifelong env (forgetting every floor's solver state) and plan."""
+        self.lap = {}
+        super().reset(env)
+
+    def _match(self, cost: np.ndarray, positions: np.ndarray,
+               targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not self.incremental or self.matching is not linear_sum_assignment:
+            return super()._match(cost, positions, targets)
+        lap = self.lap.get(self._floor)
+        if lap is None:
+            lap = self.lap[self._floor] = IncrementalLAP()
+        rows, cols = self._keys
+        return lap.solve(cost, rows, cols)
 
 
 class AuctionDispatcher(MatchingDispatcher):
