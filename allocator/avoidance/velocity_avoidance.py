@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from allocator.avoidance import native
 from allocator.avoidance.config import AvoidanceConfig
 from allocator.avoidance.exact_qp import solve_qp_2d
 from allocator.avoidance.least_violation import least_violation_2d
@@ -233,7 +234,9 @@ class VelocityAvoidance:
 
         With ``config.solver == "exact"`` (default) every AGV's QP is solved exactly by
         :func:`solve_qp_2d`; the AGVs whose rows conflict get the exact least-violation
-        velocity of :func:`least_violation_2d` (both vectorised over the AGVs).
+        velocity of :func:`least_violation_2d` (both vectorised over the AGVs), or both by
+        their C twin (:func:`~allocator.avoidance.native.solve_rows_native`, ``config.native``;
+        the default wherever it builds).
 
         With ``"osqp"`` the problem (it separates per AGV) is solved as one block-diagonal OSQP
         problem, or several of ``config.chunk_size`` AGVs (each with its own warm-started
@@ -249,6 +252,14 @@ class VelocityAvoidance:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
         n = rows.A.shape[0]
         self.stats["solves"] += 1
+        if self.config.native is not False and (self.config.native or native.available()):
+            velocity, fell, violation = native.solve_rows_native(
+                rows.A, rows.lower, rows.upper, rows.preferred, rows.active, rows.weight,
+                self._fallback.regularization, self.config.feasibility_tol,
+                self.config.fallback_tol,
+            )
+            self.stats["fallbacks"] += int(fell.sum())
+            return velocity, fell, violation, "solved"
         v, ok = solve_qp_2d(rows.A, rows.lower, rows.upper, rows.preferred,
                             self.config.feasibility_tol)
         velocity = np.where(rows.active[:, None], v, 0.0)
