@@ -127,26 +127,33 @@ def _steady_rate(progress: Path) -> float:
             / (float(last["seconds"]) - float(first["seconds"])))
 
 
-def quality_run(algo: str, n: int, preset: str, seed: int, episodes: int) -> dict:
-    """One short training with a preset; its validation responses (300 scenes, eval seed
-    12345) at a third, two thirds and the end of ``episodes``."""
+def quality_run(algo: str, n: int, preset: str, seed: int, episodes: int,
+                overrides: dict | None = None, label: str | None = None,
+                evals: int = 3) -> dict:
+    """One training with a preset (and optional further config overrides); its validation
+    responses (300 scenes, eval seed 12345) at ``evals`` evenly spaced points of
+    ``episodes`` (a third, two thirds and the end by default)."""
     import csv
 
+    config = {**preset_overrides(algo, preset), **(overrides or {})}
     with tempfile.TemporaryDirectory() as tmp:
         cfg = TrainConfig(algo=algo, reward="ipf", scenario=f"{n}v{n}", episodes=episodes,
-                          seed=seed, run_dir=tmp, eval_every=episodes // 3, eval_episodes=300,
-                          checkpoint_every=10**9, progress=False, tensorboard=False,
-                          threads=torch.get_num_threads())
+                          seed=seed, run_dir=tmp, eval_every=episodes // evals,
+                          eval_episodes=300, checkpoint_every=10**9, progress=False,
+                          tensorboard=False, threads=torch.get_num_threads())
         cpu = time.process_time()
-        r = train(cfg, preset_overrides(algo, preset))
+        r = train(cfg, config)
         cpu = time.process_time() - cpu
         with open(Path(tmp) / "progress.csv", newline="") as f:
             curve = [(int(row["episode"]), int(row["env_steps"]),
                       float(row["eval_response_rate"]))
                      for row in csv.DictReader(f) if row.get("eval_response_rate")]
-    return {"algo": algo, "n": n, "preset": preset, "seed": seed, "episodes": r.episodes,
+    full = {**dataclasses.asdict(make_config(algo)), **config}
+    return {"algo": algo, "n": n, "preset": label or preset, "seed": seed,
+            "episodes": r.episodes, "overrides": config,
+            "replay_ratio": full["batch_size"] * full["updates_per_step"] / full["num_envs"],
             "env_steps": r.env_steps, "updates": r.updates, "cpu": cpu,
-            "final": r.last_eval["response_rate"], "curve": curve}
+            "seconds": r.seconds, "final": r.last_eval["response_rate"], "curve": curve}
 
 
 def quality_table(records: list[dict]) -> list[str]:
@@ -194,6 +201,51 @@ def write_quality(records: list[dict], command: str) -> None:
     print(f"wrote {QUALITY}")
 
 
+def _parse_overrides(items: list[str]) -> dict:
+    """``key=value`` strings -> config overrides (ints, floats or strings)."""
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set needs key=value, got {item!r}")
+        for cast in (int, float):
+            try:
+                out[key] = cast(value)
+                break
+            except ValueError:
+                continue
+        else:
+            out[key] = value
+    return out
+
+
+def main_one_run(args: argparse.Namespace) -> None:
+    """``--run``: one :func:`quality_run`, its record written as JSON to ``--records``."""
+    import json
+
+    algo, n, preset, seed, episodes = args.run
+    overrides = _parse_overrides(args.set)
+    rec = quality_run(algo, int(n), preset, int(seed), int(episodes), overrides,
+                      args.label, args.evals)
+    rec["threads"] = args.threads
+    out = Path(args.records)
+    out.mkdir(parents=True, exist_ok=True)
+    name = f"{algo}-{n}v{n}-{args.label or preset}-s{seed}-{episodes}".replace(" ", "_")
+    name = "".join(c if c.isalnum() or c in "-_.=" else "_" for c in name)
+    atomic_write_text(out / f"{name}.json", json.dumps(rec, indent=1))
+    print(rec, flush=True)
+
+
+def main_report(records_dir: str, command: str) -> None:
+    """``--report``: ``learner_speed_quality.md`` from every JSON record in a folder."""
+    import json
+
+    records = [json.loads(p.read_text()) for p in sorted(Path(records_dir).glob("*.json"))]
+    records.sort(key=lambda r: (r["n"], r["algo"], r["preset"] != "default",
+                                r["preset"], r["seed"]))
+    write_quality(records, command)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1)
@@ -204,8 +256,26 @@ def main() -> None:
                         help="instead: the equal-response check of the fast preset (3v3 IPF, "
                              "both presets, seeds 0 and 1; about 10 CPU minutes)")
     parser.add_argument("--quality-episodes", type=int, default=3000)
+    parser.add_argument("--run", nargs=5, metavar=("ALGO", "N", "PRESET", "SEED", "EPISODES"),
+                        help="instead: one quality run, its record written to --records")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="with --run: config overrides on top of the preset")
+    parser.add_argument("--label", default=None, help="with --run: the row's preset label")
+    parser.add_argument("--evals", type=int, default=3,
+                        help="with --run: validation points over the run")
+    parser.add_argument("--records", default="benchmarks/results/learner_speed_runs",
+                        help="folder of --run records (JSON), read by --report")
+    parser.add_argument("--report", default=None, metavar="COMMANDS",
+                        help="instead: write learner_speed_quality.md from --records, with "
+                             "this text as the commands line")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.run:
+        main_one_run(args)
+        return
+    if args.report is not None:
+        main_report(args.records, args.report)
+        return
     if args.quality:
         main_quality(args.quality_episodes, args.threads)
         return

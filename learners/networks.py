@@ -368,10 +368,20 @@ class BiRNNNet(nn.Module):
                             out_init_scale)
 
     def forward(self, x: Tensor) -> Tensor:
-        """(B, N, in) -> (B, N, out)."""
-        h = torch.relu(self.encoder(x))
-        h, _ = self.rnn(h)
-        return self.decoder(h)
+        """(B, N, in) -> (B, N, out).
+
+        Runs agent-major, (N, B, ...), from the first layer to the last: the GRU steps along
+        the agent axis, and in this layout its input, its output and every layer's activations
+        are contiguous, so each fully connected layer is one matrix product over all B N rows.
+        (Batch-major, the GRU's output is a transposed view, and a linear layer on it with
+        autograd falls back to B small batched products plus a copy, about 5% of a BiCNet
+        update.) The same computation as the batch-major textbook form (tested to 1e-6, values
+        and gradients); the result is a (B, N, out) view of the (N, B, out) output.
+        """
+        h = torch.relu(self.encoder(x.transpose(0, 1).contiguous()))  # (N, B, H)
+        # the GRU is batch_first: a (B, N, H) view of the agent-major tensor, read in place
+        h, _ = self.rnn(h.transpose(0, 1))
+        return self.decoder(h.transpose(0, 1)).transpose(0, 1)
 
 
 def clip_grad_norm_per_agent_(params: Sequence[Tensor], max_norm: float) -> Tensor:

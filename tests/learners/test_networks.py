@@ -124,6 +124,26 @@ def test_birnn_couples_agents_and_handles_any_n():
     assert net(torch.randn(5, 7, 6)).shape == (5, 7, 2)
 
 
+@pytest.mark.parametrize("n", [3, 6])
+def test_birnn_agent_major_pass_is_the_batch_major_textbook_pass(n):
+    """BiRNNNet runs agent-major (contiguous activations); the textbook form runs the same
+    modules batch-major. Values and every parameter gradient agree to float rounding."""
+    torch.manual_seed(1)
+    net = BiRNNNet(24, 2, hidden=16)
+    x = torch.randn(64, n, 24)
+    y = net(x)
+    h, _ = net.rnn(torch.relu(net.encoder(x)))
+    ref = net.decoder(h)
+    assert y.shape == ref.shape == (64, n, 2)
+    torch.testing.assert_close(y, ref, rtol=1e-6, atol=1e-6)
+    w = torch.randn(64, n, 2)
+    params = list(net.parameters())
+    got = torch.autograd.grad((y * w).sum(), params)
+    want = torch.autograd.grad((ref * w).sum(), params)
+    for g, r in zip(got, want, strict=True):
+        torch.testing.assert_close(g, r, rtol=1e-5, atol=1e-6)
+
+
 # ---------------------------------------------------------------- private torch ops
 @pytest.fixture
 def restore_torch_ops():
