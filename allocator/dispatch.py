@@ -41,7 +41,7 @@ from torch import Tensor
 
 from allocator.auction import check_comm_range, component_auction
 from allocator.distances import FloorDistances
-from allocator.lap import IncrementalLAP
+from allocator.lap import IncrementalLAP, _lookup, _sub
 
 __all__ = ["AuctionDispatcher", "FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher",
            "MatchingDispatcher", "WaypointDriver", "at_risk", "lateness"]
@@ -411,6 +411,45 @@ class MatchingDispatcher(LifelongDispatcher):
         self.plan_ahead = bool(plan_ahead)
         self.trip_weight = float(trip_weight)
         self.last_cost: np.ndarray | None = None
+        self._travel_cache: dict[int, tuple | None] = {}
+
+    def reset(self, env: Any) -> None:
+        """Bind to a lifelong env (forgetting the cached travel of every floor) and plan."""
+        self._travel_cache = {}
+        super().reset(env)
+
+    def _travel(self, origin: np.ndarray, targets: np.ndarray, row_keys: np.ndarray,
+                col_keys: np.ndarray) -> np.ndarray:
+        """``self.distances.distance(origin, targets)`` (A, O), re-using the rows and columns of
+        this floor's previous call whose key and point are unchanged (the same numbers: each
+        entry depends on its two points only)."""
+        cache = self._travel_cache.get(self._floor)
+        self._travel_cache[self._floor] = None
+        if cache is None or not len(cache[0]) or not len(cache[1]):
+            out = self.distances.distance(origin, targets)
+        else:
+            old_rk, old_ck, old_origin, old_targets, old = cache
+            ri = _lookup(old_rk, row_keys)
+            cj = _lookup(old_ck, col_keys)
+            ri[ri >= 0] = np.where((old_origin[ri[ri >= 0]] == origin[ri >= 0]).all(axis=1),
+                                   ri[ri >= 0], -1)
+            cj[cj >= 0] = np.where((old_targets[cj[cj >= 0]] == targets[cj >= 0]).all(axis=1),
+                                   cj[cj >= 0], -1)
+            keep_r, keep_c = np.flatnonzero(ri >= 0), np.flatnonzero(cj >= 0)
+            if len(keep_r) * len(keep_c) < 0.5 * len(ri) * len(cj):
+                out = self.distances.distance(origin, targets)
+            else:
+                out = np.empty((len(origin), len(targets)))
+                out[np.ix_(keep_r, keep_c)] = _sub(old, ri[keep_r], cj[keep_c])
+                new_r, new_c = np.flatnonzero(ri < 0), np.flatnonzero(cj < 0)
+                if len(new_r):
+                    out[new_r] = self.distances.distance(origin[new_r], targets)
+                if len(new_c):
+                    out[np.ix_(keep_r, new_c)] = self.distances.distance(origin[keep_r],
+                                                                         targets[new_c])
+        self._travel_cache[self._floor] = (row_keys.copy(), col_keys.copy(), origin.copy(),
+                                           targets.copy(), out.copy())
+        return out
 
     def _match(self, cost: np.ndarray, positions: np.ndarray,
                targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -447,7 +486,9 @@ class MatchingDispatcher(LifelongDispatcher):
             remaining = self.distances.pairwise(origin[is_loaded], drop)
             lag[is_loaded] += remaining / speed + self.service_steps
             origin[is_loaded] = drop
-        cost = self.distances.distance(origin, pickup[orders])  # (A, O) travel, then cost
+        # (A, O) travel, then cost; rows and columns whose point did not move since the last
+        # plan of this floor are copied from it, only the others gathered from the table.
+        cost = self._travel(origin, pickup[orders], agents, order_id[orders])
         # Every term below adds a row or a column vector, in place (no (A, O) temporaries but
         # on the few columns with a deadline): the matrix is the re-plan's main memory cost.
         column = np.zeros(len(orders))

@@ -328,7 +328,7 @@ class IncrementalLAP:
         changed_col = cj < 0
         changed_row = ri < 0
         if len(krow) and len(kcol):
-            diff = c[np.ix_(krow, kcol)] != old_c[np.ix_(ri[krow], cj[kcol])]
+            diff = _sub(c, krow, kcol) != _sub(old_c, ri[krow], cj[kcol])
             per_col = diff.sum(axis=0)
             changed_col[kcol[per_col >= 2]] = True
             rest = diff[:, per_col < 2].any(axis=1)
@@ -379,6 +379,15 @@ class IncrementalLAP:
             v[ch] = np.where(np.isfinite(vals), vals, 0.0)
         free = np.flatnonzero(~matched).astype(np.int64)
         return u, v, col4row, row4col, free
+
+
+def _sub(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``a[np.ix_(rows, cols)]``, without a gather along an axis taken whole and in order."""
+    if len(rows) != a.shape[0] or (rows != np.arange(a.shape[0])).any():
+        a = a[rows]
+    if len(cols) != a.shape[1] or (cols != np.arange(a.shape[1])).any():
+        a = a[:, cols]
+    return a
 
 
 def _lookup(old: np.ndarray, new: np.ndarray) -> np.ndarray:
