@@ -118,7 +118,8 @@ class Backlog:
     Parameters
     ----------
     open : int
-        Number of open orders to keep, >= 1.
+        Number of open orders to keep, >= 0. ``Backlog(0)``: no order ever arrives (a floor
+        whose orders are kept outside the simulator, as ``agv serve --simulate`` does).
     deadline : int, optional
         Every order is due this many steps after its release.
     """
@@ -127,7 +128,7 @@ class Backlog:
     deadline: int | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "open", _check_steps("backlog open", self.open, 1))
+        object.__setattr__(self, "open", _check_steps("backlog open", self.open, 0))
         object.__setattr__(self, "deadline", _check_deadline(self.deadline))
 
 

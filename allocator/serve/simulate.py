@@ -89,10 +89,8 @@ class SimulatedFleet:
             except ValueError as err:
                 raise ValueError(f"--sim-faults must be RATE:REPAIR (e.g. 0.0005:60): {err}"
                                  ) from None
-        never = sim.Trace(release=np.array([_NEVER]), pickup=world.pickups[:1],
-                          dropoff=world.stations[:1], priority=np.zeros(1, np.int64),
-                          deadline=-np.ones(1, np.int64))
-        self.env = sim.make_env(world, num_agents=n, seed=seed, arrivals=never,
+        # The service's orders come from its clients: none arrive in the simulator itself.
+        self.env = sim.make_env(world, num_agents=n, seed=seed, arrivals=sim.Backlog(0),
                                 max_steps=_NEVER, **options)
         self.fleet = fleet
         self.rate = float(rate)

@@ -212,6 +212,23 @@ def test_backlog_keeps_k_open() -> None:
     assert int(env.delivered.sum()) > 0
 
 
+def test_an_empty_backlog_releases_nothing() -> None:
+    # Backlog(0): a floor whose orders are kept elsewhere (the service's simulator).
+    env = LifelongEnv(LifelongScenario(name="b", world=floor(), num_agents=3,
+                                       arrivals=Backlog(0)), num_envs=2, seed=0)
+    ctl = NearestTaskController()
+    ctl.reset(env)
+    obs = env.observe()
+    for _ in range(20):
+        obs, reward, _, info = env.step(ctl.act(obs))
+        assert not bool(info["events"].arrived.any())
+        assert torch.isfinite(reward).all()
+    assert int(env.released.sum()) == 0 and int(env.delivered.sum()) == 0
+    assert bool((env.agent_status == 0).all())  # every AGV idle
+    with pytest.raises(ValueError, match="backlog open must be an integer >= 0, got -1"):
+        Backlog(-1)
+
+
 def test_a_backlog_larger_than_the_order_table_grows_it_at_reset() -> None:
     # The table starts with max(2 N, 8) slots; a backlog beyond it used to break the reset.
     env = LifelongEnv(LifelongScenario(name="b", world=floor(), num_agents=3,
