@@ -15,6 +15,7 @@
 
 #include "common.h"
 #include "lifelong.h"
+#include "streams.h"
 
 /* Returns 0, or -1 when the scratch space cannot be allocated. */
 int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
@@ -96,6 +97,100 @@ void agv_lifelong_status(int64_t B, int64_t N, int64_t Q, const int64_t *order,
             target[2 * k + 1] = Q ? src[1] * scale : 0.0f;
         }
     }
+}
+
+/* The backlog's arrivals of one step (sim/lifelong.py LifelongEnv._arrivals with a Backlog):
+ * counts[b] = max(open - (OPEN + ASSIGNED orders of floor b), 0) where rows[b], else 0.
+ * Returns the sum of the counts. */
+int64_t agv_backlog_counts(int64_t B, int64_t Q, const int8_t *status, const uint8_t *rows,
+                           int64_t open, int64_t *counts) {
+    int64_t total = 0;
+    for (int64_t b = 0; b < B; b++) {
+        int64_t n = 0;
+        for (int64_t q = 0; q < Q; q++) {
+            const int8_t st = status[b * Q + q];
+            n += st == LL_OPEN || st == LL_ASSIGNED;
+        }
+        const int64_t c = rows[b] && open > n ? open - n : 0;
+        counts[b] = c;
+        total += c;
+    }
+    return total;
+}
+
+/* uniform(key, stream, id, part) of sim/streams.py (agv_uniform with three counters). */
+static inline double order_draw(uint64_t key, int64_t stream, int64_t id, int64_t part) {
+    uint64_t z = key;
+    z = stream_mix(z + ((uint64_t)stream + 1) * 0x9E3779B97F4A7C15ULL);
+    z = stream_mix(z + ((uint64_t)id + 1) * 0x9E3779B97F4A7C15ULL);
+    z = stream_mix(z + ((uint64_t)part + 1) * 0x9E3779B97F4A7C15ULL);
+    z = stream_mix(z);
+    return (double)(z >> 11) * (1.0 / 9007199254740992.0);
+}
+
+/* Generated orders released in one step (sim/orders.py insert_orders with generated_points):
+ * floor b's counts[b] new orders take its lowest FREE slots, in slot order, with ids
+ * next_id[b], next_id[b] + 1, ...; each one's pickup is points[i] and drop-off stations[j]
+ * with i = floor(u0 P) and j = floor(u1 S) (clamped to P - 1 and S - 1), u_k =
+ * uniform(key[b], stream, id, k); status OPEN, release step[b], priority 0, deadline
+ * step[b] + deadline_after when deadline_after > 0 (else -1), agent, picked and finished -1.
+ * The order table (the ten (B, Q) fields, pickup and dropoff (B, Q, 2)) is read from the
+ * first ten pointers and written, whole, to the next ten (a new table: the inputs are not
+ * changed); arrived (B, Q) marks the new rows and next_out (B) = next_id + counts. Returns 0,
+ * or 1 when some floor has fewer FREE slots than its count (nothing is written then). */
+int agv_insert_generated(int64_t B, int64_t Q, const int64_t *counts, const int64_t *next_id,
+                         const int64_t *step, const int64_t *key, int64_t stream, int64_t P,
+                         const float *points, int64_t S, const float *stations,
+                         int64_t deadline_after, const int64_t *id, const int8_t *status,
+                         const float *pickup, const float *dropoff, const int64_t *release,
+                         const int64_t *priority, const int64_t *deadline,
+                         const int64_t *agent, const int64_t *picked, const int64_t *finished,
+                         int64_t *id_o, int8_t *status_o, float *pickup_o, float *dropoff_o,
+                         int64_t *release_o, int64_t *priority_o, int64_t *deadline_o,
+                         int64_t *agent_o, int64_t *picked_o, int64_t *finished_o,
+                         uint8_t *arrived, int64_t *next_out) {
+    for (int64_t b = 0; b < B; b++) {
+        int64_t free_slots = 0;
+        for (int64_t q = 0; q < Q; q++) free_slots += status[b * Q + q] == 0;
+        if (counts[b] > free_slots) return 1;
+    }
+    const size_t n = (size_t)(B * Q);
+    memcpy(id_o, id, n * sizeof(int64_t));
+    memcpy(status_o, status, n);
+    memcpy(pickup_o, pickup, 2 * n * sizeof(float));
+    memcpy(dropoff_o, dropoff, 2 * n * sizeof(float));
+    memcpy(release_o, release, n * sizeof(int64_t));
+    memcpy(priority_o, priority, n * sizeof(int64_t));
+    memcpy(deadline_o, deadline, n * sizeof(int64_t));
+    memcpy(agent_o, agent, n * sizeof(int64_t));
+    memcpy(picked_o, picked, n * sizeof(int64_t));
+    memcpy(finished_o, finished, n * sizeof(int64_t));
+    memset(arrived, 0, n);
+    for (int64_t b = 0; b < B; b++) {
+        int64_t r = 0;
+        for (int64_t q = 0; q < Q && r < counts[b]; q++) {
+            const int64_t k = b * Q + q;
+            if (status[k] != 0) continue;
+            const int64_t oid = next_id[b] + r++;
+            int64_t i = (int64_t)(order_draw((uint64_t)key[b], stream, oid, 0) * (double)P);
+            int64_t j = (int64_t)(order_draw((uint64_t)key[b], stream, oid, 1) * (double)S);
+            i = i < P - 1 ? i : P - 1;
+            j = j < S - 1 ? j : S - 1;
+            id_o[k] = oid;
+            status_o[k] = LL_OPEN;
+            pickup_o[2 * k] = points[2 * i];
+            pickup_o[2 * k + 1] = points[2 * i + 1];
+            dropoff_o[2 * k] = stations[2 * j];
+            dropoff_o[2 * k + 1] = stations[2 * j + 1];
+            release_o[k] = step[b];
+            priority_o[k] = 0;
+            deadline_o[k] = deadline_after > 0 ? step[b] + deadline_after : -1;
+            agent_o[k] = picked_o[k] = finished_o[k] = -1;
+            arrived[k] = 1;
+        }
+        next_out[b] = next_id[b] + counts[b];
+    }
+    return 0;
 }
 
 #endif

@@ -552,16 +552,22 @@ def test_bad_lifelong_env_arguments() -> None:
         sim.AGVEnv(sim.get_scenario("warehouse-20"))
 
 
-@pytest.mark.parametrize("reward", ["minidist", "greedy"])
-def test_the_kernels_and_the_torch_path_agree(reward) -> None:
+@pytest.mark.parametrize("reward, arrivals", [
+    ("minidist", Poisson(0.4)), ("greedy", Poisson(0.4)),
+    ("minidist", Backlog(30)),
+    ("minidist", Backlog(50, deadline=40)),  # more than the 40 slots: the table grows
+])
+def test_the_kernels_and_the_torch_path_agree(reward, arrivals) -> None:
     from sim import native
 
     if not native.available():
         pytest.skip("no C compiler here")
-    runs = []
+    runs, tables_of = [], []
     for use in (True, False):
+        tables: list[list[torch.Tensor]] = []
+        tables_of.append(tables)
         env = sim.make_env("warehouse-20", num_envs=3, seed=5, reward=reward, native=use,
-                           faults=Breakdowns(0.01, 10), arrivals=Poisson(0.4))
+                           faults=Breakdowns(0.01, 10), arrivals=arrivals)
         assert env.native is use
         ctl = NearestTaskController()
         ctl.reset(env)
@@ -572,7 +578,12 @@ def test_the_kernels_and_the_torch_path_agree(reward) -> None:
             trace.append((obs.clone(), r.clone(), info["collision_pairs"].clone(),
                           env.agent_pos.clone(), env.orders.status.clone(),
                           env.agent_status.clone(), *env.targets()))
+            # Every field of the order table, and the arrivals, bit for bit.
+            tables.append([t.clone() for t in vars(env.orders).values()]
+                          + [info["events"].arrived.clone(), env.released.clone()])
         runs.append(trace)
+    for t1, t2 in zip(*tables_of, strict=True):
+        assert all(torch.equal(a, b) for a, b in zip(t1, t2, strict=True))
     for (o1, r1, c1, p1, s1, *st1), (o2, r2, c2, p2, s2, *st2) in zip(*runs, strict=True):
         assert torch.equal(o1, o2) and torch.equal(p1, p2) and torch.equal(s1, s2)
         assert all(torch.equal(a, b) for a, b in zip(st1, st2, strict=True))
