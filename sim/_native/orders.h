@@ -17,19 +17,24 @@
 #include "lifelong.h"
 #include "streams.h"
 
-/* Returns 0, or -1 when the scratch space cannot be allocated. */
-int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
-                         int norm_fused, const float *agent_pos, const uint8_t *ready,
-                         const int64_t *agent_order, const float *pickup, const float *dropoff,
-                         const int8_t *status, const int64_t *key, uint8_t *takes,
-                         int64_t *slot, uint8_t *at_drop) {
-    unsigned char *scratch = arena_reserve((size_t)Q * (sizeof(float) + sizeof(int64_t))
+#define PK_PARAMS                                                                           \
+    int64_t B, int64_t N, int64_t Q, float cap, int fused, int norm_fused,                  \
+    const float *agent_pos, const uint8_t *ready, const int64_t *agent_order,               \
+    const float *pickup, const float *dropoff, const int8_t *status, const int64_t *key,    \
+    uint8_t *takes, int64_t *slot, uint8_t *at_drop
+#define PK_ARGS B, N, Q, cap, fused, norm_fused, agent_pos, ready, agent_order, pickup, \
+                dropoff, status, key, takes, slot, at_drop
+
+static inline __attribute__((always_inline)) int pickups_floors(PK_PARAMS) {
+    unsigned char *scratch = arena_reserve((size_t)Q * (3 * sizeof(float) + 2 * sizeof(int64_t))
                                            + (size_t)N * (sizeof(float) + sizeof(int64_t)));
     if (!scratch && (Q || N)) return -1;
     float *best_d = (float *)scratch;
     int64_t *best_a = (int64_t *)(best_d + Q);
     float *won_d = (float *)(best_a + Q);
     int64_t *won_key = (int64_t *)(won_d + N);
+    int64_t *open_q = won_key + N;  /* the OPEN orders of the floor, in slot order */
+    float *open_x = (float *)(open_q + Q), *open_y = open_x + Q;
     for (int64_t b = 0; b < B; b++) {
         const float *ap = agent_pos + 2 * b * N;
         const float *pp = pickup + 2 * b * Q;
@@ -38,7 +43,15 @@ int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
         const int64_t *ky = key + b * Q;
         uint8_t *tk = takes + b * N;
         int64_t *sl = slot + b * N;
-        for (int64_t q = 0; q < Q; q++) { best_d[q] = INF_F; best_a[q] = -1; }
+        int64_t nopen = 0;
+        for (int64_t q = 0; q < Q; q++) {
+            best_d[q] = INF_F;
+            best_a[q] = -1;
+            if (st[q] != LL_OPEN) continue;
+            open_q[nopen] = q;
+            open_x[nopen] = pp[2 * q];
+            open_y[nopen++] = pp[2 * q + 1];
+        }
         for (int64_t a = 0; a < N; a++) {
             tk[a] = 0;
             sl[a] = 0;
@@ -51,12 +64,17 @@ int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
                 at_drop[b * N + a] = d <= cap;
                 continue;
             }
-            const int64_t q0 = own >= 0 ? own : 0, q1 = own >= 0 ? own + 1 : Q;
-            const int8_t want = own >= 0 ? LL_ASSIGNED : LL_OPEN;
-            for (int64_t q = q0; q < q1; q++) {
-                if (st[q] != want) continue;
-                const float d = torch_norm(ap[2 * a] - pp[2 * q], ap[2 * a + 1] - pp[2 * q + 1],
-                                           fused);
+            const float ax = ap[2 * a], ay = ap[2 * a + 1];
+            if (own >= 0) {  /* only its own order, if it is still assigned */
+                if (st[own] != LL_ASSIGNED) continue;
+                const float d = torch_norm(ax - pp[2 * own], ay - pp[2 * own + 1], fused);
+                if (d <= cap && d < best_d[own]) { best_d[own] = d; best_a[own] = a; }
+                continue;
+            }
+            /* Any open order: the list of open ones, with no branch on the status. */
+            for (int64_t c = 0; c < nopen; c++) {
+                const float d = torch_norm(ax - open_x[c], ay - open_y[c], fused);
+                const int64_t q = open_q[c];
                 if (d <= cap && d < best_d[q]) { best_d[q] = d; best_a[q] = a; }
             }
         }
@@ -71,6 +89,30 @@ int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
     }
     return 0;
 }
+
+static int pickups_portable(PK_PARAMS) { return pickups_floors(PK_ARGS); }
+
+#ifdef LL_HAVE_FMA_COPY
+/* With FMA, torch_norm's fmaf is one instruction instead of a call into libm. */
+__attribute__((target("avx2,fma"))) static int pickups_fma(PK_PARAMS) {
+    return pickups_floors(PK_ARGS);
+}
+#endif
+
+/* Returns 0, or -1 when the scratch space cannot be allocated. */
+int agv_lifelong_pickups(int64_t B, int64_t N, int64_t Q, float cap, int fused,
+                         int norm_fused, const float *agent_pos, const uint8_t *ready,
+                         const int64_t *agent_order, const float *pickup, const float *dropoff,
+                         const int8_t *status, const int64_t *key, uint8_t *takes,
+                         int64_t *slot, uint8_t *at_drop) {
+#ifdef LL_HAVE_FMA_COPY
+    if ((fused || norm_fused) && __builtin_cpu_supports("fma") && __builtin_cpu_supports("avx2"))
+        return pickups_fma(PK_ARGS);
+#endif
+    return pickups_portable(PK_ARGS);
+}
+#undef PK_PARAMS
+#undef PK_ARGS
 
 /* Each AGV's status and target (sim/orders.py agent_status, sim/lifelong.py targets): broken
  * while repair_left > 0, else loaded / to pickup by its order's status, else idle; the target
