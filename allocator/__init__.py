@@ -54,6 +54,7 @@ __all__ = [
     "WaypointDriver",
     "SafeDriver",
     "BrakingShield",
+    "SafetyShield",
 ]
 
 _LAZY = {  # imported on first use (scipy's graph and spatial modules, torch)
@@ -68,6 +69,7 @@ _LAZY = {  # imported on first use (scipy's graph and spatial modules, torch)
     "WaypointDriver": ("allocator.dispatch", "WaypointDriver"),
     "SafeDriver": ("allocator.traffic", "SafeDriver"),
     "BrakingShield": ("allocator.avoidance.braking", "BrakingShield"),
+    "SafetyShield": ("allocator.shield", "SafetyShield"),
 }
 
 

@@ -59,6 +59,10 @@ class LearnedAllocator:
         instead of the shipped weights.
     max_steps : int, optional
         Step limit of :meth:`assign`'s rollout (a positive integer; default: the scenario's).
+    shield : bool
+        Pass the policy's actions through :class:`allocator.shield.SafetyShield` (the ORCA QP,
+        then the braking filter) when it drives an env (default False: the policy as
+        trained). :attr:`safety` then holds the shield and its intervention counts.
 
     Raises
     ------
@@ -77,7 +81,7 @@ class LearnedAllocator:
 
     def __init__(
         self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
-        max_steps: int | None = None, **options: Any,
+        max_steps: int | None = None, shield: bool = False, **options: Any,
     ) -> None:
         from learners.policy import LearnedPolicy
         from sim.scenarios import get_scenario
@@ -95,6 +99,8 @@ class LearnedAllocator:
         if checkpoint is not None and not isinstance(checkpoint, (str, os.PathLike)):
             raise ValueError(f"checkpoint must be a path to a policy .safetensors file (or "
                              f"None for the shipped weights), got {checkpoint!r}")
+        if not isinstance(shield, (bool, np.bool_)):
+            raise ValueError(f"shield must be True or False, got {shield!r}")
         self.scenario = get_scenario(scenario)
         if checkpoint is None:
             path = weights_path(self.algo, self.reward, self.scenario.name)
@@ -112,11 +118,17 @@ class LearnedAllocator:
         self.max_steps = None if max_steps is None else int(max_steps)
         self.last_trajectories: np.ndarray | None = None
         """(T + 1, N, 2) positions of every AGV during the last :meth:`assign` rollout."""
+        self.safety: Any = None
+        """The :class:`allocator.shield.SafetyShield` of a ``shield=True`` allocator."""
+        if shield:
+            from allocator.shield import SafetyShield
+
+            self.safety = SafetyShield(_Unshielded(self))
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:
         """The keyword options the constructor takes."""
-        return ("checkpoint", "max_steps", "scenario")
+        return ("checkpoint", "max_steps", "scenario", "shield")
 
     # ------------------------------------------------------------------ controller
     def reset(self, env: Any) -> None:
@@ -134,9 +146,16 @@ class LearnedAllocator:
                              f"{self.scenario.name!r}; it cannot drive a lifelong floor (its "
                              "observations differ). Lifelong floors are dispatched by "
                              "'hungarian' and 'greedy'")
+        if self.safety is not None:
+            self.safety.reset(env)
 
     def act(self, obs: Tensor) -> Tensor:
-        """Deterministic actions of the trained policy, (B, N, O) -> (B, N, 2)."""
+        """Deterministic actions of the trained policy, (B, N, O) -> (B, N, 2); with
+        ``shield=True``, after the safety shield (:meth:`reset` first)."""
+        if self.safety is not None:
+            if self.safety.env is None:
+                raise ValueError(f"{self.name!r} with shield=True needs reset(env) before act")
+            return self.safety.filter(self.policy.act(obs))
         return self.policy.act(obs)
 
     # ------------------------------------------------------------------ allocator
@@ -199,9 +218,17 @@ class LearnedAllocator:
         env = AGVEnv(scenario, num_envs=1, reward="minidist", seed=0)
         env.set_state(agents[None], tasks[None])
         obs = env.observe()
+        act = self.policy.act
+        if self.safety is not None:  # the rollout shielded too, by a shield of its own
+            from allocator.shield import SafetyShield
+
+            rollout = SafetyShield(_Unshielded(self), qp=self.safety.qp,
+                                   margin=self.safety.margin)
+            rollout.reset(env)
+            act = rollout.act
         frames = [env.agent_pos[0].clone()]
         while not bool(env.done.all()):
-            obs, _, _, _ = env.step(self.policy.act(obs))
+            obs, _, _, _ = env.step(act(obs))
             frames.append(env.agent_pos[0].clone())
         traj = torch.stack(frames).double().numpy()  # (T + 1, N, 2)
         self.last_trajectories = traj
@@ -235,6 +262,20 @@ class LearnedAllocator:
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(scenario={self.scenario.name!r}, "
                 f"checkpoint={str(self.checkpoint)!r})")
+
+
+class _Unshielded:
+    """The policy of a learned allocator as a bare controller (what its shield wraps)."""
+
+    def __init__(self, allocator: LearnedAllocator) -> None:
+        self.name = allocator.name
+        self._policy = allocator.policy
+
+    def reset(self, env: Any) -> None:
+        pass
+
+    def act(self, obs: Tensor) -> Tensor:
+        return self._policy.act(obs)
 
 
 def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:

@@ -1,0 +1,233 @@
+"""A safety shield for any controller: its actions through the ORCA QP and the braking filter.
+
+A learned policy (or any controller of the ``reset(env)`` / ``act(obs)`` protocol) says where
+each AGV wants to go next: its action is an intended velocity, ``(1 - damping) v + g a`` in the
+simulator's physics. :class:`SafetyShield` changes that intention as little as it can so that
+no two AGVs overlap:
+
+1. **ORCA QP** (optional, on by default): the intended velocities are the preferred ones of
+   :class:`~allocator.avoidance.VelocityAvoidance`, solved from where every AGV will be when
+   the new velocity acts (``pos + v dt``), with parked, broken and serving AGVs as static
+   obstacles. This is what keeps the policy moving smoothly past its neighbours.
+2. **Braking filter** (always): :class:`~allocator.avoidance.braking.BrakingShield` certifies
+   every AGV's next velocity: the QP's, else a blend of it with braking, else braking. That is
+   the guarantee of ``docs/safety.md``: if no two AGVs' braking segments touch at the start,
+   none ever overlap, whatever the policy does.
+
+An *intervention* is an AGV-step whose action the shield changed by more than ``tolerance``
+(in action units, per axis); :attr:`SafetyShield.interventions` counts them, split by which
+stage changed the action.
+
+Examples
+--------
+>>> import allocator, sim
+>>> env = sim.make_env("3v3", num_envs=4, seed=0)
+>>> ctl = allocator.SafetyShield(allocator.make("maddpg-ipf", scenario="3v3"))
+>>> ctl.reset(env)
+>>> obs = env.observe()
+>>> obs, *_ = env.step(ctl.act(obs))
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
+from allocator.avoidance.braking import BrakingShield, braking_velocity
+
+__all__ = ["SafetyShield", "movable_agents"]
+
+_BROKEN = 3  # sim.orders.BROKEN
+
+
+def movable_agents(env: Any) -> np.ndarray:
+    """The AGVs the simulator moves in the next step, (B, N) bool.
+
+    Episodic envs: idle AGVs (no task claimed) of running environments. Lifelong envs: AGVs of
+    running floors that are neither broken nor in service.
+    """
+    done = env.done.detach().cpu().numpy()[:, None]
+    if getattr(env, "lifelong", False):
+        fleet = env.fleet
+        status = fleet.status.detach().cpu().numpy()
+        serving = fleet.service_left.detach().cpu().numpy() > 0
+        return (status != _BROKEN) & ~serving & ~done
+    held = env.agent_task.detach().cpu().numpy()
+    return (held < 0) & ~done
+
+
+class SafetyShield:
+    """Wraps a controller; its actions reach the simulator only after the shield.
+
+    Parameters
+    ----------
+    controller : object
+        Anything with ``reset(env)`` and ``act(obs) -> (B, N, 2)`` actions (a learned
+        allocator, a scripted controller, your own policy).
+    qp : bool
+        Pass the intended velocities through the ORCA QP first (default True). Without it
+        only the braking filter acts: fewer interventions of a larger size.
+    margin : float
+        Gap kept between two AGVs' braking segments (>= 0; default 0.01).
+    tolerance : float
+        An action changed by more than this (per axis, action units) counts as an
+        intervention (> 0; default 1e-3).
+    avoidance_options : dict, optional
+        Fields of :class:`~allocator.avoidance.AvoidanceConfig` for the QP. Defaults here:
+        ``time_horizon=0.3``, ``obstacle_time_horizon=0.25``, ``margin=0.02`` (a shield
+        should change the policy as little as it can; the braking filter is what guarantees
+        safety) and a ``max_speed`` whose polygon holds every velocity the physics can
+        reach.
+
+    Attributes
+    ----------
+    interventions : dict
+        ``{"any": n, "qp": n, "brake": n}``: AGV-steps changed at all, by the QP, and
+        certified only by braking (or a blend with it), since :meth:`reset`.
+    agent_steps : int
+        Movable AGV-steps seen since :meth:`reset` (the denominator of the rates).
+    last_changed : np.ndarray of bool, shape (B, N)
+        The AGVs whose action the last call changed.
+
+    Raises
+    ------
+    ValueError
+        For a controller without ``reset`` and ``act``, or a margin, tolerance or option
+        that is not valid (the message names it).
+    """
+
+    def __init__(self, controller: Any, qp: bool = True, margin: float = 0.01,
+                 tolerance: float = 1e-3, avoidance_options: dict[str, Any] | None = None
+                 ) -> None:
+        if not (callable(getattr(controller, "reset", None))
+                and callable(getattr(controller, "act", None))):
+            raise ValueError(f"controller must have reset(env) and act(obs) methods, got "
+                             f"{type(controller).__name__}")
+        if not isinstance(qp, (bool, np.bool_)):
+            raise ValueError(f"qp must be True or False, got {qp!r}")
+        for name, value, low_ok in (("margin", margin, True), ("tolerance", tolerance, False)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                    or not np.isfinite(value) or value < 0 or (value == 0 and not low_ok):
+                bound = ">= 0" if low_ok else "> 0"
+                raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
+        if avoidance_options is not None and not isinstance(avoidance_options, dict):
+            raise ValueError(f"avoidance_options must be a dict of AvoidanceConfig fields, "
+                             f"got {type(avoidance_options).__name__}")
+        self.controller = controller
+        self.qp = bool(qp)
+        self.margin = float(margin)
+        self.tolerance = float(tolerance)
+        self.avoidance_options = dict(avoidance_options or {})
+        self.env: Any = None
+        self._avoid: VelocityAvoidance | None = None
+        self._brake: BrakingShield | None = None
+        self.interventions = {"any": 0, "qp": 0, "brake": 0}
+        self.agent_steps = 0
+        self.last_changed = np.zeros((0, 0), dtype=bool)
+
+    def __repr__(self) -> str:
+        return f"SafetyShield({self.controller!r}, qp={self.qp})"
+
+    @property
+    def name(self) -> str:
+        """The wrapped controller's name with ``+shield``."""
+        return f"{getattr(self.controller, 'name', type(self.controller).__name__)}+shield"
+
+    def reset(self, env: Any) -> None:
+        """Reset the wrapped controller and the counters; build the QP for ``env``'s world."""
+        self.controller.reset(env)
+        self.env = env
+        world = env.world
+        ph = world.physics
+        # The QP only smooths what the policy intends (the braking filter is the guarantee):
+        # a short horizon and a small margin, and a speed polygon that holds every velocity
+        # one action can reach (|v| <= the physics' cap, or the terminal speed per axis).
+        top = float(ph.max_speed) if ph.max_speed is not None \
+            else float(ph.terminal_speed) * np.sqrt(2.0)
+        opts: dict[str, Any] = dict(time_horizon=0.3, obstacle_time_horizon=0.25, margin=0.02)
+        opts.update(self.avoidance_options)
+        sides = int(opts.get("polygon_sides", 12))
+        opts.setdefault("max_speed", top / np.cos(np.pi / max(sides, 3)) * (1 + 1e-6))
+        try:
+            config = AvoidanceConfig.for_world(world, **opts)
+        except TypeError as err:
+            raise ValueError(f"avoidance_options: {err}") from None
+        self._avoid = VelocityAvoidance(world, config) if self.qp else None
+        self._brake = BrakingShield.for_world(world, margin=self.margin)
+        self.interventions = {"any": 0, "qp": 0, "brake": 0}
+        self.agent_steps = 0
+        self.last_changed = np.zeros((env.num_envs, env.num_agents), dtype=bool)
+
+    @torch.no_grad()
+    def act(self, obs: Tensor) -> Tensor:
+        """The wrapped controller's actions for ``obs``, made safe: (B, N, O) -> (B, N, 2)."""
+        return self.filter(self.controller.act(obs))
+
+    @torch.no_grad()
+    def filter(self, actions: Tensor | np.ndarray) -> Tensor:
+        """Make actions of the environment given to :meth:`reset` safe.
+
+        Parameters
+        ----------
+        actions : Tensor or array, shape (B, N, 2)
+            Intended accelerations (clipped to [-1, 1] as the simulator does).
+
+        Returns
+        -------
+        Tensor, shape (B, N, 2)
+            The certified actions, of the env's dtype and device. AGVs that do not move in
+            this step (parked, broken, in service, finished scenes) keep their action: the
+            simulator ignores it.
+
+        Raises
+        ------
+        ValueError
+            Before :meth:`reset`, or for actions of another shape or not finite.
+        """
+        env = self.env
+        if env is None:
+            raise ValueError("SafetyShield.filter needs reset(env) first")
+        a = actions.detach().cpu().double().numpy() if isinstance(actions, Tensor) \
+            else np.asarray(actions, dtype=np.float64)
+        B, N = env.num_envs, env.num_agents
+        if a.shape != (B, N, 2):
+            raise ValueError(f"actions must have shape (B, N, 2) = {(B, N, 2)}, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError("actions contain NaN or infinite values")
+        a = np.clip(a, -1.0, 1.0)
+        pos = env.agent_pos.detach().cpu().double().numpy()
+        vel = env.agent_vel.detach().cpu().double().numpy()
+        movable = movable_agents(env)
+        brake = self._brake
+        assert brake is not None
+        intended = brake.realised(vel, a)
+        planned = intended
+        if self._avoid is not None and movable.any():
+            ahead = pos + vel * env.world.physics.dt * movable[..., None]
+            result = self._avoid.solve(ahead, np.where(movable[..., None], vel, 0.0),
+                                       np.where(movable[..., None], intended, 0.0),
+                                       static=~movable)
+            planned = brake.realised(vel, brake.action_for(vel, result.velocity))
+        stop = braking_velocity(vel, brake.damping, brake.gain)
+        blends = [planned] + [stop + f * (planned - stop) for f in (0.6, 0.3)]
+        out = brake.filter(pos, vel, np.stack(blends, axis=2), movable)
+        safe = np.where(movable[..., None], out.action, a)
+        qp_action = brake.action_for(vel, planned)
+        by_qp = movable & (np.abs(qp_action - a).max(-1) > self.tolerance)
+        changed = movable & (np.abs(safe - a).max(-1) > self.tolerance)
+        braked = movable & (np.asarray(out.choice) > 0)
+        self.interventions["any"] += int(changed.sum())
+        self.interventions["qp"] += int(by_qp.sum())
+        self.interventions["brake"] += int(braked.sum())
+        self.agent_steps += int(movable.sum())
+        self.last_changed = changed
+        return torch.as_tensor(safe, dtype=env.dtype, device=env.device)
+
+    def intervention_rate(self) -> float:
+        """Share of movable AGV-steps whose action was changed since :meth:`reset`."""
+        return self.interventions["any"] / max(self.agent_steps, 1)
