@@ -9,8 +9,10 @@ keyed by stable row and column identities (AGV indices, order ids), and decides 
 to keep:
 
 1. Rows and columns are matched to the previous call's by key; for the kept ones the costs are
-   compared entry by entry. A column with two or more changed entries is a *changed column*,
-   every other changed entry makes its row a *changed row*; new rows and columns are changed.
+   compared entry by entry. A row whose entries all moved by the same amount (a loaded AGV
+   one step nearer its drop-off: its lag shrank) keeps its match, its potential moved by that
+   amount. Of the other changed entries, a column with two or more is a *changed column*,
+   every other one makes its row a *changed row*; new rows and columns are changed.
 2. The problem is square-padded: n real rows and m - n dummy rows of cost 0 (n <= m; a wider
    than tall problem is solved transposed), a column held by a dummy being a column left free.
    Changed rows, rows whose column changed or left, and dummies whose column changed or left
@@ -217,7 +219,7 @@ class IncrementalLAP:
     Parameters
     ----------
     max_changed : float
-        Fraction of the rows plus columns that may change for a warm start (default 0.5);
+        Fraction of the rows plus columns that may change for a warm start (default 0.9);
         beyond it the previous state is dropped and the problem solved cold.
 
     Attributes
@@ -230,7 +232,7 @@ class IncrementalLAP:
         Rows the searches of the last call expanded.
     """
 
-    def __init__(self, max_changed: float = 0.5) -> None:
+    def __init__(self, max_changed: float = 0.9) -> None:
         if isinstance(max_changed, bool) or not isinstance(max_changed, (int, float)) \
                 or not 0.0 <= max_changed <= 1.0:
             raise ValueError(f"max_changed must be a number in [0, 1], got {max_changed!r}")
@@ -327,30 +329,52 @@ class IncrementalLAP:
         krow, kcol = np.flatnonzero(ri >= 0), np.flatnonzero(cj >= 0)
         changed_col = cj < 0
         changed_row = ri < 0
-        if len(krow) and len(kcol):
-            diff = _sub(c, krow, kcol) != _sub(old_c, ri[krow], cj[kcol])
-            per_col = diff.sum(axis=0)
-            changed_col[kcol[per_col >= 2]] = True
-            rest = diff[:, per_col < 2].any(axis=1)
-            changed_row[krow[rest]] = True
-        if changed_row.sum() + changed_col.sum() > self.max_changed * (n + m):
-            return None
-        # Old column -> new column, old row -> new row.
-        new_of_col = np.full(old_m, -1, dtype=np.int64)
+        new_of_col = np.full(old_m, -1, dtype=np.int64)  # old column -> new column
         new_of_col[cj[kcol]] = kcol
+        moved = np.zeros(0, dtype=np.int64)  # kept rows with a changed entry elsewhere
+        if len(krow) and len(kcol):
+            new_sub, old_sub = _sub(c, krow, kcol), _sub(old_c, ri[krow], cj[kcol])
+            diff = new_sub != old_sub
+            per_row = diff.sum(axis=1)
+            # A row with many changed entries changed itself (an AGV moved); the columns are
+            # blamed on the other rows: two or more changed entries make a changed column.
+            few = per_row <= max(1, len(kcol) // 2)
+            per_col = diff[few].sum(axis=0)
+            changed_col[kcol[per_col >= 2]] = True
+            outside = diff[:, per_col < 2].any(axis=1)
+            moved = krow[outside]
+        if changed_row.sum() + len(moved) + changed_col.sum() > self.max_changed * (n + m):
+            return None
         u = np.zeros(m)
         v = np.zeros(m)
         v[kcol] = s["v"][cj[kcol]]
         col4row = np.full(m, -1, dtype=np.int64)
-        # Real rows: keep the match of unchanged rows whose column stays and is unchanged.
+        # Real rows: keep the match of kept rows whose column stays and is unchanged.
         keep = krow[~changed_row[krow]]
         held = s["col4row"][ri[keep]]
         held = new_of_col[held]
         ok = held >= 0
         ok[ok] = ~changed_col[held[ok]]
         keep, held = keep[ok], held[ok]
-        col4row[keep] = held
         u[keep] = s["u"][ri[keep]]
+        # A moved row keeps its match if that column is still its cheapest in reduced cost
+        # (against the kept columns' potentials): u_i = c_ij - v_j, exactly tight. Changed
+        # columns get their potentials below, from every matched row.
+        if len(moved):
+            mv = np.isin(keep, moved)
+            rows_m, cols_m = keep[mv], held[mv]
+            u_m = c[rows_m, cols_m] - v[cols_m]
+            steady = np.flatnonzero(~changed_col)
+            red = c[np.ix_(rows_m, steady)] - v[steady] - u_m[:, None]
+            tol = 1e-12 + 1e-15 * np.abs(c[np.ix_(rows_m, steady)])
+            with np.errstate(invalid="ignore"):
+                fine = (red >= -tol).all(axis=1) & np.isfinite(u_m)
+            u[rows_m[fine]] = u_m[fine]
+            drop = np.zeros(len(keep), dtype=bool)
+            drop[np.flatnonzero(mv)[~fine]] = True
+            keep, held = keep[~drop], held[~drop]
+            changed_row[rows_m[~fine]] = True
+        col4row[keep] = held
         # Dummy rows n .. m-1: re-use old dummies (their potentials and columns) in order.
         old_dummy = np.arange(old_n, old_m)
         dummies = min(m - n, len(old_dummy))
