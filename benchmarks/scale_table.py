@@ -1,0 +1,248 @@
+"""The scale table (issue 17): every method from 3 to 100 AGVs, episodic and lifelong.
+
+    python benchmarks/scale_table.py [--sizes 3 6 10 20 50 100] [--episodes 100 100 50 20 10 5]
+        [--floors warehouse-20 warehouse-50 warehouse-100] [--lifelong-steps 1000]
+        [--seed 0] [--quick] [--out benchmarks/results/scale]
+
+Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
+``fifo`` and ``auction`` (its radio range equal to the scenario's sensing range, so that the
+decentralized peers see as far as each other), and the learned ``maddpg-ipf`` and
+``bicnet-ipf`` as shipped (the 3v3 weights at N = 3, the 6v6 weights zero-shot above), each
+plain and with ``shield=True`` (:class:`allocator.shield.SafetyShield`). Every method runs
+through :func:`sim.evaluate` on the same seeded episodes. Columns: task response, average
+time (steps until every task is claimed, the step limit where not), that time over
+Hungarian's, overlapping AGV pairs summed over an episode's steps (averaged), the shield's
+interventions per movable AGV-step, wall-clock seconds.
+
+Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
+``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) through
+:func:`sim.evaluate_lifelong`, with the overlapping pairs counted at every step. The shipped
+learned policies have no lifelong rows: they were trained on the paper's episodes, whose
+observations differ (``LearnedAllocator.reset`` refuses a lifelong floor).
+
+Writes ``scale.md``, ``scale.json`` and ``scale.png`` (response and time over Hungarian's
+against N) to ``--out``, with the command, seed and machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import allocator
+import sim
+from sim.io import atomic_write_text
+
+OUT = Path(__file__).parent / "results" / "scale"
+CLASSICAL = ("hungarian", "greedy", "fifo", "auction")
+LEARNED = ("maddpg-ipf", "bicnet-ipf")
+DISPATCHERS = ("hungarian", "fifo", "greedy", "auction")
+LIFELONG_COMM_RANGE = 3.0
+
+
+def episodic_method(name: str, n: int, shield: bool, sensing_range: float) -> Any:
+    """The controller for one episodic row."""
+    if name in LEARNED:
+        weights = "3v3" if n <= 3 else "6v6"
+        return allocator.make(name, scenario=weights, shield=shield)
+    if name == "auction":
+        return allocator.make("auction", comm_range=sensing_range)
+    return allocator.make(name)
+
+
+class OverlapCounter:
+    """Wraps a lifelong controller and counts the overlapping AGV pairs before every step."""
+
+    def __init__(self, controller: Any) -> None:
+        self.controller = controller
+        self.pairs = 0
+        self.env: Any = None
+
+    def reset(self, env: Any) -> None:
+        self.env = env
+        self.controller.reset(env)
+
+    def act(self, obs: torch.Tensor) -> torch.Tensor:
+        env = self.env
+        pos = env.agent_pos
+        d = torch.cdist(pos, pos)
+        n = pos.shape[1]
+        close = (d < 2 * env.world.agent_radius) & ~torch.eye(n, dtype=torch.bool)
+        running = ~env.done
+        self.pairs += int(close[running].sum()) // 2
+        return self.controller.act(obs)
+
+
+def episodic_rows(sizes: list[int], episodes: list[int], seed: int) -> list[dict]:
+    rows = []
+    for n, eps in zip(sizes, episodes, strict=True):
+        scenario = f"{n}v{n}"
+        rng = float(sim.get_scenario(scenario).sensing_range)
+        hung_time = None
+        variants = [(m, False) for m in CLASSICAL] + [(m, s) for m in LEARNED
+                                                      for s in (False, True)]
+        for name, shield in variants:
+            ctl = episodic_method(name, n, shield, rng)
+            t = time.perf_counter()
+            m = sim.evaluate(ctl, scenario, episodes=eps, seed=seed, batch_size=eps)
+            seconds = time.perf_counter() - t
+            safety = getattr(ctl, "safety", None)
+            if name == "hungarian":
+                hung_time = m.avg_time
+            row = dict(kind="episodic", scenario=scenario, n=n, method=name, shield=shield,
+                       episodes=eps, response=m.response_rate, avg_time=m.avg_time,
+                       time_vs_hungarian=m.avg_time / hung_time if hung_time else math.nan,
+                       overlaps=m.collisions,
+                       interventions=(safety.intervention_rate() if safety is not None
+                                      else None),
+                       seconds=seconds)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    return rows
+
+
+def lifelong_rows(floors: list[str], steps: int, seed: int) -> list[dict]:
+    rows = []
+    for floor in floors:
+        for name in DISPATCHERS:
+            inner = (allocator.make("auction", comm_range=LIFELONG_COMM_RANGE)
+                     if name == "auction" else allocator.make(name))
+            ctl = OverlapCounter(inner)
+            t = time.perf_counter()
+            m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed)
+            seconds = time.perf_counter() - t
+            row = dict(kind="lifelong", scenario=floor, n=int(floor.split("-")[1]),
+                       method=name, shield=False, steps=steps, throughput=m.throughput,
+                       throughput_bound=m.throughput_bound, wait_p95=m.wait_p95,
+                       lost=m.lost, overlaps_per_1000_steps=1000.0 * ctl.pairs / steps,
+                       seconds=seconds)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    return rows
+
+
+def _fmt(x: Any, spec: str = ".3f") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    return format(x, spec)
+
+
+def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        "# Scale table: every method from 3 to 100 AGVs",
+        "",
+        f"`{command}` on {platform.machine()}, Python {platform.python_version()}, torch "
+        f"{torch.__version__}, {stamp}; seed {seed} (the same episodes and orders for every "
+        "method). Learned rows: the shipped weights (3v3 at N = 3, 6v6 zero-shot above), "
+        "plain and shielded (`shield=True`). Auction: radio range = the scenario's sensing "
+        "range (episodic), 3.0 (lifelong).",
+        "",
+        "## Episodic (`NvN`)",
+        "",
+        "| scenario | method | shield | episodes | response | avg time | time / Hungarian | "
+        "overlapping pairs per episode | interventions per AGV-step | s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in (r for r in rows if r["kind"] == "episodic"):
+        lines.append(
+            f"| {r['scenario']} | {r['method']} | {'yes' if r['shield'] else 'no'} | "
+            f"{r['episodes']} | {_fmt(r['response'])} | {_fmt(r['avg_time'], '.2f')} | "
+            f"{_fmt(r['time_vs_hungarian'], '.2f')} | {_fmt(r['overlaps'], '.2f')} | "
+            f"{_fmt(r['interventions'])} | {r['seconds']:.0f} |")
+    life = [r for r in rows if r["kind"] == "lifelong"]
+    if life:
+        lines += ["", "## Lifelong (`warehouse-N`, backlog of 1.5 N orders)", "",
+                  "| floor | dispatcher | steps | deliveries / 1000 steps | bound | "
+                  "p95 wait | lost | overlapping pairs / 1000 steps | s |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in life:
+            lines.append(
+                f"| {r['scenario']} | {r['method']} | {r['steps']} | "
+                f"{_fmt(r['throughput'], '.1f')} | {_fmt(r['throughput_bound'], '.0f')} | "
+                f"{_fmt(r['wait_p95'], '.0f')} | {r['lost']} | "
+                f"{_fmt(r['overlaps_per_1000_steps'], '.1f')} | {r['seconds']:.0f} |")
+    atomic_write_text(out / "scale.md", "\n".join(lines) + "\n")
+    meta = dict(command=command, seed=seed, date=stamp, rows=rows)
+    atomic_write_text(out / "scale.json", json.dumps(meta, indent=1) + "\n")
+    plot(rows, out / "scale.png")
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim.io import atomic_save
+
+    ep = [r for r in rows if r["kind"] == "episodic"]
+    if not ep:
+        return
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    keys = sorted({(r["method"], r["shield"]) for r in ep},
+                  key=lambda k: (k[0] not in CLASSICAL, k))
+    for method, shield in keys:
+        pts = sorted((r["n"], r["response"], r["time_vs_hungarian"]) for r in ep
+                     if r["method"] == method and r["shield"] == shield)
+        n = [p[0] for p in pts]
+        label = method + (" + shield" if shield else "")
+        style = "--" if shield else "-"
+        ax1.plot(n, [p[1] for p in pts], style, marker="o", label=label)
+        ax2.plot(n, [p[2] for p in pts], style, marker="o", label=label)
+    for ax, name in ((ax1, "task response"), (ax2, "avg time / Hungarian's")):
+        ax.set_xscale("log")
+        ax.set_xlabel("AGVs (N tasks)")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    ax1.legend(fontsize=7)
+    fig.tight_layout()
+    atomic_save(lambda f: fig.savefig(f, format="png", dpi=120), path)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[3, 6, 10, 20, 50, 100])
+    p.add_argument("--episodes", type=int, nargs="+", default=None,
+                   help="episodes per size (default 100 100 50 20 10 5)")
+    p.add_argument("--floors", nargs="*", default=["warehouse-20", "warehouse-50",
+                                                   "warehouse-100"])
+    p.add_argument("--lifelong-steps", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="3 6 20, few episodes, one floor")
+    p.add_argument("--out", type=Path, default=OUT)
+    args = p.parse_args(argv)
+    if args.quick:
+        args.sizes, args.episodes = [3, 6, 20], [20, 20, 4]
+        args.floors, args.lifelong_steps = ["warehouse-20"], 200
+    default_eps = {3: 100, 6: 100, 10: 50, 20: 20, 50: 10, 100: 5}
+    episodes = args.episodes or [default_eps.get(n, 10) for n in args.sizes]
+    if len(episodes) != len(args.sizes):
+        p.error(f"--episodes needs one count per size ({len(args.sizes)}), got "
+                f"{len(episodes)}")
+    if any(n < 1 for n in args.sizes) or any(e < 1 for e in episodes):
+        p.error("--sizes and --episodes must be positive integers")
+    if args.lifelong_steps < 1:
+        p.error("--lifelong-steps must be a positive integer")
+    torch.set_num_threads(1)
+    np.seterr(all="ignore")
+    rows = episodic_rows(args.sizes, episodes, args.seed)
+    rows += lifelong_rows(args.floors, args.lifelong_steps, args.seed)
+    given = sys.argv[1:] if argv is None else argv
+    write(rows, args.out, " ".join(["python benchmarks/scale_table.py", *given]), args.seed)
+
+
+if __name__ == "__main__":
+    main()

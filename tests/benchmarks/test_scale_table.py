@@ -1,0 +1,52 @@
+"""benchmarks/scale_table.py runs end to end on a tiny configuration and writes its table,
+its JSON and its figure."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+bench = _load("scale_table")
+
+
+def test_tiny_run_writes_table_json_and_figure(tmp_path: Path) -> None:
+    bench.main(["--sizes", "3", "--episodes", "4", "--floors", "warehouse-20",
+                "--lifelong-steps", "30", "--seed", "2", "--out", str(tmp_path)])
+    meta = json.loads((tmp_path / "scale.json").read_text())
+    assert meta["seed"] == 2 and "--sizes 3" in meta["command"]
+    rows = meta["rows"]
+    episodic = [r for r in rows if r["kind"] == "episodic"]
+    # 4 classical methods, 2 learned ones plain and shielded.
+    assert len(episodic) == 4 + 2 * 2
+    assert all(0.0 <= r["response"] <= 1.0 for r in episodic)
+    shielded = [r for r in episodic if r["shield"]]
+    assert all(r["overlaps"] == 0 and r["interventions"] is not None for r in shielded)
+    hung = next(r for r in episodic if r["method"] == "hungarian")
+    assert hung["time_vs_hungarian"] == pytest.approx(1.0)
+    lifelong = [r for r in rows if r["kind"] == "lifelong"]
+    assert {r["method"] for r in lifelong} == {"hungarian", "fifo", "greedy", "auction"}
+    assert all(r["lost"] == 0 for r in lifelong)
+    md = (tmp_path / "scale.md").read_text()
+    table = [line for line in md.splitlines() if line.startswith("| 3v3")]
+    assert len(table) == len(episodic)
+    assert (tmp_path / "scale.png").stat().st_size > 1000
+
+
+def test_bad_arguments(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit):
+        bench.main(["--sizes", "3", "6", "--episodes", "4", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        bench.main(["--sizes", "0", "--out", str(tmp_path)])
