@@ -53,51 +53,12 @@ static inline __attribute__((always_inline)) int64_t ll_nearest(
     return filled;
 }
 
-/* The lanes of a shifted up by one, lane 0 from b's lane 0: {b0, a0, a1, a2} (VL = 4). */
-#if defined(__clang__)
-#define LL_SHIFT_UP(a, b) __builtin_shufflevector(a, b, 4, 0, 1, 2)
-#else
-#define LL_SHIFT_UP(a, b) __builtin_shuffle(a, b, (vi){4, 0, 1, 2})
-#endif
-
-/* ll_nearest for k <= VL without a branch per entry: the VL nearest so far are kept sorted in
- * a vector of distances and one of indices, and each entry is compared with all of them at
- * once; the lanes from its place on shift up by one. An entry equal to a kept one goes after
- * it (ties: the lower index first), and one that is not below INF (infinite, NaN, beyond
- * range, or skip) never enters, so the first min(k, filled) lanes are exactly ll_nearest's
- * result. The branches of the insertion sort mispredict about once per entry; this is 2-3x
- * faster at 20-40 entries. */
-static inline __attribute__((always_inline)) int64_t ll_nearest_lanes(
-        int64_t n, int64_t k, const float *d, float range, int64_t skip, float *bd,
-        int64_t *bi) {
-    vf best = vf_fill(INF_F);
-    const vi zero = {0};
-    vi idx = zero;
-    for (int64_t j = 0; j < n; j++) {
-        float x = d[j];
-        x = (x > range || j == skip) ? INF_F : x;
-        const vf xv = vf_fill(x);
-        const vi jv = zero + (int32_t)j;
-        const vi later = best > xv;  /* a suffix of the lanes, as best is sorted */
-        const vi moved = LL_SHIFT_UP(later, zero);  /* lanes that take their left neighbour */
-        best = vf_pick(later, vf_pick(moved, LL_SHIFT_UP(best, xv), xv), best);
-        idx = (later & ((moved & LL_SHIFT_UP(idx, jv)) | (~moved & jv))) | (~later & idx);
-    }
-    int64_t filled = 0;
-    while (filled < k && best[filled] < INF_F) {
-        bd[filled] = best[filled];
-        bi[filled] = idx[filled];
-        filled++;
-    }
-    return filled;
-}
-
 /* The k nearest entries, as ll_nearest: in lanes for k <= VL (VL = 4 here). */
 static inline __attribute__((always_inline)) int64_t ll_nearest_k(
         int64_t n, int64_t k, const float *d, float range, int64_t skip, float *bd,
         int64_t *bi) {
 #if VL == 4
-    if (k <= VL) return ll_nearest_lanes(n, k, d, range, skip, bd, bi);
+    if (k <= VL) return nearest_lanes(n, k, d, range, skip, bd, bi);
 #endif
     return ll_nearest(n, k, d, range, skip, bd, bi);
 }

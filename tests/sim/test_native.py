@@ -413,3 +413,24 @@ def test_pointer_accepts_the_exact_tensor_and_wildcards() -> None:
     assert native.pointer(t, torch.float32, (-1, 3, 2), "t") == t.data_ptr()
     with pytest.raises(ValueError, match="shape"):
         native.pointer(t, torch.float32, (-1, 3), "t")
+
+
+@pytest.mark.parametrize("n, m, options", [
+    (20, 30, dict(k_tasks=4, k_agents=4)),  # lists longer than SMALL: the lanes selection
+    (12, 20, dict(k_tasks=3, k_agents=2, sensing_range=1.5)),  # k < 4, some hidden by range
+    (10, 16, dict(k_tasks=6, k_agents=5)),  # k > 4: the insertion sort
+])
+def test_long_lists_on_a_grid_tie_as_torch(n: int, m: int, options: dict) -> None:
+    # AGVs and tasks on a coarse integer grid: many exactly equal distances, so any other tie
+    # rule than torch's (the lower index first) shows.
+    sc = paper_scenario(n, m, **options)
+    fast, ref = _pair(sc, num_envs=6)
+    g = np.random.default_rng(0)
+    half = sc.world.bounds[2] * 0.9
+    grid = np.linspace(-half, half, 5)
+    for _ in range(3):
+        agents = g.choice(grid, size=(6, n, 2))
+        tasks = g.choice(grid, size=(6, m, 2))
+        for env in (fast, ref):
+            env.set_state(agents, tasks)
+        assert torch.equal(fast.observe(), ref.observe())
