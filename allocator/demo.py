@@ -1,5 +1,6 @@
 """``agv demo``: every available method on the paper's scenarios, the table beside the paper's
-numbers, and the figures (tasks completed per episode, preference matrices, animations)."""
+numbers, and the figures (tasks completed per episode, preference matrices, animations); then
+the dispatchers in lifelong operation on a warehouse floor (throughput over time)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from sim.controllers import NearestTaskController
 from sim.io import atomic_save, atomic_write_text
 from sim.render import _plt
 
-__all__ = ["run_demo", "available_methods", "format_table"]
+__all__ = ["run_demo", "available_methods", "format_table", "run_lifelong",
+           "format_lifelong_table"]
 
 
 def available_methods(scenario: str) -> Iterator[tuple[str, Callable[[], Any]]]:
@@ -76,6 +78,46 @@ def _claims_figure(results: dict[tuple[str, str], sim.Metrics], scenario: str, p
     plt.close(fig)
 
 
+LIFELONG_FLOOR = "warehouse-20"
+LIFELONG_DISPATCHERS = ("hungarian", "fifo", "auction")
+
+
+def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
+    """The lifelong row of the demo: each dispatcher (and the scripted nearest-task
+    controller) on :data:`LIFELONG_FLOOR` for ``steps`` steps, the same orders for all;
+    writes ``table_lifelong.md`` and ``lifelong_throughput.png`` (throughput and waits over
+    time) to ``out``."""
+    import allocator
+
+    rows, runs = [], {}
+    makers: list[tuple[str, Callable[[], Any]]] = [("nearest-task", NearestTaskController)]
+    makers += [(name, lambda n=name: allocator.make(n)) for name in LIFELONG_DISPATCHERS]
+    for name, make in makers:
+        m = sim.evaluate_lifelong(make(), LIFELONG_FLOOR, steps=steps, seed=seed)
+        runs[name] = m
+        rows.append({"floor": LIFELONG_FLOOR, "method": name, "steps": steps,
+                     "throughput": m.throughput, "bound": m.throughput_bound,
+                     "wait_p95": m.wait_p95, "lost": m.lost, "seconds": m.seconds})
+        print(f"  {LIFELONG_FLOOR} {name:18s} {m.throughput:6.1f} deliveries / 1000 steps  "
+              f"(bound {m.throughput_bound:.0f}; p95 wait {m.wait_p95:.0f} steps; "
+              f"{m.seconds:.1f} s)")
+    atomic_write_text(out / "table_lifelong.md", format_lifelong_table(rows) + "\n")
+    sim.plot_lifelong(runs, path=out / "lifelong_throughput.png",
+                      title=f"{LIFELONG_FLOOR}, {steps} steps, seed {seed}")
+    return rows
+
+
+def format_lifelong_table(rows: list[dict[str, Any]]) -> str:
+    """A Markdown table of the demo's lifelong rows."""
+    lines = ["| floor | method | steps | deliveries / 1000 steps | bound | p95 wait (steps) | "
+             "lost | s |", "|" + "---|" * 8]
+    for r in rows:
+        lines.append(f"| {r['floor']} | {r['method']} | {r['steps']} | {r['throughput']:.1f} "
+                     f"| {r['bound']:.0f} | {r['wait_p95']:.0f} | {r['lost']} | "
+                     f"{r['seconds']:.1f} |")
+    return "\n".join(lines)
+
+
 def run_demo(args: argparse.Namespace) -> int:
     """Evaluate, print the table, write figures under ``args.out``.
 
@@ -83,7 +125,8 @@ def run_demo(args: argparse.Namespace) -> int:
     ----------
     args : argparse.Namespace
         ``episodes`` (a positive int, or None: 30 with ``quick``, else 300), ``quick``,
-        ``out`` (the folder) and ``seed``.
+        ``out`` (the folder), ``seed`` and ``lifelong_steps`` (None: 1000, 300 with
+        ``quick``; 0 skips the lifelong row).
 
     Returns
     -------
@@ -124,6 +167,13 @@ def run_demo(args: argparse.Namespace) -> int:
                 sim.render_episode(factory(), scenario, seed=args.seed,
                                    path=out / f"episode_{scenario}_{name}.gif",
                                    still=out / f"episode_{scenario}_{name}.png", title=name)
+    steps = getattr(args, "lifelong_steps", None)
+    if steps is None:
+        steps = 300 if args.quick else 1000
+    if steps:
+        lifelong_rows = run_lifelong(out, steps=steps, seed=args.seed)
+        print()
+        print(format_lifelong_table(lifelong_rows))
     print(f"\nwrote the table, figures and animations to {out}/ "
           f"({time.perf_counter() - t0:.0f} s, {episodes} episodes per method and scenario)")
     return 0

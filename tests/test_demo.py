@@ -18,6 +18,11 @@ def test_demo_quick_end_to_end(tmp_path, capsys) -> None:
         assert name in out
     assert (tmp_path / "table.md").exists()
     assert list(tmp_path.glob("*.gif")) and list(tmp_path.glob("*.png"))
+    # The lifelong row: every dispatcher on warehouse-20, the same orders, none lost.
+    lifelong = (tmp_path / "table_lifelong.md").read_text()
+    for name in ("nearest-task", "hungarian", "fifo", "auction"):
+        assert f"| warehouse-20 | {name} | 300 |" in lifelong
+    assert (tmp_path / "lifelong_throughput.png").stat().st_size > 1000
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +47,8 @@ def test_demo_reports_missing_weights(tmp_path, monkeypatch, capsys) -> None:
     import allocator.learned as learned
 
     monkeypatch.setattr(learned, "WEIGHTS_DIR", tmp_path / "nowhere")
-    assert main(["demo", "--episodes", "2", "--out", str(tmp_path / "demo")]) == 0
+    assert main(["demo", "--episodes", "2", "--lifelong-steps", "0",
+                 "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
     assert "bicnet-ipf" in out and "skipped" in out and "agv train" in out
 
@@ -52,3 +58,14 @@ def test_random_policy_is_weak() -> None:
     m = sim.evaluate(RandomController(seed=0), "3v3", episodes=32, seed=7)
     assert m.response_rate < 0.5
     assert torch.isfinite(torch.tensor(m.avg_reward))
+
+
+def test_demo_lifelong_row_alone(tmp_path, capsys) -> None:
+    from allocator.demo import run_lifelong
+
+    rows = run_lifelong(tmp_path, steps=40, seed=1)
+    assert [r["method"] for r in rows] == ["nearest-task", "hungarian", "fifo", "auction"]
+    assert all(r["lost"] == 0 and r["throughput"] >= 0 for r in rows)
+    assert (tmp_path / "table_lifelong.md").exists()
+    with pytest.raises(SystemExit):
+        main(["demo", "--lifelong-steps", "-1", "--out", str(tmp_path)])
