@@ -26,6 +26,7 @@ same run (target, issue 14: dispatch + avoidance at most 100 ms per step at N = 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import os
 import sys
@@ -121,10 +122,12 @@ def measure(n: int, steps: int, seed: int, loop_max: int) -> dict:
     """Time rows, exact solve, batched OSQP and the per-AGV loop on the same recorded steps."""
     qp, calls = record(n, steps, seed)
     exact = avoidance.VelocityAvoidance(qp.world, replace(qp.config, solver="exact"))
+    exact_np = avoidance.VelocityAvoidance(qp.world, replace(qp.config, solver="exact",
+                                                             native=False))
     batched = avoidance.VelocityAvoidance(qp.world, replace(qp.config, solver="osqp"))
     loop = LoopOfSolvers() if n <= loop_max else None
-    t = {"rows": [], "exact": [], "osqp": [], "loop": []}
-    diff_osqp, diff_loop, fell_exact, fell_osqp, R = 0.0, 0.0, 0, 0, 0
+    t = {"rows": [], "exact": [], "exact_np": [], "osqp": [], "loop": []}
+    diff_osqp, diff_loop, diff_np, fell_exact, fell_osqp, R = 0.0, 0.0, 0.0, 0, 0, 0
     for a, k in calls:  # consecutive steps, so OSQP warm starts as in the controller
         t0 = time.perf_counter()
         rows = exact.constraints(*a, **k)
@@ -133,6 +136,10 @@ def measure(n: int, steps: int, seed: int, loop_max: int) -> dict:
         t0 = time.perf_counter()
         v_ex, f_ex, _, _ = exact.solve_rows(rows)
         t["exact"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        v_np, _, _, _ = exact_np.solve_rows(rows)
+        t["exact_np"].append(time.perf_counter() - t0)
+        diff_np = max(diff_np, float(np.abs(v_ex - v_np).max()))
         t0 = time.perf_counter()
         v_os, f_os, _, _ = batched.solve_rows(rows)
         t["osqp"].append(time.perf_counter() - t0)
@@ -159,11 +166,26 @@ def measure(n: int, steps: int, seed: int, loop_max: int) -> dict:
         ms["total_shield"] = ms["total_exact"] + ms["shield"]
     ms["total_osqp"] = ms["rows"] + ms["osqp"]
     return dict(n=n, steps=len(calls) - 1, R=R, ms=ms, diff_osqp=diff_osqp, diff_loop=diff_loop,
+                diff_np=diff_np,
                 fell_exact=fell_exact, fell_osqp=fell_osqp, loop=loop is not None)
 
 
-def lifelong_step_ms(n: int, steps: int, seed: int, driver: object) -> dict:
-    """Median ms of a dispatcher's ``act`` (re-plan + drive) on ``warehouse-N``."""
+@contextlib.contextmanager
+def dense_neighbours():
+    """The neighbour search as it was before the k-d tree (the dense (N, N) matrix)."""
+    from allocator.avoidance import orca
+
+    old = orca.DENSE_MAX
+    orca.DENSE_MAX = 10**9
+    try:
+        yield
+    finally:
+        orca.DENSE_MAX = old
+
+
+def lifelong_step_ms(n: int, steps: int, seed: int, driver: object, dense: bool = False) -> dict:
+    """Median ms of a dispatcher's ``act`` (re-plan + drive) on ``warehouse-N``; also the
+    recorded arguments of every avoidance call (SafeDriver only)."""
     import torch
 
     from allocator.dispatch import HungarianDispatcher
@@ -174,36 +196,109 @@ def lifelong_step_ms(n: int, steps: int, seed: int, driver: object) -> dict:
     t0 = time.perf_counter()
     disp.reset(env)
     setup = time.perf_counter() - t0
-    total, collisions = [], 0
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        a = disp.act(None)
-        total.append(time.perf_counter() - t0)
-        _, _, _, info = env.step(a)
-        collisions += int(torch.as_tensor(info["collision_pairs"]).sum())
+    calls: list = []
+    qp = getattr(driver, "_avoid", None)
+    if qp is not None:
+        original = qp.solve
+
+        def capture(*a, **k):
+            calls.append((a, k))
+            return original(*a, **k)
+
+        qp.solve = capture
+    total, collisions, parts = [], 0, []
+    with dense_neighbours() if dense else contextlib.nullcontext():
+        for _ in range(steps):
+            before = dict(getattr(driver, "timing", {}))
+            t0 = time.perf_counter()
+            a = disp.act(None)
+            total.append(time.perf_counter() - t0)
+            after = getattr(driver, "timing", {})
+            parts.append({k: after[k] - before[k] for k in before})
+            _, _, _, info = env.step(a)
+            collisions += int(torch.as_tensor(info["collision_pairs"]).sum())
+    if qp is not None:
+        qp.solve = original
     return dict(ms=np.array(total[1:]) * 1e3, setup=setup, collisions=collisions,
-                timing=getattr(driver, "timing", None), steps=steps)
+                parts=parts[1:], steps=steps, calls=calls[1:], qp=qp)
 
 
-def lifelong_section(n: int, steps: int, seed: int) -> list[str]:
+def recorded_avoidance(r: dict) -> list[str]:
+    """Rows (k-d tree / dense) and solvers (C / numpy / block OSQP) on the recorded steps."""
+    qp = r["qp"]
+    fast = avoidance.VelocityAvoidance(qp.world, qp.config)
+    numpy_ = avoidance.VelocityAvoidance(qp.world, replace(qp.config, native=False))
+    osqp_ = avoidance.VelocityAvoidance(qp.world, replace(qp.config, solver="osqp"))
+    t: dict[str, list[float]] = {k: [] for k in ("rows", "rows_dense", "c", "numpy", "osqp")}
+    fell, diff, n = 0, 0.0, 0
+    for a, k in r["calls"]:
+        t0 = time.perf_counter()
+        rows = fast.constraints(*a, **k)
+        t["rows"].append(time.perf_counter() - t0)
+        with dense_neighbours():
+            t0 = time.perf_counter()
+            dense = numpy_.constraints(*a, **k)
+            t["rows_dense"].append(time.perf_counter() - t0)
+        both = np.isfinite(rows.upper) & np.isfinite(dense.upper)
+        same = np.array_equal(np.isfinite(rows.upper), np.isfinite(dense.upper))
+        diff = max(diff, float(np.abs(rows.upper[both] - dense.upper[both]).max(initial=0.0))
+                   if same else np.inf)
+        for key, solver in (("c", fast), ("numpy", numpy_), ("osqp", osqp_)):
+            t0 = time.perf_counter()
+            v, f, _, _ = solver.solve_rows(rows)
+            t[key].append(time.perf_counter() - t0)
+            if key == "c":
+                fell += int(f.sum())
+                n = rows.A.shape[0]
+    ms = {k: np.array(v) * 1e3 for k, v in t.items()}
+    names = (("rows", "rows, k-d tree neighbours (default)"),
+             ("rows_dense", "rows, dense (N, N) neighbours (before)"),
+             ("c", "**exact solver in C (default)**"),
+             ("numpy", "exact solver, vectorised numpy (before)"),
+             ("osqp", "block-diagonal OSQP, warm (oracle)"))
+    out = [f"The avoidance calls of the SafeDriver run above ({len(r['calls'])} steps, {n} AGVs, "
+           f"{fell} AGV-steps fell back to the least-violation program; rows of the two "
+           f"neighbour searches differ by at most {diff:.1e}), timed again one by one:", "",
+           "| what | median (ms) | 90th percentile (ms) | max (ms) |", "|---|---|---|---|"]
+    for key, name in names:
+        out.append(f"| {name} | {np.median(ms[key]):.1f} | {np.percentile(ms[key], 90):.1f} | "
+                   f"{ms[key].max():.1f} |")
+    out.append("")
+    return out
+
+
+def lifelong_section(n: int, steps: int, seed: int, waypoint: bool) -> list[str]:
     from allocator.dispatch import WaypointDriver
     from allocator.traffic import SafeDriver
 
     out = [f"## Lifelong step, warehouse-{n}", "",
            f"{steps} steps from the start of a seeded run (the first is not timed); "
-           "`HungarianDispatcher(driver=...)`: re-planning on events plus the driver.", "",
+           "`HungarianDispatcher(driver=...)`: re-planning on events plus the driver. "
+           "Rows of one run, one after the other.", "",
            "| driver | median (ms) | 90th percentile (ms) | overlapping pair-steps | "
-           "setup (s) | parts (ms per step: path / ORCA / shield) |", "|---|---|---|---|---|---|"]
-    for name, drv in (("WaypointDriver", WaypointDriver()), ("SafeDriver", SafeDriver()),
-                      ("SafeDriver(avoidance=False)", SafeDriver(avoidance=False))):
-        r = lifelong_step_ms(n, steps, seed, drv)
+           "setup (s) | driver parts, median ms per step (path / ORCA / shield) |",
+           "|---|---|---|---|---|---|"]
+    drivers = [("**SafeDriver** (C solver, k-d tree)", SafeDriver(), False),
+               ("SafeDriver, the QP path before (numpy solvers, dense neighbours)",
+                SafeDriver(avoidance_options={"native": False}), True),
+               ("SafeDriver(avoidance=False)", SafeDriver(avoidance=False), False)]
+    if waypoint:
+        drivers.insert(0, ("WaypointDriver", WaypointDriver(), False))
+    recorded = None
+    for name, drv, dense in drivers:
+        r = lifelong_step_ms(n, steps, seed, drv, dense)
         parts = ""
-        if r["timing"]:
-            tm = r["timing"]
-            parts = " / ".join(f"{1e3 * tm[k] / steps:.1f}" for k in ("path", "avoid", "shield"))
+        if r["parts"] and r["parts"][0]:
+            parts = " / ".join(f"{1e3 * np.median([p[k] for p in r['parts']]):.1f}"
+                               for k in ("path", "avoid", "shield"))
         out.append(f"| {name} | {np.median(r['ms']):.1f} | {np.percentile(r['ms'], 90):.1f} | "
                    f"{r['collisions']} | {r['setup']:.1f} | {parts} |")
+        print(out[-1], flush=True)
+        if recorded is None and r["calls"]:
+            recorded = r
     out.append("")
+    if recorded is not None:
+        out += recorded_avoidance(recorded)
     return out
 
 
@@ -219,6 +314,8 @@ def main() -> None:
     parser.add_argument("--lifelong", type=int, nargs="*", default=[],
                         help="also time a lifelong step on warehouse-N for these N")
     parser.add_argument("--lifelong-steps", type=int, default=20)
+    parser.add_argument("--waypoint", action="store_true",
+                        help="also time the WaypointDriver (its setup takes minutes at N=1000)")
     args = parser.parse_args()
     stamp = datetime.datetime.now().isoformat(timespec="minutes")
     lines = [
@@ -234,7 +331,8 @@ def main() -> None:
     ]
     names = (
         ("rows", "build the rows (numpy)"),
-        ("exact", "exact 2-D solver, vectorised (default)"),
+        ("exact", "exact 2-D solver (default: its C twin, `qp2d.c`)"),
+        ("exact_np", "exact 2-D solver, vectorised numpy"),
         ("total_exact", "**rows + exact solve (the avoidance step)**"),
         ("osqp", "one block-diagonal OSQP problem, warm"),
         ("total_osqp", "rows + block-diagonal OSQP"),
@@ -250,7 +348,8 @@ def main() -> None:
             f"{r['steps']} timed steps, {r['R']} rows per AGV; AGV-steps that fell back: "
             f"{r['fell_exact']} (exact), {r['fell_osqp']} (OSQP); largest velocity difference "
             f"where both are feasible: exact vs block-diagonal OSQP {r['diff_osqp']:.1e}"
-            + (f", exact vs loop {r['diff_loop']:.1e}." if r["loop"] else "."),
+            + (f", exact vs loop {r['diff_loop']:.1e}" if r["loop"] else "")
+            + f"; C vs numpy exact solver {r['diff_np']:.1e}.",
             "",
             "| what | median (ms) | 90th percentile (ms) | per AGV, median (us) |",
             "|---|---|---|---|",
@@ -264,8 +363,8 @@ def main() -> None:
         lines.append("")
         print("\n".join(lines[-12:]), flush=True)
     for n in args.lifelong:
-        lines += lifelong_section(n, args.lifelong_steps, args.seed)
-        print("\n".join(lines[-8:]), flush=True)
+        lines += lifelong_section(n, args.lifelong_steps, args.seed, args.waypoint)
+        print("\n".join(lines[-12:]), flush=True)
     text = "\n".join(lines)
     atomic_write_text(args.out, text)
     print(f"wrote {args.out}")

@@ -26,6 +26,10 @@ class AvoidanceConfig:
     their positions are exact and a small margin suffices: gaps between parked AGVs stay open)."""
     time_horizon: float = 1.0
     """ORCA time horizon for AGV pairs: no collision within this time if both comply."""
+    static_time_horizon: float | None = None
+    """Time horizon against static (parked) AGVs; None: ``time_horizon``. A parked AGV is an
+    obstacle, and RVO2 uses a shorter horizon for obstacles: with the full horizon an AGV
+    creeps through a gap between two parked AGVs at a few cm/s."""
     obstacle_time_horizon: float = 0.25
     """Time horizon for walls, shelves and forbidden points."""
     dt: float = 0.1
@@ -68,6 +72,10 @@ class AvoidanceConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"AvoidanceConfig.{name} must be positive, got {v!r}")
+        if self.static_time_horizon is not None and not (
+                np.isfinite(self.static_time_horizon) and self.static_time_horizon > 0):
+            raise ValueError("AvoidanceConfig.static_time_horizon must be positive or None, "
+                             f"got {self.static_time_horizon!r}")
         if self.margin < 0:
             raise ValueError(f"AvoidanceConfig.margin must be >= 0, got {self.margin!r}")
         if self.solver not in ("exact", "osqp"):

@@ -25,7 +25,7 @@ def orca_halfplanes(
     rel_vel: np.ndarray,
     velocity: np.ndarray,
     combined_radius: np.ndarray | float,
-    time_horizon: float,
+    time_horizon: float | np.ndarray,
     dt: float,
     responsibility: np.ndarray | float = 0.5,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -40,7 +40,8 @@ def orca_halfplanes(
     velocity : np.ndarray, shape (..., 2)
         Own current velocity (the half-plane passes through ``velocity + responsibility * u``).
     combined_radius : float or np.ndarray, shape (...)
-    time_horizon, dt : float
+    time_horizon : float or np.ndarray, shape (...)
+    dt : float
     responsibility : float or np.ndarray, shape (...)
         0.5 for reciprocal avoidance, 1 against a static obstacle.
 
@@ -184,6 +185,7 @@ def build_rows(
     point_mask: np.ndarray | None,
     point_radius: float,
     fixed: np.ndarray,
+    static_reference: np.ndarray | None = None,
 ) -> ConstraintRows:
     """Every AGV's rows of the velocity QP, for B scenes of N AGVs.
 
@@ -208,6 +210,9 @@ def build_rows(
         Radius of the forbidden points.
     fixed : np.ndarray of bool, shape (B, N)
         Committed (and not static) AGVs: no rows, full responsibility for their neighbours.
+    static_reference : np.ndarray, shape (B, N, 2), optional
+        The velocity each AGV's rows against static neighbours are built from (NaN: its
+        current velocity), see :meth:`VelocityAvoidance.solve`.
 
     Returns
     -------
@@ -238,10 +243,15 @@ def build_rows(
         rel_p = pos[bi, nb] - pos[:, :, None, :]  # p_j - p_i
         v_i = vel[:, :, None, :]
         st_j = static[bi, nb]
+        if static_reference is not None:
+            ref = static_reference[:, :, None, :]
+            v_i = np.where(st_j[..., None] & np.isfinite(ref), ref, v_i)
         a, b = orca_halfplanes(
             rel_p, v_i - vel[bi, nb], v_i, 2 * c.radius + np.where(st_j, c.static_margin,
                                                                     c.margin),
-            c.time_horizon, c.dt, np.where(st_j | fixed[bi, nb], 1.0, 0.5),
+            c.time_horizon if c.static_time_horizon is None
+            else np.where(st_j, c.static_time_horizon, c.time_horizon),
+            c.dt, np.where(st_j | fixed[bi, nb], 1.0, 0.5),
         )
         A[:, :, :K] = np.where(ok[..., None], a, 0.0)
         hi[:, :, :K] = np.where(ok, b, np.inf)

@@ -105,6 +105,7 @@ class VelocityAvoidance:
         point_mask: np.ndarray | None = None,
         point_radius: float = 0.1,
         committed: np.ndarray | None = None,
+        static_reference: np.ndarray | None = None,
     ) -> ConstraintRows:
         """Build every AGV's rows (:func:`~allocator.avoidance.orca.build_rows`); arguments as
         in :meth:`solve`.
@@ -118,8 +119,17 @@ class VelocityAvoidance:
             positions, velocities, preferred, static, points, point_mask
         )
         fixed = self._mask(committed, pos.shape[:2], positions, "committed") & ~static
+        ref = None
+        if static_reference is not None:
+            ref = np.asarray(static_reference, dtype=np.float64)
+            ref = ref[None] if np.ndim(positions) == 2 and ref.ndim == 2 else ref
+            if ref.shape != pos.shape:
+                raise ValueError(f"static_reference must have the shape of positions "
+                                 f"{np.shape(positions)}, got {np.shape(static_reference)}")
+            if np.isinf(ref).any():
+                raise ValueError("static_reference contains infinite values (NaN: unused)")
         return build_rows(self.config, self.world, pos, vel, pref, static, points, point_mask,
-                          point_radius, fixed)
+                          point_radius, fixed, ref)
 
     @staticmethod
     def _mask(mask: Any, shape: tuple[int, int], positions: Any, name: str) -> np.ndarray:
@@ -188,6 +198,7 @@ class VelocityAvoidance:
         point_mask: np.ndarray | None = None,
         point_radius: float = 0.1,
         committed: np.ndarray | None = None,
+        static_reference: np.ndarray | None = None,
     ) -> AvoidanceResult:
         """New velocities for every AGV, as close to ``preferred`` as the constraints allow.
 
@@ -209,6 +220,13 @@ class VelocityAvoidance:
             that could not honour their reciprocal rows): they get no rows and keep that
             velocity, and their neighbours take the full responsibility against them (with
             the moving margin). Ignored where ``static``.
+        static_reference : np.ndarray, shape (N, 2) or (B, N, 2), optional
+            Per AGV, the velocity its rows against *static* neighbours are built from instead
+            of its current velocity (NaN rows: the current velocity). ORCA linearises a
+            neighbour's velocity obstacle at the boundary point nearest that velocity, so the
+            half-plane keeps the AGV on that velocity's side of the obstacle; a controller
+            that has chosen to pass a parked AGV on one side gives a velocity on that side
+            (its preferred one), else an AGV still heading for the other leg is held on it.
 
         Returns
         -------
@@ -217,7 +235,7 @@ class VelocityAvoidance:
             constraints conflicted (their velocity least violates them).
         """
         rows = self.constraints(positions, velocities, preferred, static, points, point_mask,
-                                point_radius, committed)
+                                point_radius, committed, static_reference)
         vel, fell, viol, status = self.solve_rows(rows)
         shape = np.shape(positions)
         if committed is not None:  # committed AGVs keep their given velocity
