@@ -429,27 +429,24 @@ class MatchingDispatcher(LifelongDispatcher):
             out = self.distances.distance(origin, targets)
         else:
             old_rk, old_ck, old_origin, old_targets, old = cache
-            ri = _lookup(old_rk, row_keys)
-            cj = _lookup(old_ck, col_keys)
-            ri[ri >= 0] = np.where((old_origin[ri[ri >= 0]] == origin[ri >= 0]).all(axis=1),
-                                   ri[ri >= 0], -1)
-            cj[cj >= 0] = np.where((old_targets[cj[cj >= 0]] == targets[cj >= 0]).all(axis=1),
-                                   cj[cj >= 0], -1)
-            keep_r, keep_c = np.flatnonzero(ri >= 0), np.flatnonzero(cj >= 0)
-            if len(keep_r) * len(keep_c) < 0.5 * len(ri) * len(cj):
+            ri, cj = _lookup(old_rk, row_keys), _lookup(old_ck, col_keys)
+            fresh_r, fresh_c = ri < 0, cj < 0
+            fresh_r[~fresh_r] = (old_origin[ri[~fresh_r]] != origin[~fresh_r]).any(axis=1)
+            fresh_c[~fresh_c] = (old_targets[cj[~fresh_c]] != targets[~fresh_c]).any(axis=1)
+            if fresh_r.mean() + fresh_c.mean() > 0.5:
                 out = self.distances.distance(origin, targets)
             else:
-                out = np.empty((len(origin), len(targets)))
-                out[np.ix_(keep_r, keep_c)] = _sub(old, ri[keep_r], cj[keep_c])
-                new_r, new_c = np.flatnonzero(ri < 0), np.flatnonzero(cj < 0)
+                # A gather of the old matrix (none along an axis that kept its keys in
+                # order), then the rows and columns whose point moved or is new.
+                out = _sub(old, np.maximum(ri, 0), np.maximum(cj, 0))
+                new_r, new_c = np.flatnonzero(fresh_r), np.flatnonzero(fresh_c)
                 if len(new_r):
                     out[new_r] = self.distances.distance(origin[new_r], targets)
                 if len(new_c):
-                    out[np.ix_(keep_r, new_c)] = self.distances.distance(origin[keep_r],
-                                                                         targets[new_c])
+                    out[:, new_c] = self.distances.distance(origin, targets[new_c])
         self._travel_cache[self._floor] = (row_keys.copy(), col_keys.copy(), origin.copy(),
-                                           targets.copy(), out.copy())
-        return out
+                                           targets.copy(), out)
+        return out  # not to be written to: it is the next call's cache
 
     def _match(self, cost: np.ndarray, positions: np.ndarray,
                targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -488,29 +485,32 @@ class MatchingDispatcher(LifelongDispatcher):
             origin[is_loaded] = drop
         # (A, O) travel, then cost; rows and columns whose point did not move since the last
         # plan of this floor are copied from it, only the others gathered from the table.
-        cost = self._travel(origin, pickup[orders], agents, order_id[orders])
-        # Every term below adds a row or a column vector, in place (no (A, O) temporaries but
-        # on the few columns with a deadline): the matrix is the re-plan's main memory cost.
-        column = np.zeros(len(orders))
+        travel = self._travel(origin, pickup[orders], agents, order_id[orders])
+        # The cost is the travel plus a column vector and a row vector (two passes over the
+        # matrix), then a few sparse terms: the matrix is the re-plan's main memory cost.
+        column = np.full(len(orders), self.switching_cost)  # every pair but the kept ones
         if self.trip_weight and dropoff is not None:
             column += self.trip_weight * self.distances.pairwise(pickup[orders],
                                                                  dropoff[orders])
         if self.priority_weight:
             column -= self.priority_weight * priority[orders]
+        late = None
         if deadline is not None and (deadline[orders] >= 0).any():
             due = np.flatnonzero(deadline[orders] >= 0)
             sel = orders[due]
             trip = np.zeros(len(due)) if dropoff is None else \
                 self.distances.pairwise(pickup[sel], dropoff[sel]) / speed
             latest = deadline[sel] - now - trip - 2 * self.service_steps
-            eta = cost[:, due] / speed + lag[:, None]  # (A, D), D the orders with deadline
+            eta = travel[:, due] / speed + lag[:, None]  # (A, D), D the orders with deadline
             if self.lateness_weight:
-                cost[:, due] += self.lateness_weight * speed * lateness(eta, latest)
+                late = self.lateness_weight * speed * lateness(eta, latest)
             if self.deadline_bonus:
                 column[due] -= self.deadline_bonus * at_risk(eta, latest,
                                                              self.deadline_horizon)
-        cost += column[None, :]
+        cost = np.add(travel, column[None, :])
         cost += (speed * lag)[:, None]
+        if late is not None:
+            cost[:, due] += late
         if returned is not None and returned[orders].any():
             # Taken from a broken AGV: first to the AGVs free now (ahead of any travel).
             back = np.flatnonzero(returned[orders])
@@ -521,9 +521,8 @@ class MatchingDispatcher(LifelongDispatcher):
         col_of = np.full(len(order_status), -1, dtype=np.int64)
         col_of[orders] = np.arange(len(orders))
         kept = np.flatnonzero((mine >= 0) & (col_of[np.maximum(mine, 0)] >= 0))
-        cost += self.switching_cost  # every pair but the kept ones pays it
         cost[kept, col_of[mine[kept]]] -= self.switching_cost
-        np.nan_to_num(cost, copy=False, nan=_BIG, posinf=_BIG)
+        np.fmin(cost, _BIG, out=cost)  # unreachable (inf) and NaN pairs: _BIG
         self.last_cost = cost
         self._keys = (agents, order_id[orders])  # stable row / column identities
         rows, cols = self._match(cost, pos[agents], pickup[orders])
@@ -587,7 +586,7 @@ class HungarianDispatcher(MatchingDispatcher):
         if lap is None:
             lap = self.lap[self._floor] = IncrementalLAP()
         rows, cols = self._keys
-        return lap.solve(cost, rows, cols)
+        return lap.solve(cost, rows, cols, copy=False)  # the cost is made anew every plan
 
 
 class AuctionDispatcher(MatchingDispatcher):

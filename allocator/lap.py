@@ -192,7 +192,7 @@ def _check_cost(cost: object) -> np.ndarray:
     c = np.asarray(cost, dtype=np.float64)
     if c.ndim != 2:
         raise ValueError(f"cost must be a 2-D matrix, got shape {c.shape}")
-    if np.isnan(c).any() or np.isneginf(c).any():
+    if c.size and not c.min() > -np.inf:  # NaN propagates through min
         raise ValueError("cost contains NaN or -inf entries")
     return c
 
@@ -247,7 +247,8 @@ class IncrementalLAP:
         self._state = None
 
     def solve(self, cost: np.ndarray, row_keys: np.ndarray | None = None,
-              col_keys: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              col_keys: np.ndarray | None = None, *,
+              copy: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """An optimal assignment of ``cost``, warm-started from the previous call.
 
         Parameters
@@ -258,6 +259,9 @@ class IncrementalLAP:
             Stable identities of the rows (e.g. AGV indices), unique; default ``arange(A)``.
         col_keys : np.ndarray of int, shape (O,), optional
             Stable identities of the columns (e.g. order ids), unique; default ``arange(O)``.
+        copy : bool
+            Keep a copy of ``cost`` for the next call (default). False keeps ``cost`` itself
+            (C-contiguous float64, wider than tall): the caller then must not write to it.
 
         Returns
         -------
@@ -289,7 +293,8 @@ class IncrementalLAP:
         flip = a > o
         if flip:
             c, rk, ck = c.T, ck, rk
-        c = np.array(c, dtype=np.float64, order="C", copy=True)  # kept: the caller may mutate
+        # Kept for the next call: a copy unless the caller hands the matrix over.
+        c = np.array(c, dtype=np.float64, order="C") if copy else np.ascontiguousarray(c)
         n, m = c.shape
         st = self._warm(c, rk, ck, flip)
         if st is None:
