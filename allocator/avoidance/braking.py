@@ -385,10 +385,18 @@ class BrakingShield:
             rounds += 1
             ei, ej = ends[i, choice[i]], ends[j, choice[j]]
             d_cc = segment_distance(qi, ei, qj, ej)
-            fail_i = (choice[i] < K) & ((d_cc < req) |
-                                        (segment_distance(qi, ei, qj, brake_end[j]) < req))
-            fail_j = (choice[j] < K) & ((d_cc < req) |
-                                        (segment_distance(qj, ej, qi, brake_end[i]) < req))
+            cc = d_cc < req
+            nb_i, nb_j = choice[i] < K, choice[j] < K
+            bi = segment_distance(qi, ei, qj, brake_end[j]) < req  # i's option vs j braking
+            bj = segment_distance(qj, ej, qi, brake_end[i]) < req
+            # Two options too close although each clears the other's braking segment: only
+            # one AGV gives up its option, the one whose option ends nearer the other (it is
+            # the one closing in). Failing both made two AGVs that start closer than
+            # 2 r + margin brake for ever (the one leaving never got to leave).
+            tie = cc & nb_i & nb_j & ~bi & ~bj
+            closer_i = np.linalg.norm(ei - qj, axis=1) <= np.linalg.norm(ej - qi, axis=1)
+            fail_i = nb_i & (bi | (cc & ~nb_j) | (tie & closer_i))
+            fail_j = nb_j & (bj | (cc & ~nb_i) | (tie & ~closer_i))
             fail = np.zeros(n, dtype=bool)
             fail[i[fail_i]] = True
             fail[j[fail_j]] = True

@@ -114,8 +114,35 @@ def test_braking_is_chosen_when_nothing_else_is_safe() -> None:
     vel = np.array([[[1.5, 0.0], [-1.5, 0.0]]])
     faster = shield.realised(vel[:, :, None], np.array([[[[1, 0]], [[-1, 0]]]]))
     out = shield.filter(pos, vel, faster, np.ones((1, 2), dtype=bool))
+    # Each faster option clears the other's braking segment but not the other's option: one
+    # of the two gives it up and brakes (the invariant then holds between the option kept
+    # and that braking segment)
+    assert out.braking.sum() == 1
+    assert out.min_pair_gap >= 0.01 - 1e-9
+    k = int(np.flatnonzero(out.braking[0])[0])
+    assert np.allclose(out.action[0, k], [-1, 0] if k == 0 else [1, 0])
+    # Both options aimed at the other's braking segment: both brake.
+    closer = np.array([[[-0.3, 0.0], [0.3, 0.0]]])
+    out = shield.filter(closer, vel, faster, np.ones((1, 2), dtype=bool))
     assert out.braking.all()
     assert np.allclose(out.action[0, 0], [-1, 0])
+
+
+def test_two_agvs_closer_than_the_margin_can_still_part() -> None:
+    # At rest 0.305 apart (below 2 r + margin): the one leaving may leave while the other,
+    # heading the same way, waits; before, both braked for ever (a 3v3 miss).
+    shield = BrakingShield(R, DT, C, G, margin=0.01)
+    pos = np.array([[[0.0, 0.0], [0.305, 0.0]]])
+    vel = np.zeros((1, 2, 2))
+    want = shield.realised(vel[:, :, None], np.array([[[[1, 0]], [[1, 0]]]]))
+    p, v = pos, vel
+    for _ in range(5):
+        out = shield.filter(p, v, shield.realised(v[:, :, None], np.array([[[[1, 0]], [[1, 0]]]])),
+                            np.ones((1, 2), dtype=bool))
+        p, v = sim_step(p, v, out.action)
+        assert np.linalg.norm(p[0, 1] - p[0, 0]) >= 0.305 - 1e-9
+    assert p[0, 1, 0] > 0.305 + 0.1  # the front AGV got away
+    assert want.shape == (1, 2, 1, 2)
 
 
 def test_shelves_and_walls_are_respected() -> None:
