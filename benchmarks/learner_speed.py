@@ -158,11 +158,13 @@ def quality_run(algo: str, n: int, preset: str, seed: int, episodes: int,
 
 def quality_table(records: list[dict]) -> list[str]:
     """Markdown rows of :func:`quality_run` records, and the per-algorithm means."""
-    lines = ["| learner | N | preset | seed | env steps | updates | CPU s | validation "
-             "response at 1/3, 2/3, end |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| learner | N | preset | seed | replay ratio | env steps | updates | CPU s | "
+             "validation response at each evaluation (episode: response) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in records:
-        curve = ", ".join(f"{c[2]:.3f}" for c in r["curve"])
-        lines.append(f"| {r['algo']} | {r['n']} | {r['preset']} | {r['seed']} | "
+        curve = ", ".join(f"{c[0]}: {c[2]:.3f}" for c in r["curve"])
+        ratio = f"{r['replay_ratio']:.0f}" if "replay_ratio" in r else "-"
+        lines.append(f"| {r['algo']} | {r['n']} | {r['preset']} | {r['seed']} | {ratio} | "
                      f"{r['env_steps']} | {r['updates']} | {r['cpu']:.0f} | {curve} |")
     lines += ["", "| learner | N | preset | mean final response over seeds | mean CPU s |",
               "|---|---|---|---|---|"]

@@ -25,26 +25,30 @@ REWARD_NAMES = ("minidist", "greedy", "ipf")
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "default": {"maddpg": {}, "bicnet": {}},
     "fast": {
-        "maddpg": {"num_envs": 64, "updates_per_step": 2, "batch_size": 576,
+        "maddpg": {"num_envs": 64, "updates_per_step": 2, "batch_size": 512,
                    "actor_lr": 3e-3, "critic_lr": 3e-3, "tau": 0.03},
-        "bicnet": {"num_envs": 128, "updates_per_step": 1, "batch_size": 640,
-                   "actor_lr": 3e-3, "critic_lr": 3e-3, "tau": 0.05},
+        "bicnet": {"num_envs": 128, "updates_per_step": 1, "actor_lr": 3e-3, "critic_lr": 3e-3,
+                   "tau": 0.05},
     },
 }
 """Named learner settings: preset -> algorithm -> config overrides.
 
 ``default`` is the config dataclass's defaults (what the shipped weights were trained with).
-``fast`` does fewer gradient updates per environment step, which is what makes training
-5-7x faster in environment steps per second on a CPU (both updates are compute-bound there,
-their matrix products near the core's float32 rate, see ``docs/learners.md``), and takes
-larger steps to make up for it. Its replay ratio (sample-gradients per stored transition,
-batch_size x updates_per_step / num_envs) is the largest that keeps 5x:
+``fast`` does fewer, cheaper gradient updates per environment step, which is what makes
+training about 5x faster in environment steps per second on a CPU (one update is
+compute-bound there, see ``docs/learners.md``), and takes larger steps to make up for it:
 
 * MADDPG: 64 environments and 2 updates per vectorized step (32 transitions per update
-  instead of 8), batches of 576 instead of 1024 (replay ratio 18 instead of 128), learning
-  rates 3e-3 instead of 1e-3, target rate tau 0.03 instead of 0.01;
+  instead of 8), batches of 512 instead of 1024 (replay ratio, batch x updates per
+  transition, 16 instead of 128), learning rates 3e-3 instead of 1e-3, target rate tau 0.03
+  instead of 0.01;
 * BiCNet: 128 environments and 1 update per step (128 transitions per update instead of 16),
-  batches of 640 instead of 512 (replay ratio 5 instead of 32), learning rates 3e-3, tau 0.05.
+  replay ratio 4 instead of 32, learning rates 3e-3, tau 0.05.
+
+Both updates are compute-bound on a CPU (their matrix products run near the core's float32
+rate), so 5x the env steps per second needs about 5x fewer sample-gradients per transition;
+a higher replay ratio at that speed (MADDPG 18, BiCNet 5) was tried and learned no better
+(``benchmarks/results/learner_speed_quality.md``).
 
 ``benchmarks/learner_speed.py`` measures both presets' speed, and with ``--quality`` their
 validation response after the same number of episodes.
