@@ -248,6 +248,161 @@ def main_report(records_dir: str, command: str) -> None:
     write_quality(records, command)
 
 
+# ---------------------------------------------------------------------------- --profile
+class _HandBiGRU(torch.autograd.Function):
+    """Both GRU directions in one batched product per agent step, gradients by hand: the
+    candidate replacement for ``nn.GRU`` in BiCNet (measured slower; kept as the evidence)."""
+
+    @staticmethod
+    def forward(ctx, x, w_ih, w_hh, b_ih, b_hh):  # x (N, B, H); w (2, 3H, H); b (2, 3H)
+        steps, bsz, hin = x.shape
+        h3 = w_hh.shape[1]
+        hid = h3 // 3
+        xb = torch.stack([x, x.flip(0)]).view(2, steps * bsz, hin)
+        gi = torch.baddbmm(b_ih.unsqueeze(1), xb, w_ih.transpose(1, 2)).view(2, steps, bsz, h3)
+        hs = x.new_zeros(2, steps + 1, bsz, hid)
+        gates = x.new_empty(2, steps, bsz, h3)
+        ghn = x.new_empty(2, steps, bsz, hid)
+        for s in range(steps):
+            h = hs[:, s]
+            gh = torch.baddbmm(b_hh.unsqueeze(1), h, w_hh.transpose(1, 2))
+            g = gates[:, s]
+            rz = torch.add(gi[:, s, :, :2 * hid], gh[..., :2 * hid],
+                           out=g[..., :2 * hid]).sigmoid_()
+            ghn[:, s].copy_(gh[..., 2 * hid:])
+            n = torch.addcmul(gi[:, s, :, 2 * hid:], rz[..., :hid], gh[..., 2 * hid:],
+                              out=g[..., 2 * hid:]).tanh_()
+            torch.addcmul(n, rz[..., hid:], h - n, out=hs[:, s + 1])
+        ctx.save_for_backward(xb, w_ih, w_hh, hs, gates, ghn)
+        return torch.cat([hs[0, 1:], hs[1, 1:].flip(0)], dim=-1)
+
+    @staticmethod
+    def backward(ctx, dout):
+        xb, w_ih, w_hh, hs, gates, ghn = ctx.saved_tensors
+        _, steps, bsz, hid = ghn.shape
+        dhs = torch.stack([dout[..., :hid], dout[..., hid:].flip(0)])
+        dg, dgh = torch.empty_like(gates), torch.empty_like(gates)
+        dh = torch.zeros_like(hs[:, 0])
+        for s in range(steps - 1, -1, -1):
+            dh.add_(dhs[:, s])
+            g = gates[:, s]
+            r, z, n = g[..., :hid], g[..., hid:2 * hid], g[..., 2 * hid:]
+            d = dg[:, s]
+            torch.mul(dh, hs[:, s] - n, out=d[..., hid:2 * hid]).mul_(z * (1 - z))
+            dan = torch.mul(dh, 1 - z, out=d[..., 2 * hid:]).mul_(1 - n * n)
+            torch.mul(dan, ghn[:, s], out=d[..., :hid]).mul_(r * (1 - r))
+            e = dgh[:, s]
+            e[..., :2 * hid].copy_(d[..., :2 * hid])
+            torch.mul(dan, r, out=e[..., 2 * hid:])
+            dh.mul_(z).baddbmm_(e, w_hh)
+        dgf, dghf = dg.view(2, steps * bsz, -1), dgh.view(2, steps * bsz, -1)
+        dw_ih = torch.bmm(dgf.transpose(1, 2), xb)
+        dw_hh = torch.bmm(dghf.transpose(1, 2), hs[:, :steps].reshape(2, steps * bsz, hid))
+        dxb = torch.bmm(dgf, w_ih).view(2, steps, bsz, -1)
+        return dxb[0] + dxb[1].flip(0), dw_ih, dw_hh, dgf.sum(1), dghf.sum(1)
+
+
+def _hand_bigru(x: torch.Tensor, rnn: torch.nn.GRU) -> torch.Tensor:
+    """(N, B, H) -> (N, B, 2H) with ``rnn``'s weights, through :class:`_HandBiGRU`."""
+    st = [torch.stack([getattr(rnn, k), getattr(rnn, k + "_reverse")])
+          for k in ("weight_ih_l0", "weight_hh_l0", "bias_ih_l0", "bias_hh_l0")]
+    return _HandBiGRU.apply(x, *st)
+
+
+def _cpu_ms(fn, repeats: int) -> list[float]:
+    out = []
+    for _ in range(repeats):
+        t = time.process_time()
+        fn()
+        out.append(1e3 * (time.process_time() - t))
+    return out
+
+
+def main_profile(repeats: int) -> list[str]:
+    """Where one update's time goes, and the alternatives measured (process CPU time,
+    interleaved in this process): torch.profiler's top ops of a MADDPG and a BiCNet update
+    (batch 1024, N = 3 and 6); BiCNet's BiGRU pass as torch's fused ``nn.GRU`` against a
+    hand-batched one (both directions in one product per step, gradients by hand); float32
+    against bfloat16 matrix products of the update's shapes."""
+    from torch.profiler import ProfilerActivity, profile
+
+    lines = ["## Profile of one update (batch 1024; process CPU ms, medians)", ""]
+    for n in (3, 6):
+        batch = _batch(n)
+        env = sim.make_env(f"{n}v{n}", num_envs=1)
+        torch.manual_seed(0)
+        learners = {"maddpg": MADDPG(env.obs_dim, env.state_dim, n, MADDPGConfig()),
+                    "bicnet": BiCNet(env.obs_dim, env.state_dim, n,
+                                     BiCNetConfig(batch_size=1024))}
+        for name, learner in learners.items():
+            for _ in range(2):
+                learner.update(batch)
+            ms = statistics.median(_cpu_ms(lambda: learner.update(batch), repeats))  # noqa: B023 (called at once)
+            with profile(activities=[ProfilerActivity.CPU]) as prof:
+                for _ in range(3):
+                    learner.update(batch)
+            events = sorted(prof.key_averages(), key=lambda e: -e.self_cpu_time_total)
+            total = sum(e.self_cpu_time_total for e in events)
+            gemm = sum(e.self_cpu_time_total for e in events
+                       if e.key in ("aten::mm", "aten::bmm", "aten::addmm", "aten::addmm_",
+                                    "aten::baddbmm", "aten::addmv", "aten::mv"))
+            top = ", ".join(f"{e.key} {100 * e.self_cpu_time_total / total:.0f}%"
+                            for e in events[:6])
+            lines.append(f"- {name} N={n}: {ms:.1f} ms per update; matrix products "
+                         f"{100 * gemm / total:.0f}% of the profiled self time; top: {top}")
+            print(lines[-1], flush=True)
+    lines += ["", "| N | BiGRU pass (B=1024, H=64) | nn.GRU ms | hand-batched ms | "
+              "nn.GRU / hand |", "|---|---|---|---|---|"]
+    for n in (3, 6):
+        torch.manual_seed(0)
+        rnn = torch.nn.GRU(64, 64, bidirectional=True)
+        x = torch.randn(n, 1024, 64, requires_grad=True)
+        gy = torch.randn(n, 1024, 128)
+        params = [x, *rnn.parameters()]
+        want = torch.autograd.grad(rnn(x)[0], params, gy)
+        got = torch.autograd.grad(_hand_bigru(x, rnn), params, gy)
+        err = max(float((a - b).abs().max() / a.abs().max()) for a, b in zip(want, got,
+                                                                              strict=True))
+        for mode in ("forward + backward", "forward, no grad"):
+            def fused(mode=mode):
+                if mode == "forward, no grad":
+                    with torch.no_grad():
+                        rnn(x)  # noqa: B023 (called at once)
+                else:
+                    torch.autograd.grad(rnn(x)[0], params, gy)  # noqa: B023 (called at once)
+
+            def hand(mode=mode):
+                if mode == "forward, no grad":
+                    with torch.no_grad():
+                        _hand_bigru(x, rnn)  # noqa: B023 (called at once)
+                else:
+                    torch.autograd.grad(_hand_bigru(x, rnn), params, gy)  # noqa: B023 (called at once)
+            fused()
+            hand()
+            a, b = [], []
+            for _ in range(repeats):
+                a += _cpu_ms(fused, 1)
+                b += _cpu_ms(hand, 1)
+            lines.append(f"| {n} | {mode} (gradients agree to {err:.0e}) | "
+                         f"{statistics.median(a):.1f} | {statistics.median(b):.1f} | "
+                         f"{statistics.median(p / q for p, q in zip(a, b, strict=True)):.2f}x |")
+            print(lines[-1], flush=True)
+    lines += ["", "| matrix product (M x K) @ (K x N) | float32 ms | bfloat16 ms | "
+              "float32 / bfloat16 |", "|---|---|---|---|"]
+    for m, k, n_ in ((3072, 64, 192), (1024, 78, 192), (1024, 300, 384), (3072, 64, 64)):
+        a32, b32 = torch.randn(m, k), torch.randn(k, n_)
+        a16, b16 = a32.bfloat16(), b32.bfloat16()
+        t32, t16 = [], []
+        for _ in range(repeats):
+            t32 += _cpu_ms(lambda: [a32 @ b32 for _ in range(5)], 1)  # noqa: B023 (called at once)
+            t16 += _cpu_ms(lambda: [a16 @ b16 for _ in range(5)], 1)  # noqa: B023 (called at once)
+        lines.append(f"| ({m} x {k}) @ ({k} x {n_}) | {statistics.median(t32) / 5:.3f} | "
+                     f"{statistics.median(t16) / 5:.3f} | "
+                     f"{statistics.median(p / q for p, q in zip(t32, t16, strict=True)):.2f}x |")
+        print(lines[-1], flush=True)
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1)
@@ -270,8 +425,22 @@ def main() -> None:
     parser.add_argument("--report", default=None, metavar="COMMANDS",
                         help="instead: write learner_speed_quality.md from --records, with "
                              "this text as the commands line")
+    parser.add_argument("--profile", action="store_true",
+                        help="instead: where one update's time goes and the alternatives "
+                             "measured, written to learner_speed_profile.md")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.profile:
+        lines = main_profile(args.repeats)
+        out = RESULTS.with_name("learner_speed_profile.md")
+        atomic_write_text(out, "\n".join([
+            "# Learner speed: profile of one update", "",
+            f"`python benchmarks/learner_speed.py --profile --threads {args.threads} "
+            f"--repeats {args.repeats}`; torch {torch.__version__}, {args.threads} thread(s), "
+            "a shared 2-core machine (load about 6: absolute times are inflated, the "
+            "ratios are interleaved in one process).", "", *lines, ""]))
+        print(f"wrote {out}")
+        return
     if args.run:
         main_one_run(args)
         return
