@@ -87,6 +87,10 @@ def _library() -> ctypes.CDLL | None:
     fn.restype = ctypes.c_int64
     fn.argtypes = [ctypes.c_int64, ctypes.c_int64] + [ctypes.c_void_p] * 5 + \
         [ctypes.c_int64, ctypes.c_void_p]
+    fn = lib.agv_lap_diff
+    fn.restype = ctypes.c_int64
+    fn.argtypes = [ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64] + \
+        [ctypes.c_void_p] * 4
     _lib = lib
     return lib
 
@@ -338,16 +342,19 @@ class IncrementalLAP:
         new_of_col[cj[kcol]] = kcol
         moved = np.zeros(0, dtype=np.int64)  # kept rows with a changed entry elsewhere
         if len(krow) and len(kcol):
-            new_sub, old_sub = _sub(c, krow, kcol), _sub(old_c, ri[krow], cj[kcol])
-            diff = new_sub != old_sub
-            per_row = diff.sum(axis=1)
+            diff = _diff(c, old_c, ri, cj)  # (n, m) bool, False off the kept rows / columns
+            per_row = np.count_nonzero(diff, axis=1)
             # A row with many changed entries changed itself (an AGV moved); the columns are
             # blamed on the other rows: two or more changed entries make a changed column.
             few = per_row <= max(1, len(kcol) // 2)
-            per_col = diff[few].sum(axis=0)
-            changed_col[kcol[per_col >= 2]] = True
-            outside = diff[:, per_col < 2].any(axis=1)
-            moved = krow[outside]
+            per_col = np.count_nonzero(diff if few.all() else diff[few], axis=0)
+            blamed = per_col >= 2
+            changed_col |= blamed
+            if blamed.any():
+                outside = diff[:, ~blamed].any(axis=1)
+            else:
+                outside = per_row > 0
+            moved = np.flatnonzero(outside)
         if changed_row.sum() + len(moved) + changed_col.sum() > self.max_changed * (n + m):
             return None
         u = np.zeros(m)
@@ -410,13 +417,51 @@ class IncrementalLAP:
         return u, v, col4row, row4col, free
 
 
+def _diff(c: np.ndarray, old: np.ndarray, ri: np.ndarray, cj: np.ndarray) -> np.ndarray:
+    """``c[i, j] != old[ri[i], cj[j]]`` where both are >= 0, else False; (n, m) bool."""
+    lib = _library()
+    if lib is None:
+        out = np.zeros(c.shape, dtype=bool)
+        kr, kc = np.flatnonzero(ri >= 0), np.flatnonzero(cj >= 0)
+        out[np.ix_(kr, kc)] = _sub(c, kr, kc) != _sub(old, ri[kr], cj[kc])
+        return out
+    out = np.empty(c.shape, dtype=np.uint8)
+    ri = np.ascontiguousarray(ri, dtype=np.int64)
+    cj = np.ascontiguousarray(cj, dtype=np.int64)
+    lib.agv_lap_diff(c.shape[0], c.shape[1], c.ctypes.data, old.shape[1], old.ctypes.data,
+                     ri.ctypes.data, cj.ctypes.data, out.ctypes.data)
+    return out.view(bool)
+
+
 def _sub(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """``a[np.ix_(rows, cols)]``, without a gather along an axis taken whole and in order."""
+    """``a[np.ix_(rows, cols)]``: no copy along an axis taken whole and in order, block
+    copies where the indices run in a few consecutive stretches (an order came or went),
+    a gather otherwise."""
     if len(rows) != a.shape[0] or (rows != np.arange(a.shape[0])).any():
-        a = a[rows]
+        a = _take(a, rows, 0)
     if len(cols) != a.shape[1] or (cols != np.arange(a.shape[1])).any():
-        a = a[:, cols]
+        a = _take(a, cols, 1)
     return a
+
+
+def _take(a: np.ndarray, idx: np.ndarray, axis: int) -> np.ndarray:
+    """``np.take(a, idx, axis)`` of a 2-D array, by block copies when ``idx`` has few runs."""
+    if len(idx) == 0:
+        return np.take(a, idx, axis=axis)
+    breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+    if len(breaks) > 32:
+        return np.take(a, idx, axis=axis)
+    starts = np.concatenate([[0], breaks])
+    ends = np.concatenate([breaks, [len(idx)]])
+    shape = (len(idx), a.shape[1]) if axis == 0 else (a.shape[0], len(idx))
+    out = np.empty(shape, dtype=a.dtype)
+    for s, e in zip(starts, ends, strict=True):  # a few runs, each one block copy
+        src = int(idx[s])
+        if axis == 0:
+            out[s:e] = a[src: src + e - s]
+        else:
+            out[:, s:e] = a[:, src: src + e - s]
+    return out
 
 
 def _lookup(old: np.ndarray, new: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@ Writes ``benchmarks/results/dispatch/load_curve.{json,md}`` and
     OMP_NUM_THREADS=1 python benchmarks/load_curve.py                  # every floor, then report
     OMP_NUM_THREADS=1 python benchmarks/load_curve.py --floor kiva-small --no-report
     python benchmarks/load_curve.py --report-only                        # merge the parts
+    OMP_NUM_THREADS=1 python benchmarks/load_curve.py --floor kiva-small --redo hungarian
 
 For each floor (``warehouse-50``, and ``benchmarks/floors/kiva-small.map`` loaded with
 ``sim.load_floor(..., cell_size=0.4)`` with 24 AGVs) and each dispatcher (``"hungarian"``,
@@ -107,7 +108,7 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def measure_floor(floor: str, fractions: list[float], dispatchers: list[str], steps: int,
-                  seed: int) -> None:
+                  seed: int, redo: tuple[str, ...] = ()) -> None:
     scenario, options = floor_scenario(floor)
     bound = sim.get_scenario(scenario, **options).throughput_bound()
     config = dict(floor=floor, steps=steps, seed=seed, runs=1, fractions=fractions,
@@ -127,6 +128,7 @@ def measure_floor(floor: str, fractions: list[float], dispatchers: list[str], st
         same = all(old["config"].get(k) == config[k] for k in ("steps", "seed", "faults",
                                                                 "comm_range"))
         rows = old["results"] if same else []
+        rows = [r for r in rows if r["dispatcher"] not in redo]  # measured again
     done = {(r["dispatcher"], r["rate"], r["faults"]) for r in rows}
     # Saturation first (the targets), then the Poisson rates from the heaviest down.
     loads: list[tuple[float | None, bool]] = [(None, False), (None, True)]
@@ -266,10 +268,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-report", action="store_true")
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--redo", nargs="+", default=[], choices=DISPATCHERS,
+                        help="measure these dispatchers again (drop their stored runs)")
     args = parser.parse_args()
     if not args.report_only:
         for floor in args.floor or FLOORS:
-            measure_floor(floor, args.fractions, args.dispatchers, args.steps, args.seed)
+            measure_floor(floor, args.fractions, args.dispatchers, args.steps, args.seed,
+                          tuple(args.redo))
     if not args.no_report:
         report()
 

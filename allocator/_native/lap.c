@@ -102,3 +102,28 @@ int64_t agv_lap_augment(int64_t n, int64_t m, const double *cost, double *u, dou
     free(spc); free(path); free(remaining); free(scanned_rows); free(scanned_cols);
     return scans;
 }
+
+/* Which entries of the new cost c (n x m) differ from the previous call's (old, n0 x old_m):
+ * diff[i*m + j] = 1 where row i and column j both existed (ri[i], cj[j] their old indices,
+ * -1 for new ones) and the entry changed; 0 elsewhere. Returns the number of changed entries.
+ * One pass, no gather: what the warm start compares. */
+int64_t agv_lap_diff(int64_t n, int64_t m, const double *c, int64_t old_m, const double *old,
+                     const int64_t *ri, const int64_t *cj, uint8_t *diff) {
+    int64_t count = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        uint8_t *d = diff + i * m;
+        const double *row = c + i * m;
+        if (ri[i] < 0) {
+            for (int64_t j = 0; j < m; ++j) d[j] = 0;
+            continue;
+        }
+        const double *prev = old + ri[i] * old_m;
+        for (int64_t j = 0; j < m; ++j) {
+            int64_t k = cj[j];
+            uint8_t changed = (uint8_t)(k >= 0 && row[j] != prev[k >= 0 ? k : 0]);
+            d[j] = changed;
+            count += changed;
+        }
+    }
+    return count;
+}
