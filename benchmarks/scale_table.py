@@ -15,7 +15,8 @@ Hungarian's, overlapping AGV pairs summed over an episode's steps (averaged), th
 interventions per movable AGV-step, wall-clock seconds.
 
 Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
-``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) through
+``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) with their default
+path follower, and ``hungarian`` with :class:`allocator.SafeDriver`, through
 :func:`sim.evaluate_lifelong`, with the overlapping pairs counted at every step. The shipped
 learned policies have no lifelong rows: they were trained on the paper's episodes, whose
 observations differ (``LearnedAllocator.reset`` refuses a lifelong floor).
@@ -46,7 +47,9 @@ from sim.io import atomic_write_text
 OUT = Path(__file__).parent / "results" / "scale"
 CLASSICAL = ("hungarian", "greedy", "fifo", "auction")
 LEARNED = ("maddpg-ipf", "bicnet-ipf")
-DISPATCHERS = ("hungarian", "fifo", "greedy", "auction")
+DISPATCHERS = ("hungarian", "fifo", "greedy", "auction", "hungarian+safe")
+"""Lifelong rows; ``hungarian+safe`` drives with :class:`allocator.SafeDriver` (no AGV ever
+overlaps another) instead of the default path follower."""
 LIFELONG_COMM_RANGE = 3.0
 
 
@@ -115,8 +118,12 @@ def lifelong_rows(floors: list[str], steps: int, seed: int) -> list[dict]:
     rows = []
     for floor in floors:
         for name in DISPATCHERS:
-            inner = (allocator.make("auction", comm_range=LIFELONG_COMM_RANGE)
-                     if name == "auction" else allocator.make(name))
+            if name == "auction":
+                inner = allocator.make("auction", comm_range=LIFELONG_COMM_RANGE)
+            elif name == "hungarian+safe":
+                inner = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
+            else:
+                inner = allocator.make(name)
             ctl = OverlapCounter(inner)
             t = time.perf_counter()
             m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed)
