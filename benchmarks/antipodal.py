@@ -158,36 +158,51 @@ SCENES = (("3v3", "hungarian", 600), ("6v6", "hungarian", 600), ("20v20", "greed
           ("50v50", "hungarian", 40), ("warehouse", "hungarian", 200))
 
 
-def run_scenes(mode: str, scale: float = 1.0) -> list[dict[str, Any]]:
-    """The paper's scenes through :func:`sim.evaluate`: overlaps, response, ms per step."""
+def run_scenes(mode: str, scale: float = 1.0, seeds: tuple[int, ...] = (0,),
+               only: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+    """The paper's scenes through :func:`sim.evaluate`: overlaps, response, ms per step
+    (each seed's episodes are a separate :func:`sim.evaluate` call; the rows sum them)."""
     import allocator
     import sim
 
     off = {"shield": False, "liveness": False} if mode == "orca" else {}
     rows = []
     for name, method, episodes in SCENES:
+        if only is not None and name not in only:
+            continue
         episodes = max(4, int(episodes * scale))
-        solver = allocator.make(method, avoidance_options=dict(off))
-        calls = [0]
-        act = solver.act
-
-        def counted(obs: Any, _act: Any = act, _calls: list = calls) -> Any:
-            _calls[0] += 1
-            return _act(obs)
-
-        solver.act = counted
-        t0 = time.perf_counter()
-        m = sim.evaluate(solver, name, episodes=episodes, seed=0)
-        wall = time.perf_counter() - t0
-        ctl = solver.controller
         scn = sim.scenarios.get_scenario(name)
-        missed = int(round((1 - m.response_rate) * episodes * scn.num_tasks))
-        row = dict(scene=name, method=method, mode=mode, episodes=episodes,
-                   response_rate=m.response_rate, missed_tasks=missed,
-                   collisions_per_episode=m.collisions, avg_time=m.avg_time, wall_s=wall,
-                   act_ms_per_step=1e3 * ctl.timing["act"] / max(1, calls[0]),
-                   shield_brakes=getattr(ctl, "shield_brakes", 0),
-                   yields=getattr(ctl, "yields", 0), replans=getattr(ctl, "replans", 0))
+        missed = collisions = 0
+        avg_time = wall = act_s = 0.0
+        calls = [0]
+        brakes = yields = replans = detours = 0
+        for seed in seeds:
+            solver = allocator.make(method, avoidance_options=dict(off))
+            act = solver.act
+
+            def counted(obs: Any, _act: Any = act, _calls: list = calls) -> Any:
+                _calls[0] += 1
+                return _act(obs)
+
+            solver.act = counted
+            t0 = time.perf_counter()
+            m = sim.evaluate(solver, name, episodes=episodes, seed=seed)
+            wall += time.perf_counter() - t0
+            ctl = solver.controller
+            missed += int(round((1 - m.response_rate) * episodes * scn.num_tasks))
+            collisions += m.collisions * episodes
+            avg_time += m.avg_time * episodes
+            act_s += ctl.timing["act"]
+            brakes += getattr(ctl, "shield_brakes", 0)
+            yields += getattr(ctl, "yields", 0)
+            replans += getattr(ctl, "replans", 0)
+            detours += getattr(ctl, "detours", 0)
+        total = episodes * len(seeds)
+        row = dict(scene=name, method=method, mode=mode, episodes=total, seeds=list(seeds),
+                   response_rate=1 - missed / (total * scn.num_tasks), missed_tasks=missed,
+                   collisions_per_episode=collisions / total, avg_time=avg_time / total,
+                   wall_s=wall, act_ms_per_step=1e3 * act_s / max(1, calls[0]),
+                   shield_brakes=brakes, yields=yields, replans=replans, detours=detours)
         rows.append(row)
         print(json.dumps(row), flush=True)
     return rows
@@ -234,6 +249,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="warehouse-50 with breakdowns for this many steps instead")
     p.add_argument("--driver", default="safe", choices=["safe", "waypoint"])
     p.add_argument("--scale", type=float, default=1.0, help="episodes factor for --scenes")
+    p.add_argument("--seeds", default="0", help="--scenes: evaluation seeds, comma-separated")
+    p.add_argument("--only", default="", help="--scenes: only these scenes (comma-separated)")
     p.add_argument("--figure", action="store_true", help="docs/figures/safety_antipodal.png")
     args = p.parse_args(argv)
     import torch
@@ -247,12 +264,14 @@ def main(argv: list[str] | None = None) -> None:
                      json.dumps(row, indent=1))
         return
     if args.scenes:
-        rows = run_scenes(args.mode, args.scale)
+        seeds = tuple(int(x) for x in args.seeds.split(","))
+        only = tuple(args.only.split(",")) if args.only else None
+        rows = run_scenes(args.mode, args.scale, seeds, only)
         doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
                    date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
         atomic_write(OUT / f"scenes-{args.label}.json", json.dumps(doc, indent=1))
         lines = [f"# Episodic scenes ({args.label})", "", f"Command: `{doc['command']}`; "
-                 f"date {doc['date']}; seed 0; 1 thread.", "",
+                 f"date {doc['date']}; seeds {args.seeds}; 1 thread.", "",
                  "| scene | method | episodes | response | missed tasks | overlapping pairs "
                  "per episode | avg time | act ms/step | shield brakes | yields |",
                  "|---|---|---|---|---|---|---|---|---|---|"]

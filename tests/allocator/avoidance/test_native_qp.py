@@ -206,3 +206,32 @@ def test_an_agv_exactly_on_another_is_not_its_own_neighbour(monkeypatch) -> None
     assert ok[0, 0].all() and set(nb[0, 0].tolist()) == {1, 2}
     assert ok[0, 1].all() and set(nb[0, 1].tolist()) == {0, 2}
     assert not ok[0, 3].any()
+
+
+def test_static_reference_and_static_horizon() -> None:
+    # An AGV heading for the left leg of a parked AGV's cone: its row is built at its current
+    # velocity and keeps it on that side; built at a reference on the right side it lets it go
+    # right.
+    pos = np.array([[0.0, 0.0], [0.6, 0.0]])
+    vel = np.array([[1.0, 0.3], [0.0, 0.0]])
+    static = np.array([False, True])
+    right = np.array([[1.0, -0.6], [0.0, 0.0]])
+    qp = VelocityAvoidance(radius=0.15)
+    plain = qp.solve(pos, vel, right, static=static)
+    same = qp.solve(pos, vel, right, static=static, static_reference=np.full((2, 2), np.nan))
+    np.testing.assert_array_equal(plain.velocity, same.velocity)
+    turned = qp.solve(pos, vel, right, static=static, static_reference=right)
+    assert turned.velocity[0, 1] < plain.velocity[0, 1] - 0.1  # further to the right
+    np.testing.assert_allclose(turned.velocity[0], right[0], atol=0.01)
+    with pytest.raises(ValueError, match="static_reference"):
+        qp.solve(pos, vel, right, static=static, static_reference=np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="static_reference"):
+        qp.solve(pos, vel, right, static=static, static_reference=np.full((2, 2), np.inf))
+    # a shorter horizon against parked AGVs lets an AGV close in faster
+    slow = VelocityAvoidance(radius=0.15).solve(pos, vel, np.array([[2.0, 0.0], [0, 0]]),
+                                                static=static)
+    fast = VelocityAvoidance(radius=0.15, static_time_horizon=0.2).solve(
+        pos, vel, np.array([[2.0, 0.0], [0, 0]]), static=static)
+    assert fast.velocity[0, 0] > slow.velocity[0, 0] + 0.1
+    with pytest.raises(ValueError, match="static_time_horizon"):
+        AvoidanceConfig(static_time_horizon=0.0)
