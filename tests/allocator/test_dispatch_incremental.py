@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
+import allocator.dispatch as dispatch
 import sim
 from allocator.dispatch import HungarianDispatcher
+
+
+@pytest.fixture(autouse=True)
+def _always_incremental(monkeypatch):
+    """warehouse-20's matrices are small enough for scipy alone: test the warm path."""
+    monkeypatch.setattr(dispatch, "_INCREMENTAL_MIN_SIZE", 0)
 
 
 def _run(d: HungarianDispatcher, steps: int, num_envs: int = 2, **options) -> None:
@@ -64,3 +71,17 @@ def test_incremental_and_scipy_dispatchers_deliver_alike() -> None:
 def test_incremental_must_be_a_bool() -> None:
     with pytest.raises(ValueError, match="incremental"):
         HungarianDispatcher(incremental=1)
+
+
+def test_ahead_steps_limits_which_loaded_agvs_hold_a_next_order() -> None:
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0, arrivals=sim.Backlog(30))
+    d = HungarianDispatcher(ahead_steps=0.0)
+    d.reset(env)
+    held = 0
+    for _ in range(120):
+        env.step(d.act(None))
+        loaded = env.agent_status[0].numpy() == 2
+        held += int((d.next_order[0][loaded] >= 0).sum())
+    assert held == 0  # every loaded AGV is still on its way: none is planned ahead
+    with pytest.raises(ValueError, match="ahead_steps"):
+        HungarianDispatcher(ahead_steps=-1.0)
