@@ -125,8 +125,6 @@ class AllocatorController:
         self.shield_margin = float(opts.pop("shield_margin", 0.01))
         self.perturbation = float(opts.pop("perturbation", 1e-4))
         self.detour = bool(opts.pop("detour", True))
-        self._detour_linearise = True
-        self._detour_replan = True
         if not (np.isfinite(self.shield_margin) and self.shield_margin >= 0):
             raise ValueError(f"avoidance_options['shield_margin'] must be >= 0, got "
                              f"{self.shield_margin!r}")
@@ -477,9 +475,10 @@ class AllocatorController:
         free_other = np.where(want > 0, room_r, room_l)
         side = np.where(free_want, want, np.where(free_other, -want, 0.0))
         boxed = has & (side == 0) & (self.task_of_agent >= 0)
+        # which set of standing AGVs an AGV was re-planned for (it changes when one parks)
         version = standing.sum(axis=1, keepdims=True) + 1000 * (held >= 0).sum(1, keepdims=True)
         boxed &= self._boxed_version != version
-        if boxed.any() and not again and self._detour_replan:
+        if boxed.any() and not again:
             self._boxed_version = np.where(boxed, version, self._boxed_version)
             self._replan_around(ahead, tasks, standing, boxed)
             return self._detour(ahead, vel, self._preferred(ahead, moving), moving, held,
@@ -503,8 +502,7 @@ class AllocatorController:
         self.detours += int(use.sum())
         out = np.where(use[..., None], dirn * speed[..., None], preferred)
         # the QP's rows against standing AGVs are linearised on the detour's side
-        if self._detour_linearise:
-            self._detour_ref = np.where(use[..., None], out, np.nan)
+        self._detour_ref = np.where(use[..., None], out, np.nan)
         return out
 
     def _replan_around(self, ahead: np.ndarray, tasks: np.ndarray, standing: np.ndarray,

@@ -42,7 +42,12 @@ Modules, one per part:
   the two OSQP back ends (:class:`BlockOSQP`, :class:`LeastViolation`);
 - :mod:`~allocator.avoidance.reference`: the cvxpy reference;
 - :mod:`~allocator.avoidance.velocity_avoidance`: :class:`VelocityAvoidance`, which builds
-  the rows and dispatches to a solver.
+  the rows and dispatches to a solver;
+- :mod:`~allocator.avoidance.native`: the C twin of the exact solvers (``qp2d.c``, built on
+  first use; the default where a C compiler is found);
+- :mod:`~allocator.avoidance.braking`: the braking shield (the safety guarantee);
+- :mod:`~allocator.avoidance.liveness`: the deadlock rules; :mod:`~allocator.avoidance.detour`:
+  grid paths round standing AGVs as discs.
 
 OSQP and cvxpy are imported on first use only.
 """
