@@ -7,6 +7,8 @@ Writes ``benchmarks/results/dispatch/load_curve.{json,md}`` and
     OMP_NUM_THREADS=1 python benchmarks/load_curve.py --floor kiva-small --no-report
     python benchmarks/load_curve.py --report-only                        # merge the parts
     OMP_NUM_THREADS=1 python benchmarks/load_curve.py --floor kiva-small --redo hungarian
+    OMP_NUM_THREADS=1 python benchmarks/load_curve.py --floor kiva-small --steps 1500 \
+        --probe hungarian fifo 'hungarian:{"ahead_steps": 30}'   # time shares and speeds
 
 For each floor (``warehouse-50``, and ``benchmarks/floors/kiva-small.map`` loaded with
 ``sim.load_floor(..., cell_size=0.4)`` with 24 AGVs) and each dispatcher (``"hungarian"``,
@@ -35,6 +37,7 @@ import time  # noqa: E402
 from datetime import datetime, timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import allocator  # noqa: E402
@@ -90,6 +93,53 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
                    messages_per_replan=dispatcher.messages / max(len(per), 1),
                    comm_range=COMM_RANGE)
     return row
+
+
+class Probe:
+    """Wraps a controller and records, at every step, the fleet's time shares and speeds."""
+
+    def __init__(self, inner: object) -> None:
+        self.inner = inner
+        self.counts: list = []
+        self.speed: list = []
+        self.slow: list = []
+
+    def reset(self, env: object) -> None:
+        self.env = env
+        self.inner.reset(env)
+
+    def act(self, obs: object) -> object:
+        st = self.env.agent_status[0].cpu().numpy()
+        sp = self.env.agent_vel[0].norm(dim=-1).cpu().numpy()
+        self.counts.append(np.bincount(st, minlength=4))
+        self.speed.append([sp[st == k].mean() if (st == k).any() else np.nan for k in range(3)])
+        self.slow.append([(sp[st == k] < 0.2).mean() if (st == k).any() else np.nan
+                          for k in range(3)])
+        return self.inner.act(obs)
+
+
+def probe(floor: str, names: list[str], steps: int, seed: int) -> None:
+    """Print, per dispatcher, the throughput and the share of the time the AGVs spend idle, to a
+    pickup, loaded and broken, their mean speed in the first three, and the share of them
+    under 0.2 (world units per second). A name is ``hungarian``, ``fifo`` or
+    ``hungarian:{json options of HungarianDispatcher}``."""
+    from allocator.dispatch import FifoDispatcher, HungarianDispatcher
+
+    scenario, options = floor_scenario(floor)
+    for name in names:
+        base, _, opts = name.partition(":")
+        kw = json.loads(opts) if opts else {}
+        inner = HungarianDispatcher(**kw) if base == "hungarian" else \
+            FifoDispatcher() if base == "fifo" else controller(base)
+        p = Probe(inner)
+        m = sim.evaluate_lifelong(p, scenario, steps=steps, seed=seed, **options)
+        counts = np.array(p.counts)
+        print(json.dumps(dict(
+            floor=floor, dispatcher=name, steps=steps, seed=seed, throughput=m.throughput,
+            wait_p95=m.wait_p95, reassignments=m.reassignments,
+            share_idle_pickup_loaded_broken=(counts.sum(0) / counts.sum()).round(3).tolist(),
+            speed_idle_pickup_loaded=np.nanmean(p.speed, 0).round(3).tolist(),
+            slow_idle_pickup_loaded=np.nanmean(p.slow, 0).round(3).tolist())), flush=True)
 
 
 def _commit() -> str:
@@ -268,9 +318,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-report", action="store_true")
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--probe", nargs="+", metavar="NAME[:JSON]",
+                        help="only print time shares and speeds of these dispatchers "
+                             "(saturation, the first --floor)")
     parser.add_argument("--redo", nargs="+", default=[], choices=DISPATCHERS,
                         help="measure these dispatchers again (drop their stored runs)")
     args = parser.parse_args()
+    if args.probe:
+        probe((args.floor or FLOORS)[0], args.probe, args.steps, args.seed)
+        return
     if not args.report_only:
         for floor in args.floor or FLOORS:
             measure_floor(floor, args.fractions, args.dispatchers, args.steps, args.seed,
