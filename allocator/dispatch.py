@@ -434,10 +434,12 @@ class MatchingDispatcher(LifelongDispatcher):
         entry depends on its two points only)."""
         cache = self._travel_cache.get(self._floor)
         self._travel_cache[self._floor] = None
-        if cache is None or not len(cache[0]) or not len(cache[1]):
+        if cache is not None and cache[0] is not self.distances:  # another floor's table
+            cache = None
+        if cache is None or not len(cache[1]) or not len(cache[2]):
             out = self.distances.distance(origin, targets)
         else:
-            old_rk, old_ck, old_origin, old_targets, old = cache
+            _, old_rk, old_ck, old_origin, old_targets, old = cache
             ri, cj = _lookup(old_rk, row_keys), _lookup(old_ck, col_keys)
             fresh_r, fresh_c = ri < 0, cj < 0
             fresh_r[~fresh_r] = (old_origin[ri[~fresh_r]] != origin[~fresh_r]).any(axis=1)
@@ -453,8 +455,8 @@ class MatchingDispatcher(LifelongDispatcher):
                     out[new_r] = self.distances.distance(origin[new_r], targets)
                 if len(new_c):
                     out[:, new_c] = self.distances.distance(origin, targets[new_c])
-        self._travel_cache[self._floor] = (row_keys.copy(), col_keys.copy(), origin.copy(),
-                                           targets.copy(), out)
+        self._travel_cache[self._floor] = (self.distances, row_keys.copy(), col_keys.copy(),
+                                           origin.copy(), targets.copy(), out)
         return out  # not to be written to: it is the next call's cache
 
     def _match(self, cost: np.ndarray, positions: np.ndarray,
