@@ -31,11 +31,7 @@ of the rows and columns changed, the state is dropped and the problem solved col
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import os
-import platform
-import subprocess
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -57,29 +53,12 @@ def _library() -> ctypes.CDLL | None:
     _tried = True
     if os.environ.get("AGV_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
         return None
-    from sim.native import _cache_dir, _compiler  # the simulator's compiler and cache
+    from sim.native import compiler, load_cached  # the simulator's compiler and cache
 
-    cc = _compiler()
-    if cc is None:
+    if compiler() is None:
         return None
-    digest = hashlib.sha256(_SOURCE.read_bytes())
-    digest.update(" ".join([cc, *_FLAGS, platform.machine(), platform.system()]).encode())
-    target = _cache_dir() / f"agv_lap_{digest.hexdigest()[:16]}.so"
     try:
-        if not target.exists():
-            target.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
-            os.close(fd)
-            try:
-                out = subprocess.run([cc, *_FLAGS, str(_SOURCE), "-o", tmp, "-lm"],
-                                     capture_output=True, text=True)
-                if out.returncode != 0:
-                    raise RuntimeError(f"{cc} failed: {out.stderr.strip()[:2000]}")
-                os.replace(tmp, target)  # atomic: a concurrent build never loads a partial file
-            finally:
-                if os.path.exists(tmp):
-                    os.unlink(tmp)
-        lib = ctypes.CDLL(str(target))
+        lib = load_cached(_SOURCE, _FLAGS, "agv_lap")
     except (OSError, RuntimeError) as err:
         warnings.warn(f"allocator: LAP kernel unavailable ({err}); using numpy", stacklevel=2)
         return None

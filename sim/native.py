@@ -35,8 +35,8 @@ from typing import Any
 
 import torch
 
-__all__ = ["available", "disabled_reason", "library", "library_for", "parse_signatures",
-           "pointer", "signatures", "sources"]
+__all__ = ["available", "cache_dir", "compiler", "disabled_reason", "library", "library_for",
+           "load_cached", "parse_signatures", "pointer", "signatures", "sources"]
 
 NATIVE_DIR = Path(__file__).parent / "_native"
 SOURCE = NATIVE_DIR / "kernels.c"
@@ -137,50 +137,69 @@ def _check(tensor: object, dtype: torch.dtype, shape: tuple[int, ...], name: str
         raise ValueError(f"{name} must be {want}, got a non-contiguous tensor")
 
 
-def _cache_dir() -> Path:
+def cache_dir() -> Path:
+    """Where compiled kernels are cached: ``$AGV_CACHE_DIR``, else
+    ``~/.cache/agv-allocation``."""
     root = os.environ.get("AGV_CACHE_DIR")
     return Path(root) if root else Path.home() / ".cache" / "agv-allocation"
 
 
-def _compiler() -> str | None:
+def compiler() -> str | None:
+    """The C compiler the kernels are built with (``$CC``, ``cc``, ``gcc`` or ``clang``, the
+    first found), or None."""
     for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
         if name and shutil.which(name):
             return name
     return None
 
 
-def _build() -> ctypes.CDLL:
-    cc = _compiler()
+_cache_dir, _compiler = cache_dir, compiler  # the names older callers import
+
+
+def load_cached(source: Path, flags: list[str], prefix: str,
+                inputs: list[Path] | None = None) -> ctypes.CDLL:
+    """Compile ``source`` into a shared library once and load it from the cache.
+
+    The cached file is ``<cache_dir()>/<prefix>_<key>.so``, keyed by the bytes of ``inputs``
+    (default ``[source]``: list every file it includes), the compiler, ``flags`` and the
+    machine. The build writes a temporary file and renames it, so a concurrent build never
+    loads a partial library; a damaged cache entry is built again.
+
+    Raises
+    ------
+    RuntimeError
+        With no C compiler, or when the compiler fails (its message, cut at 2000 characters).
+    """
+    cc = compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (tried $CC, cc, gcc, clang)")
     digest = hashlib.sha256()
-    for path in sources():
+    for path in inputs if inputs is not None else [source]:
         digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
-    digest.update(" ".join([cc, *FLAGS, platform.machine(), platform.system()]).encode())
-    key = digest.hexdigest()[:16]
-    target = _cache_dir() / f"agv_kernels_{key}.so"
+    digest.update(" ".join([cc, *flags, platform.machine(), platform.system()]).encode())
+    target = cache_dir() / f"{prefix}_{digest.hexdigest()[:16]}.so"
     if target.exists():
         try:
-            lib = ctypes.CDLL(str(target))
+            return ctypes.CDLL(str(target))
         except OSError:  # a damaged cache entry: build it again
-            lib = None
-    else:
-        lib = None
-    if lib is None:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
-        os.close(fd)
-        try:
-            result = subprocess.run(
-                [cc, *FLAGS, str(SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True
-            )
-            if result.returncode != 0:
-                raise RuntimeError(f"{cc} failed: {result.stderr.strip()[:2000]}")
-            os.replace(tmp, target)  # atomic: a concurrent build never loads a partial file
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        lib = ctypes.CDLL(str(target))
+            pass
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+    os.close(fd)
+    try:
+        result = subprocess.run([cc, *flags, str(source), "-o", tmp, "-lm"],
+                                capture_output=True, text=True)
+        if result.returncode != 0:
+            raise RuntimeError(f"{cc} failed: {result.stderr.strip()[:2000]}")
+        os.replace(tmp, target)  # atomic: a concurrent build never loads a partial file
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return ctypes.CDLL(str(target))
+
+
+def _build() -> ctypes.CDLL:
+    lib = load_cached(SOURCE, FLAGS, "agv_kernels", inputs=sources())
     for name, (restype, argtypes) in signatures().items():
         fn = getattr(lib, name)
         fn.restype = restype

@@ -15,12 +15,7 @@ numpy solvers run instead (:func:`available` says which).
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import os
-import platform
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -35,40 +30,10 @@ _tried = False
 _reason: str | None = None
 
 
-def _cache_dir() -> Path:
-    return Path(os.environ.get("AGV_CACHE_DIR") or Path.home() / ".cache" / "agv-allocation")
-
-
-def _compiler() -> str | None:
-    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if name and shutil.which(name):
-            return name
-    return None
-
-
 def _build() -> ctypes.CDLL:
-    cc = _compiler()
-    if cc is None:
-        raise RuntimeError("no C compiler found (tried $CC, cc, gcc, clang)")
-    src = SOURCE.read_bytes()
-    digest = hashlib.sha256(src)
-    digest.update(" ".join([cc, *FLAGS, platform.machine(), platform.system()]).encode())
-    cache = _cache_dir()
-    path = cache / f"qp2d-{digest.hexdigest()[:16]}.so"
-    if not path.exists():
-        cache.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(suffix=".so", dir=cache)
-        os.close(fd)
-        try:
-            result = subprocess.run([cc, *FLAGS, str(SOURCE), "-o", tmp, "-lm"],
-                                    capture_output=True, text=True)
-            if result.returncode != 0:
-                raise RuntimeError(f"{cc} failed: {result.stderr.strip()[:2000]}")
-            os.replace(tmp, path)  # atomic: a concurrent build writes the same bytes
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-    lib = ctypes.CDLL(str(path))
+    from sim.native import load_cached  # the simulator's compiler and cache
+
+    lib = load_cached(SOURCE, FLAGS, "qp2d")
     fn = lib.agv_velocity_qp
     fn.restype = ctypes.c_int64
     fn.argtypes = [ctypes.c_int64, ctypes.c_int64] + [ctypes.c_void_p] * 6 \
