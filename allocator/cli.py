@@ -346,7 +346,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=seed, default=0,
                    help="seed of the test episodes, in [0, 2**63) (default 0)")
     p.add_argument("--lifelong-steps", type=non_negative_int, default=None,
-                   help="steps of the lifelong row on warehouse-20 (default 1000, 300 with "
+                   help="steps of the lifelong row on warehouse-20 (default 500, 200 with "
                         "--quick; 0 skips it)")
     p.set_defaults(func=_run_demo)
 

@@ -125,7 +125,7 @@ def run_demo(args: argparse.Namespace) -> int:
     ----------
     args : argparse.Namespace
         ``episodes`` (a positive int, or None: 30 with ``quick``, else 300), ``quick``,
-        ``out`` (the folder), ``seed`` and ``lifelong_steps`` (None: 1000, 300 with
+        ``out`` (the folder), ``seed`` and ``lifelong_steps`` (None: 500, 200 with
         ``quick``; 0 skips the lifelong row).
 
     Returns
@@ -169,7 +169,7 @@ def run_demo(args: argparse.Namespace) -> int:
                                    still=out / f"episode_{scenario}_{name}.png", title=name)
     steps = getattr(args, "lifelong_steps", None)
     if steps is None:
-        steps = 300 if args.quick else 1000
+        steps = 200 if args.quick else 500
     if steps:
         lifelong_rows = run_lifelong(out, steps=steps, seed=args.seed)
         print()

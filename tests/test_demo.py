@@ -21,7 +21,7 @@ def test_demo_quick_end_to_end(tmp_path, capsys) -> None:
     # The lifelong row: every dispatcher on warehouse-20, the same orders, none lost.
     lifelong = (tmp_path / "table_lifelong.md").read_text()
     for name in ("nearest-task", "hungarian", "fifo", "auction"):
-        assert f"| warehouse-20 | {name} | 300 |" in lifelong
+        assert f"| warehouse-20 | {name} | 200 |" in lifelong
     assert (tmp_path / "lifelong_throughput.png").stat().st_size > 1000
 
 
