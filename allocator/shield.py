@@ -39,10 +39,9 @@ from torch import Tensor
 
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, braking_velocity
+from sim.orders import BROKEN
 
 __all__ = ["SafetyShield", "movable_agents"]
-
-_BROKEN = 3  # sim.orders.BROKEN
 
 
 def movable_agents(env: Any) -> np.ndarray:
@@ -56,7 +55,7 @@ def movable_agents(env: Any) -> np.ndarray:
         fleet = env.fleet
         status = fleet.status.detach().cpu().numpy()
         serving = fleet.service_left.detach().cpu().numpy() > 0
-        return (status != _BROKEN) & ~serving & ~done
+        return (status != BROKEN) & ~serving & ~done
     held = env.agent_task.detach().cpu().numpy()
     return (held < 0) & ~done
 
