@@ -162,12 +162,7 @@ int64_t agv_backlog_counts(int64_t B, int64_t Q, const int8_t *status, const uin
 
 /* uniform(key, stream, id, part) of sim/streams.py (agv_uniform with three counters). */
 static inline double order_draw(uint64_t key, int64_t stream, int64_t id, int64_t part) {
-    uint64_t z = key;
-    z = stream_mix(z + ((uint64_t)stream + 1) * 0x9E3779B97F4A7C15ULL);
-    z = stream_mix(z + ((uint64_t)id + 1) * 0x9E3779B97F4A7C15ULL);
-    z = stream_mix(z + ((uint64_t)part + 1) * 0x9E3779B97F4A7C15ULL);
-    z = stream_mix(z);
-    return (double)(z >> 11) * (1.0 / 9007199254740992.0);
+    return stream_unit(stream_fold(stream_fold(stream_fold(key, stream), id), part));
 }
 
 /* Generated orders released in one step (sim/orders.py insert_orders with generated_points):
