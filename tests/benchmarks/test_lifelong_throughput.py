@@ -4,23 +4,12 @@ well-formed table and CSV with its configuration."""
 import csv
 import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import pytest
+from benchmark_scripts import load
 
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _load("lifelong_throughput")
+bench = load("lifelong_throughput")
 
 
 def _has_vmas() -> bool:

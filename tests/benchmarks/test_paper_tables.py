@@ -1,27 +1,15 @@
 """The tables' code on a tiny run produces a well-formed table; the figures' helpers work."""
 
 import csv
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_scripts import load
 
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-paper_tables = _load("paper_tables")
-paper_figures = _load("paper_figures")
+paper_tables = load("paper_tables")
+paper_figures = load("paper_figures")
 
 
 def test_tiny_table_is_well_formed(tmp_path: Path) -> None:

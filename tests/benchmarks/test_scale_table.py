@@ -1,25 +1,13 @@
 """benchmarks/scale_table.py runs end to end on a tiny configuration and writes its table,
 its JSON and its figure."""
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+from benchmark_scripts import load
 
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _load("scale_table")
+bench = load("scale_table")
 
 
 def test_tiny_run_writes_table_json_and_figure(tmp_path: Path) -> None:
