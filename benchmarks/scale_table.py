@@ -42,6 +42,7 @@ import torch
 
 import allocator
 import sim
+from sim import physics
 from sim.io import atomic_write_text
 
 OUT = Path(__file__).parent / "results" / "scale"
@@ -77,12 +78,12 @@ class OverlapCounter:
 
     def act(self, obs: torch.Tensor) -> torch.Tensor:
         env = self.env
-        pos = env.agent_pos
-        d = torch.cdist(pos, pos)
-        n = pos.shape[1]
-        close = (d < 2 * env.world.agent_radius) & ~torch.eye(n, dtype=torch.bool)
-        running = ~env.done
-        self.pairs += int(close[running].sum()) // 2
+        n = env.num_agents
+        eye = torch.eye(n, dtype=torch.bool)
+        # The simulator's own overlap rule (the step's ``collision_pairs``).
+        _, pairs = physics.collisions(physics.pair_distances(env.agent_pos), ~env.done,
+                                      env.world.agent_radius, eye, torch.ones_like(eye).triu(1))
+        self.pairs += int(pairs.sum())
         return self.controller.act(obs)
 
 
