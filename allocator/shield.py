@@ -39,7 +39,6 @@ from torch import Tensor
 
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, braking_velocity
-from sim.orders import BROKEN
 
 __all__ = ["SafetyShield", "movable_agents"]
 
@@ -47,17 +46,20 @@ __all__ = ["SafetyShield", "movable_agents"]
 def movable_agents(env: Any) -> np.ndarray:
     """The AGVs the simulator moves in the next step, (B, N) bool.
 
-    Episodic envs: idle AGVs (no task claimed) of running environments. Lifelong envs: AGVs of
-    running floors that are neither broken nor in service.
+    Lifelong envs (those with a ``fleet``): AGVs neither broken nor in service. Episodic envs:
+    idle AGVs (no task claimed). In both, only in running environments (where ``env.done``
+    is False, when the env has one).
     """
-    done = env.done.detach().cpu().numpy()[:, None]
-    if getattr(env, "lifelong", False):
-        fleet = env.fleet
-        status = fleet.status.detach().cpu().numpy()
-        serving = fleet.service_left.detach().cpu().numpy() > 0
-        return (status != BROKEN) & ~serving & ~done
-    held = env.agent_task.detach().cpu().numpy()
-    return (held < 0) & ~done
+    fleet = getattr(env, "fleet", None)
+    if fleet is not None:
+        movable = ~fleet.broken.detach().cpu().numpy() \
+            & (fleet.service_left.detach().cpu().numpy() == 0)
+    else:
+        movable = env.agent_task.detach().cpu().numpy() < 0
+    done = getattr(env, "done", None)
+    if done is not None:
+        movable &= ~done.detach().cpu().numpy().reshape(-1, 1)
+    return movable
 
 
 class SafetyShield:

@@ -38,6 +38,7 @@ from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, braking_velocity
 from allocator.avoidance.liveness import DeadlockResolver
 from allocator.distances import FloorDistances
+from allocator.shield import movable_agents
 
 __all__ = ["SafeDriver"]
 
@@ -129,22 +130,6 @@ class SafeDriver:
         self.braked = 0
         self.steps = 0
 
-    def _movable(self, env: Any, B: int, N: int) -> np.ndarray:
-        """AGVs the simulator moves in the coming step (not broken, not in service)."""
-        mov = np.ones((B, N), dtype=bool)
-        fleet = getattr(env, "fleet", None)
-        if fleet is not None:
-            broken = getattr(fleet, "broken", None)
-            if broken is not None:
-                mov &= ~broken.cpu().numpy()
-            service = getattr(fleet, "service_left", None)
-            if service is not None:
-                mov &= service.cpu().numpy() == 0
-        done = getattr(env, "done", None)
-        if done is not None:
-            mov &= ~done.cpu().numpy().reshape(B, 1)
-        return mov
-
     @torch.no_grad()
     def act(self, env: Any) -> Tensor:
         """Actions (B, N, 2) float32 for the env's current targets."""
@@ -158,7 +143,7 @@ class SafeDriver:
         target, has = env.targets()
         target = target.double().cpu().numpy()
         has = has.cpu().numpy()
-        movable = self._movable(env, B, N)
+        movable = movable_agents(env)
         ahead = pos + np.where(movable[..., None], vel * ph.dt, 0.0)
         self._clip_to_walls(ahead)
         # 1. preferred velocities along the floor's paths
