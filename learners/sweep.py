@@ -871,6 +871,17 @@ def run_sweep(
                        failed, time.perf_counter() - begin)
 
 
+# Ray puts its sockets at TEMP/session_<YYYY-MM-DD_HH-MM-SS_ffffff>_<pid>/sockets/plasma_store:
+# 64 characters after TEMP with a 7-digit pid, and an AF_UNIX path holds at most 107 bytes.
+_RAY_SOCKET_SUFFIX = len("/session_2026-12-02_17-01-07_653513_4194304/sockets/plasma_store")
+_AF_UNIX_PATH_MAX = 107
+
+
+def ray_temp_dir_fits(path: str | os.PathLike[str]) -> bool:
+    """Whether Ray's socket files fit under ``path`` (AF_UNIX paths are at most 107 bytes)."""
+    return len(os.fsencode(Path(path).absolute())) + _RAY_SOCKET_SUFFIX <= _AF_UNIX_PATH_MAX
+
+
 def _run_on_ray(spec: SweepSpec, pending: list[Trial], results: Path, address: str | None,
                 cpus: int | None, make_controller: Callable[..., Any] | None,
                 ray_temp_dir: str | os.PathLike[str] | None, verbose: int) -> list[str]:
@@ -879,7 +890,7 @@ def _run_on_ray(spec: SweepSpec, pending: list[Trial], results: Path, address: s
     if address is None:
         if ray_temp_dir is not None:
             temp_dir = Path(ray_temp_dir).absolute()
-        elif len(str(results / "ray")) <= 60:  # Ray's socket paths must stay short
+        elif ray_temp_dir_fits(results / "ray"):
             temp_dir = results / "ray"
         else:  # one folder per results folder: a resumed sweep reuses and removes it
             digest = hashlib.sha1(str(results).encode()).hexdigest()[:12]

@@ -367,3 +367,13 @@ def test_a_training_trial_runs_once_and_its_best_seed_ships(tmp_path: Path) -> N
     assert (weights / "3v3" / "maddpg-ipf.safetensors").is_file()
     assert (weights / "3v3" / "seeds" / "maddpg-ipf-s1.json").is_file()
     assert (training / "3v3" / "maddpg-ipf-s0.csv").is_file()
+
+
+def test_ray_temp_dir_fits_only_paths_short_enough_for_its_sockets() -> None:
+    # Ray's plasma socket is TEMP + 64 characters; AF_UNIX paths hold at most 107 bytes.
+    from learners.sweep import ray_temp_dir_fits
+
+    assert ray_temp_dir_fits("/" + "a" * 42)        # 43 characters: 107 in all
+    assert not ray_temp_dir_fits("/" + "a" * 43)    # 44: one too many
+    # the results folder of a real sweep that Ray refused before this rule
+    assert not ray_temp_dir_fits("/work/main/runs/sweeps/reward-search-maddpg-base/ray")
