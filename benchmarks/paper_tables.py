@@ -8,7 +8,11 @@ ORCA avoidance) and ``greedy``. Each learned method is scored with its shipped (
 validation) seed, and, where the weights of several training seeds ship in
 ``allocator/weights/<scenario>/seeds/``, as the mean and 95% t-interval over those seeds. The
 test episodes (``--seed``, default 0) are never the validation episodes used to pick the seed
-(``learners`` evaluates on seed 12345). Writes ``paper_tables.md`` and ``paper_tables.csv`` to
+(``learners`` evaluates on seed 12345). The runs at the paper's training budgets (30k episodes
+on 3v3; 50k for MADDPG and 90k for BiCNet on 6v6; ``benchmarks/train_policies.py --tag
+paper-budget``) ship their seeds in ``allocator/weights/<scenario>/paper-budget/seeds/`` and are
+scored beside the 5k-episode ones, as the mean and 95% t-interval over their seeds. Writes
+``paper_tables.md`` and ``paper_tables.csv`` to
 ``benchmarks/results/`` (atomically).
 """
 
@@ -36,6 +40,8 @@ from sim.io import atomic_write_text
 RESULTS = Path(__file__).parent / "results"
 LEARNED = [f"{a}-{r}" for a in ("maddpg", "bicnet") for r in ("minidist", "greedy", "ipf")]
 CLASSICAL = ["hungarian", "greedy"]
+BUDGET_TAG = "paper-budget"
+"""The folder of the runs at the paper's training budgets (``train_policies.py --tag``)."""
 
 
 @dataclass
@@ -46,19 +52,28 @@ class Row:
     method: str
     shipped: sim.Metrics
     seeds: list[sim.Metrics] = field(default_factory=list)
+    budget: list[sim.Metrics] = field(default_factory=list)
+    """The seeds trained at the paper's budget (empty until they ship)."""
 
-    def interval(self, attr: str) -> tuple[float, float]:
-        """Mean and 95% t half-width of ``attr`` over the seeds (NaN half-width if < 2)."""
-        values = np.array([getattr(m, attr) for m in self.seeds] or [getattr(self.shipped, attr)])
+    def interval(self, attr: str, budget: bool = False) -> tuple[float, float]:
+        """Mean and 95% t half-width of ``attr`` over the seeds (NaN half-width if < 2);
+        ``budget``: over the paper-budget seeds (NaN, NaN if none)."""
+        if budget:
+            values = np.array([getattr(m, attr) for m in self.budget])
+            if not len(values):
+                return float("nan"), float("nan")
+        else:
+            values = np.array([getattr(m, attr) for m in self.seeds]
+                              or [getattr(self.shipped, attr)])
         if len(values) < 2:
             return float(values.mean()), float("nan")
         half = stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1) / math.sqrt(len(values))
         return float(values.mean()), float(half)
 
 
-def seed_checkpoints(scenario: str, method: str) -> list[Path]:
-    """The per-seed weights shipped for ``method`` on ``scenario``, sorted by seed."""
-    folder = Path(allocator.__file__).parent / "weights" / scenario / "seeds"
+def seed_checkpoints(scenario: str, method: str, tag: str = "") -> list[Path]:
+    """The per-seed weights shipped for ``method`` on ``scenario`` (under ``tag``), by seed."""
+    folder = Path(allocator.__file__).parent / "weights" / scenario / tag / "seeds"
     pattern = re.compile(rf"^{re.escape(method)}-s(\d+)\.safetensors$")
     found = [(int(m.group(1)), p) for p in folder.glob("*.safetensors")
              if (m := pattern.match(p.name))]
@@ -72,12 +87,13 @@ def evaluate_method(scenario: str, method: str, episodes: int, seed: int) -> Row
         return Row(scenario, method, sim.evaluate(solver, scenario, episodes=episodes, seed=seed))
     shipped = sim.evaluate(allocator.make(method, scenario=scenario), scenario,
                            episodes=episodes, seed=seed)
-    seeds = [
-        sim.evaluate(allocator.make(method, scenario=scenario, checkpoint=path), scenario,
-                     episodes=episodes, seed=seed)
-        for path in seed_checkpoints(scenario, method)
-    ]
-    return Row(scenario, method, shipped, seeds)
+    seeds, budget = (
+        [sim.evaluate(allocator.make(method, scenario=scenario, checkpoint=path), scenario,
+                      episodes=episodes, seed=seed)
+         for path in seed_checkpoints(scenario, method, tag)]
+        for tag in ("", BUDGET_TAG)
+    )
+    return Row(scenario, method, shipped, seeds, budget)
 
 
 def _fmt(mean: float, half: float, pct: bool = False) -> str:
@@ -97,8 +113,9 @@ def markdown(rows: list[Row], header: str) -> str:
             "",
             "| method | response rate (shipped) | over seeds | paper | avg reward (shipped) "
             "| paper | avg time (shipped) | over seeds | paper | time / Hungarian "
-            "| collisions / episode | seeds |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "| collisions / episode | seeds | paper budget: response over seeds "
+            "| paper budget: time over seeds | paper-budget seeds |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in part:
             paper = PAPER_TABLES.get(scenario, {}).get(r.method)
@@ -111,7 +128,10 @@ def markdown(rows: list[Row], header: str) -> str:
                 f"| {_fmt(*r.interval('response_rate'), pct=True) if r.seeds else '-'} "
                 f"| {p_rate} | {m.avg_reward:.1f} | {p_rew} | {m.avg_time:.2f} "
                 f"| {_fmt(*r.interval('avg_time')) if r.seeds else '-'} | {p_time} "
-                f"| {m.avg_time / ref:.2f} | {m.collisions:.2f} | {len(r.seeds) or '-'} |"
+                f"| {m.avg_time / ref:.2f} | {m.collisions:.2f} | {len(r.seeds) or '-'} "
+                f"| {_fmt(*r.interval('response_rate', True), pct=True) if r.budget else '-'} "
+                f"| {_fmt(*r.interval('avg_time', True)) if r.budget else '-'} "
+                f"| {len(r.budget) or '-'} |"
             )
         out.append("")
     return "\n".join(out)
@@ -125,7 +145,9 @@ def csv_text(rows: list[Row]) -> str:
         "scenario", "method", "response_rate", "avg_reward", "avg_time", "avg_time_finished",
         "collisions", "response_rate_seed_mean", "response_rate_seed_ci95", "avg_time_seed_mean",
         "avg_time_seed_ci95", "seeds", "paper_response_rate", "paper_avg_reward",
-        "paper_avg_time", "time_ratio_to_hungarian",
+        "paper_avg_time", "time_ratio_to_hungarian", "budget_response_rate_mean",
+        "budget_response_rate_ci95", "budget_avg_time_mean", "budget_avg_time_ci95",
+        "budget_seeds",
     ])
     for r in rows:
         ref = next((x.shipped.avg_time for x in rows
@@ -135,7 +157,8 @@ def csv_text(rows: list[Row]) -> str:
         writer.writerow([
             r.scenario, r.method, m.response_rate, m.avg_reward, m.avg_time, m.avg_time_finished,
             m.collisions, *r.interval("response_rate"), *r.interval("avg_time"), len(r.seeds),
-            *paper, m.avg_time / ref,
+            *paper, m.avg_time / ref, *r.interval("response_rate", True),
+            *r.interval("avg_time", True), len(r.budget),
         ])
     return buf.getvalue()
 
@@ -169,7 +192,11 @@ def main(argv: list[str] | None = None) -> int:
         "tasks; average reward = mean episode sum of R_t = -(sum of task-to-nearest-AGV "
         "distances) - overlapping pairs; average time = steps until every task is claimed, an "
         "unfinished episode counting the step limit. 'over seeds' is the mean ± 95% t-interval "
-        "over the training seeds that ship; 'time / Hungarian' divides by the Hungarian plan's "
+        "over the training seeds that ship (5000 episodes each); 'paper budget' the same over "
+        "the seeds "
+        f"trained at the paper's budgets (`allocator/weights/<scenario>/{BUDGET_TAG}/seeds/`, "
+        "each reward with its own settings from `benchmarks/results/training/reward_search.md`;"
+        " '-': not trained yet); 'time / Hungarian' divides by the Hungarian plan's "
         "average time on the same episodes."
     )
     args.out.mkdir(parents=True, exist_ok=True)

@@ -1,10 +1,17 @@
 """Train, select and ship policies: the one command that (re)creates any shipped weights.
 
     python benchmarks/train_policies.py --scenario 3v3 --algo bicnet --reward ipf \
-        --seeds 0 1 2 --episodes 3000 [--jobs 2] [--set KEY=VALUE ...]
+        --seeds 0 1 2 --episodes 3000 [--jobs 2] [--set KEY=VALUE ...] \
+        [--settings benchmarks/results/training/reward_search.json] [--tag paper-budget]
 
 For every seed it runs ``agv train`` into ``runs/<scenario>/<algo>-<reward>-s<seed>/`` (resuming
 a run that was interrupted), then
+
+With ``--tag TAG`` every path below gains a ``TAG/`` folder after ``<scenario>/`` (runs, shipped
+weights, logs), so that runs at another budget (``paper-budget``: the paper's episodes) ship
+beside the default weights instead of over them. ``--settings FILE`` passes the learner
+settings chosen for this ``<algo>-<reward>`` by ``benchmarks/reward_search.py`` to
+``agv train`` (before any ``--set``, which wins).
 
 - copies each seed's best-on-validation policy to
   ``allocator/weights/<scenario>/seeds/<algo>-<reward>-s<seed>.safetensors`` (+ ``.json``);
@@ -25,6 +32,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -39,14 +47,33 @@ WEIGHTS = ROOT / "allocator" / "weights"
 TRAINING = ROOT / "benchmarks" / "results" / "training"
 
 
-def run_dir(scenario: str, name: str, seed: int) -> Path:
-    return ROOT / "runs" / scenario / f"{name}-s{seed}"
+def run_dir(scenario: str, name: str, seed: int, tag: str = "") -> Path:
+    return ROOT / "runs" / scenario / tag / f"{name}-s{seed}"
+
+
+def chosen_settings(path: Path | None, name: str) -> list[str]:
+    """``KEY=VALUE`` items of the settings chosen for ``name`` in a reward-search record.
+
+    Raises
+    ------
+    ValueError
+        If the file is not a reward-search record or holds nothing for ``name``.
+    """
+    if path is None:
+        return []
+    try:
+        methods = json.loads(path.read_text())["methods"]
+        settings = methods[name]["settings"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"--settings {path}: no settings for {name!r} in a "
+                         f"reward_search.json ({type(exc).__name__}: {exc})") from None
+    return [f"{key}={value}" for key, value in settings.items()]
 
 
 def train_seed(args: argparse.Namespace, seed: int) -> tuple[int, float]:
     """Run (or resume) one seed's training; returns (exit status, wall-clock seconds)."""
     name = f"{args.algo}-{args.reward}"
-    folder = run_dir(args.scenario, name, seed)
+    folder = run_dir(args.scenario, name, seed, args.tag)
     log = folder.with_suffix(".log")
     log.parent.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "allocator.cli", "train", "--no-progress",
@@ -56,7 +83,7 @@ def train_seed(args: argparse.Namespace, seed: int) -> tuple[int, float]:
     else:
         cmd += ["--algo", args.algo, "--reward", args.reward, "--scenario", args.scenario,
                 "--seed", str(seed), "--run-dir", str(folder)]
-        for item in args.set:
+        for item in chosen_settings(args.settings, name) + args.set:
             cmd += ["--set", item]
     for flag, value in (("--eval-every", args.eval_every), ("--eval-episodes", args.eval_episodes)):
         if value is not None:
@@ -96,17 +123,21 @@ def _copy_policy(src: Path, dst: Path) -> None:
 def ship(args: argparse.Namespace, seconds: dict[int, float]) -> dict:
     """Copy every seed's best policy and log into the package and results; ship the best."""
     name = f"{args.algo}-{args.reward}"
+    weights, training = WEIGHTS / args.scenario / args.tag, TRAINING / args.scenario / args.tag
     scores = {}
     for seed in args.seeds:
-        folder = run_dir(args.scenario, name, seed)
+        folder = run_dir(args.scenario, name, seed, args.tag)
         scores[seed] = validation(folder)
-        _copy_policy(folder / "best.safetensors",
-                     WEIGHTS / args.scenario / "seeds" / f"{name}-s{seed}.safetensors")
-        log = TRAINING / args.scenario / f"{name}-s{seed}.csv"
+        _copy_policy(folder / "best.safetensors", weights / "seeds" / f"{name}-s{seed}.safetensors")
+        log = training / f"{name}-s{seed}.csv"
         atomic_save(lambda p, f=folder: shutil.copyfile(f / "progress.csv", p), log)
+        config = folder / "config.json"
+        if config.is_file():
+            atomic_save(lambda p, c=config: shutil.copyfile(c, p),
+                        training / f"{name}-s{seed}.config.json")
     best = max(args.seeds, key=lambda s: (scores[s]["response_rate"], -scores[s]["avg_time"]))
-    _copy_policy(run_dir(args.scenario, name, best) / "best.safetensors",
-                 WEIGHTS / args.scenario / f"{name}.safetensors")
+    _copy_policy(run_dir(args.scenario, name, best, args.tag) / "best.safetensors",
+                 weights / f"{name}.safetensors")
     record = {
         "method": name,
         "scenario": args.scenario,
@@ -117,7 +148,7 @@ def ship(args: argparse.Namespace, seconds: dict[int, float]) -> dict:
                   for s in args.seeds},
         "date": time.strftime("%Y-%m-%d"),
     }
-    atomic_write_text(TRAINING / args.scenario / f"{name}.json", json.dumps(record, indent=2))
+    atomic_write_text(training / f"{name}.json", json.dumps(record, indent=2))
     return record
 
 
@@ -133,9 +164,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-episodes", type=int, default=None)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="learner hyperparameter override passed to agv train")
+    parser.add_argument("--settings", type=Path, default=None, metavar="FILE",
+                        help="reward_search.json: this method's chosen learner settings")
+    parser.add_argument("--tag", default="", metavar="TAG",
+                        help="a folder for these runs under runs/, the weights and the logs")
     parser.add_argument("--ship-only", action="store_true",
                         help="skip training; select and copy from existing runs")
     args = parser.parse_args(argv)
+    if args.tag and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.tag):
+        parser.error(f"--tag {args.tag!r}: letters, digits, '.', '_' and '-' only")
+    try:
+        chosen_settings(args.settings, f"{args.algo}-{args.reward}")
+    except ValueError as exc:
+        parser.error(str(exc))
     seconds: dict[int, float] = {}
     if not args.ship_only:
         with ThreadPoolExecutor(max_workers=args.jobs) as pool:
@@ -143,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
                                strict=True))
         failed = {s: code for s, (code, _) in results.items() if code != 0}
         if failed:
-            print(f"training failed for seeds {failed}; see runs/{args.scenario}/*.log",
-                  file=sys.stderr)
+            logs = run_dir(args.scenario, "*", 0, args.tag).parent.relative_to(ROOT)
+            print(f"training failed for seeds {failed}; see {logs}/*.log", file=sys.stderr)
             return 1
         seconds = {s: t for s, (_, t) in results.items()}
     record = ship(args, seconds)

@@ -65,3 +65,28 @@ def test_preference_counts_sum_to_claims() -> None:
     assert by_index.shape == by_rank.shape == (3, 3)
     assert by_index.sum() == pytest.approx(by_rank.sum())
     assert np.all(by_index <= 1.0)
+
+
+def test_paper_budget_seeds_are_scored_beside_the_5k_ones(tmp_path: Path, monkeypatch) -> None:
+    import shutil
+
+    import allocator
+
+    shipped = Path(allocator.__file__).parent / "weights" / "3v3" / "seeds"
+    budget = tmp_path / "allocator" / "weights" / "3v3" / paper_tables.BUDGET_TAG / "seeds"
+    budget.mkdir(parents=True)
+    for seed in (0, 1):
+        for suffix in (".safetensors", ".json"):
+            shutil.copyfile(shipped / f"maddpg-ipf-s{seed}{suffix}",
+                            budget / f"maddpg-ipf-s{seed}{suffix}")
+    monkeypatch.setattr(allocator, "__file__", str(tmp_path / "allocator" / "__init__.py"))
+    row = paper_tables.evaluate_method("3v3", "maddpg-ipf", 3, 0)
+    assert len(row.budget) == 2 and not row.seeds  # the 5k seeds are not under tmp_path
+    mean, half = row.interval("response_rate", budget=True)
+    assert mean == pytest.approx(np.mean([m.response_rate for m in row.budget]))
+    assert not math.isnan(half)
+    line = next(x for x in paper_tables.markdown([row], "#").splitlines()
+                if x.startswith("| maddpg-ipf"))
+    assert line.rstrip().endswith("| 2 |")
+    none = paper_tables.Row("3v3", "greedy", row.shipped).interval("avg_time", budget=True)
+    assert all(math.isnan(x) for x in none)  # no paper-budget seeds: no figure, not a zero
