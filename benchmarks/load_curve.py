@@ -85,7 +85,8 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
                reassignments=m.reassignments, lost=m.lost, released=m.released,
                delivered=m.delivered, open_at_end=m.open_at_end,
                collisions_per_1000=m.collisions_per_1000,
-               seconds=time.perf_counter() - start)
+               seconds=time.perf_counter() - start, commit=_commit(),
+               date=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
     dispatcher = getattr(ctrl, "_dispatcher", None)
     if name == "auction" and dispatcher is not None:
         per = dispatcher.replan_messages
@@ -179,6 +180,11 @@ def measure_floor(floor: str, fractions: list[float], dispatchers: list[str], st
                                                                 "comm_range"))
         rows = old["results"] if same else []
         rows = [r for r in rows if r["dispatcher"] not in redo]  # measured again
+        for r in rows:  # runs stored before rows kept their own commit and date
+            r.setdefault("commit", old["config"].get("commit", "unknown"))
+            r.setdefault("date", old["config"].get("date", "unknown"))
+    # Every dispatcher with a stored run stays in the figure and the table.
+    config["dispatchers"] = _ordered(list(dispatchers) + [r["dispatcher"] for r in rows])
     done = {(r["dispatcher"], r["rate"], r["faults"]) for r in rows}
     # Saturation first (the targets), then the Poisson rates from the heaviest down.
     loads: list[tuple[float | None, bool]] = [(None, False), (None, True)]
@@ -195,6 +201,25 @@ def measure_floor(floor: str, fractions: list[float], dispatchers: list[str], st
 
 def _fmt(x: float | None, spec: str = ".1f") -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+
+def _ordered(names: list[str]) -> list[str]:
+    """The distinct names, those of DISPATCHERS first in its order."""
+    seen = list(dict.fromkeys(names))
+    return [d for d in DISPATCHERS if d in seen] + [d for d in seen if d not in DISPATCHERS]
+
+
+def _provenance(rows: list[dict], cfg: dict) -> str:
+    """'commit C (dispatchers, date)' for each commit the floor's runs were measured at."""
+    by: dict[str, list[dict]] = {}
+    for r in rows:
+        by.setdefault(r.get("commit", cfg["commit"]), []).append(r)
+    parts = []
+    for commit, rs in by.items():
+        names = _ordered([r["dispatcher"] for r in rs])
+        dates = sorted(r.get("date", cfg["date"]) for r in rs)
+        parts.append(f"commit {commit} ({', '.join(names)}; {dates[-1]})")
+    return "; ".join(parts)
 
 
 def report() -> None:
@@ -217,17 +242,19 @@ def report() -> None:
         lines += [f"## {floor}", "",
                   f"{cfg['steps']} steps, seed {cfg['seed']}, {cfg['runs']} run per point, "
                   f"bound {cfg['throughput_bound']:.1f}, auction comm_range "
-                  f"{cfg['comm_range']}, commit {cfg['commit']}, {cfg['date']}"
+                  f"{cfg['comm_range']}, {_provenance(rows, cfg)}"
                   + (f", map `{cfg['map']}` at cell_size {cfg['cell_size']} with "
                      f"{cfg['num_agents']} AGVs" if "map" in cfg else "") + ".", "",
                   "| load | rate (orders/step) | dispatcher | throughput | / bound | wait mean |"
                   " wait p95 | reassignments | lost | auction messages / re-plan |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
+            # The floor's bound (cfg), not the run's: a Poisson run's throughput_bound is
+            # capped by its own arrival rate, which made every rate read "1.00 x bound".
             load = ("saturation + faults" if r["faults"] else "saturation") \
                 if r["load"] == "saturation" else \
-                f"{r['rate'] * 1000 / r['throughput_bound']:.2f} x bound" \
-                if r["throughput_bound"] else "poisson"
+                f"{r['rate'] * 1000 / cfg['throughput_bound']:.2f} x bound" \
+                if cfg["throughput_bound"] else "poisson"
             lines.append(
                 f"| {load} | {_fmt(r['rate'], '.4f')} | {r['dispatcher']} | "
                 f"{r['throughput']:.1f} | {r['throughput'] / cfg['throughput_bound']:.2f} | "
@@ -275,7 +302,7 @@ def plot(floor: str, cfg: dict, rows: list[dict]) -> None:
 
     fig, (ax_t, ax_w) = plt.subplots(1, 2, figsize=(10, 4))
     bound = cfg["throughput_bound"]
-    for name in cfg["dispatchers"]:
+    for name in _ordered([r["dispatcher"] for r in rows]):
         pts = sorted((r["rate"], r) for r in rows if r["dispatcher"] == name
                      and r["load"] == "poisson")
         sat = [r for r in rows if r["dispatcher"] == name and r["load"] == "saturation"
