@@ -8,6 +8,14 @@ and reports the assignment that emerged (which AGV claimed which task) with the 
 As a controller (``reset`` / ``act``) it runs in :func:`sim.evaluate` like any other allocator.
 
 Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidist, greedy, ipf}.
+
+**Any fleet size.** ``allocator/weights/any/<algo>-<reward>.safetensors`` holds the weights of
+the entity-token learner of the same family (``maddpg-e`` for ``maddpg-*``, ``bicnet-e`` for
+``bicnet-*``; :mod:`learners.entity`), trained over a curriculum of fleet sizes, when they
+have been shipped. ``allocator.make("bicnet-ipf", scenario="50v50")`` uses the scenario's own
+weights where they exist (``3v3``, ``6v6``: the paper's table) and the any-N weights for every
+other ``NvM`` scenario; ``weights="any"`` asks for the any-N weights on every scenario,
+``weights="scenario"`` for the scenario's own only.
 """
 
 from __future__ import annotations
@@ -28,12 +36,18 @@ if TYPE_CHECKING:  # pragma: no cover
     from sim.world import World
 
 __all__ = [
-    "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "register_all",
+    "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "any_n_weights_path",
+    "register_all", "ANY_N", "WEIGHT_CHOICES",
 ]
 
 ALGOS = ("maddpg", "bicnet")
 REWARDS = ("minidist", "greedy", "ipf")
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+ANY_N = "any"
+"""The folder of ``allocator/weights`` with the any-N (entity-token) weights."""
+WEIGHT_CHOICES = ("auto", "scenario", "any")
+"""``weights=``: the scenario's own if shipped, else the any-N ones (``auto``); only the
+scenario's; only the any-N ones."""
 
 
 class MissingWeightsError(FileNotFoundError, ValueError):
@@ -44,6 +58,12 @@ class MissingWeightsError(FileNotFoundError, ValueError):
 def weights_path(algo: str, reward: str, scenario: str) -> Path:
     """Where the package keeps the weights of ``<algo>-<reward>`` for a scenario."""
     return WEIGHTS_DIR / scenario / f"{algo}-{reward}.safetensors"
+
+
+def any_n_weights_path(algo: str, reward: str) -> Path:
+    """Where the package keeps the any-N weights of ``<algo>-<reward>`` (the entity learner
+    ``<algo>-e``'s, trained over a curriculum of fleet sizes)."""
+    return WEIGHTS_DIR / ANY_N / f"{algo}-{reward}.safetensors"
 
 
 class LearnedAllocator:
@@ -63,12 +83,16 @@ class LearnedAllocator:
         Pass the policy's actions through :class:`allocator.shield.SafetyShield` (the ORCA QP,
         then the braking filter) when it drives an env (default False: the policy as
         trained). :attr:`safety` then holds the shield and its intervention counts.
+    weights : {"auto", "scenario", "any"}
+        Which shipped weights (when no ``checkpoint`` is given): the scenario's own if they
+        exist, else the any-N ones (``"auto"``, default); only the scenario's; only the any-N
+        ones (``allocator/weights/any``), which serve every ``NvM`` scenario.
 
     Raises
     ------
     MissingWeightsError
         If no checkpoint is given and no weights ship for this scenario (the message names the
-        file and the ``agv train`` command that creates it).
+        files looked for and the ``agv train`` commands that create them).
     ValueError
         For an unknown option (the message lists the valid ones), a ``max_steps`` that is not
         a positive integer, a ``checkpoint`` that is not a path, or a checkpoint trained for
@@ -81,7 +105,8 @@ class LearnedAllocator:
 
     def __init__(
         self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
-        max_steps: int | None = None, shield: bool = False, **options: Any,
+        max_steps: int | None = None, shield: bool = False, weights: str = "auto",
+        **options: Any,
     ) -> None:
         from learners.policy import LearnedPolicy
         from sim.scenarios import get_scenario
@@ -101,20 +126,32 @@ class LearnedAllocator:
                              f"None for the shipped weights), got {checkpoint!r}")
         if not isinstance(shield, (bool, np.bool_)):
             raise ValueError(f"shield must be True or False, got {shield!r}")
+        if not isinstance(weights, str) or weights not in WEIGHT_CHOICES:
+            raise ValueError(f"weights must be one of {list(WEIGHT_CHOICES)}, got {weights!r}")
         self.scenario = get_scenario(scenario)
         if checkpoint is None:
-            path = weights_path(self.algo, self.reward, self.scenario.name)
-            if not path.is_file():
-                raise MissingWeightsError(
-                    f"no trained weights for {self.name!r} on scenario {self.scenario.name!r}: "
-                    f"expected {path}. Create them with `agv train --algo {self.algo} --reward "
-                    f"{self.reward} --scenario {self.scenario.name} --export {path}`, or pass "
-                    "checkpoint=<a policy .safetensors file>"
-                )
-            checkpoint = path
+            checkpoint = self._shipped(weights)
         self.checkpoint = Path(checkpoint)
-        self.policy: LearnedPolicy = LearnedPolicy.load(
-            checkpoint, algo=self.algo, reward=self.reward, scenario=self.scenario.name)
+        from learners.algorithms import ENTITY_ALGORITHMS
+        from learners.checkpoint import read_metadata
+
+        entity_algo = f"{self.algo}-e"
+        try:
+            found = read_metadata(checkpoint).get("algo")
+        except FileNotFoundError:
+            found = None  # LearnedPolicy.load names the missing file
+        self.any_n = found in ENTITY_ALGORITHMS
+        """Whether the weights are an entity learner's (one set for any N)."""
+        if self.any_n:
+            if getattr(self.scenario, "lifelong", False):
+                raise ValueError(f"the any-N weights of {self.name!r} serve the episodic "
+                                 f"scenarios (NvM); {self.scenario.name!r} is a lifelong floor, "
+                                 "whose observations they were not trained on")
+            self.policy: LearnedPolicy = LearnedPolicy.load(
+                checkpoint, algo=entity_algo, reward=self.reward)
+        else:
+            self.policy = LearnedPolicy.load(
+                checkpoint, algo=self.algo, reward=self.reward, scenario=self.scenario.name)
         self.max_steps = None if max_steps is None else int(max_steps)
         self.last_trajectories: np.ndarray | None = None
         """(T + 1, N, 2) positions of every AGV during the last :meth:`assign` rollout."""
@@ -128,7 +165,36 @@ class LearnedAllocator:
     @classmethod
     def option_names(cls) -> tuple[str, ...]:
         """The keyword options the constructor takes."""
-        return ("checkpoint", "max_steps", "scenario", "shield")
+        return ("checkpoint", "max_steps", "scenario", "shield", "weights")
+
+    def _shipped(self, weights: str) -> Path:
+        """The shipped weights file for ``weights`` (see the class docstring)."""
+        own = weights_path(self.algo, self.reward, self.scenario.name)
+        anyn = any_n_weights_path(self.algo, self.reward)
+        candidates = {"auto": [own, anyn], "scenario": [own], "any": [anyn]}[weights]
+        for path in candidates:
+            if path.is_file():
+                return path
+        looked = " nor ".join(str(p) for p in candidates)
+        hints = []
+        if own in candidates:
+            hints.append(f"`agv train --algo {self.algo} --reward {self.reward} --scenario "
+                         f"{self.scenario.name} --export {own}`")
+        if anyn in candidates:
+            hints.append(f"`agv train --algo {self.algo}-e --reward {self.reward} --curriculum "
+                         f"6v6:2000,10v10:1000,20v20:500 --export {anyn}` (any N)")
+        raise MissingWeightsError(
+            f"no trained weights for {self.name!r} on scenario {self.scenario.name!r}: "
+            f"expected {looked}. Create them with {' or '.join(hints)}, or pass "
+            "checkpoint=<a policy .safetensors file>")
+
+    def _act(self, obs: Tensor) -> Tensor:
+        """The policy's deterministic actions (any-N weights: at any observation size)."""
+        if self.any_n:
+            import torch
+
+            return self.policy.learner.act(torch.as_tensor(obs, dtype=torch.float32))
+        return self.policy.act(obs)
 
     # ------------------------------------------------------------------ controller
     def reset(self, env: Any) -> None:
@@ -146,6 +212,8 @@ class LearnedAllocator:
                              f"{self.scenario.name!r}; it cannot drive a lifelong floor (its "
                              "observations differ). Lifelong floors are dispatched by "
                              "'hungarian' and 'greedy'")
+        if self.any_n:  # read the env's observations with its layout (its K slots)
+            self.policy.learner.reset(env)
         if self.safety is not None:
             self.safety.reset(env)
 
@@ -155,8 +223,8 @@ class LearnedAllocator:
         if self.safety is not None:
             if self.safety.env is None:
                 raise ValueError(f"{self.name!r} with shield=True needs reset(env) before act")
-            return self.safety.filter(self.policy.act(obs))
-        return self.policy.act(obs)
+            return self.safety.filter(self._act(obs))
+        return self._act(obs)
 
     # ------------------------------------------------------------------ allocator
     def _scene_scenario(self, agents: np.ndarray, tasks: np.ndarray,
@@ -218,7 +286,9 @@ class LearnedAllocator:
         env = AGVEnv(scenario, num_envs=1, reward="minidist", seed=0)
         env.set_state(agents[None], tasks[None])
         obs = env.observe()
-        act = self.policy.act
+        if self.any_n:
+            self.policy.learner.reset(env)
+        act = self._act
         if self.safety is not None:  # the rollout shielded too, by a shield of its own
             from allocator.shield import SafetyShield
 
@@ -269,13 +339,13 @@ class _Unshielded:
 
     def __init__(self, allocator: LearnedAllocator) -> None:
         self.name = allocator.name
-        self._policy = allocator.policy
+        self._act = allocator._act
 
     def reset(self, env: Any) -> None:
         pass
 
     def act(self, obs: Tensor) -> Tensor:
-        return self._policy.act(obs)
+        return self._act(obs)
 
 
 def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:

@@ -7,28 +7,40 @@ from typing import Any
 
 from learners.bicnet import BiCNet, BiCNetConfig
 from learners.common import ActorCritic
+from learners.entity import MADDPGE, BiCNetE, BiCNetEConfig, MADDPGEConfig
 from learners.maddpg import MADDPG, MADDPGConfig
 
-__all__ = ["ALGORITHMS", "PRESETS", "REWARD_NAMES", "check_algo", "make_config", "make_learner",
-           "preset_overrides"]
+__all__ = ["ALGORITHMS", "ENTITY_ALGORITHMS", "PRESETS", "REWARD_NAMES", "check_algo",
+           "make_config", "make_learner", "preset_overrides"]
 
 ALGORITHMS: dict[str, tuple[type[ActorCritic], type]] = {
     "maddpg": (MADDPG, MADDPGConfig),
     "bicnet": (BiCNet, BiCNetConfig),
+    "maddpg-e": (MADDPGE, MADDPGEConfig),
+    "bicnet-e": (BiCNetE, BiCNetEConfig),
 }
-"""Registered algorithms: name -> (learner class, config dataclass)."""
+"""Registered algorithms: name -> (learner class, config dataclass). ``maddpg-e`` and
+``bicnet-e`` are the entity-token learners of :mod:`learners.entity` (one set of weights for
+any fleet size)."""
+
+ENTITY_ALGORITHMS = ("maddpg-e", "bicnet-e")
+"""The algorithms whose weights serve any N (:mod:`learners.entity`)."""
 
 REWARD_NAMES = ("minidist", "greedy", "ipf")
 """The paper's rewards, as named in ``sim.make_env``."""
 
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    "default": {"maddpg": {}, "bicnet": {}},
+    "default": {"maddpg": {}, "bicnet": {}, "maddpg-e": {}, "bicnet-e": {}},
     "fast": {
         "maddpg": {"num_envs": 64, "updates_per_step": 2, "batch_size": 512,
                    "actor_lr": 3e-3, "critic_lr": 3e-3, "tau": 0.03},
         "bicnet": {"num_envs": 128, "updates_per_step": 1, "actor_lr": 3e-3, "critic_lr": 3e-3,
                    "tau": 0.05},
+        "maddpg-e": {"num_envs": 64, "updates_per_step": 1, "actor_lr": 3e-3,
+                     "critic_lr": 3e-3, "tau": 0.03},
+        "bicnet-e": {"num_envs": 64, "updates_per_step": 1, "actor_lr": 3e-3,
+                     "critic_lr": 3e-3, "tau": 0.03},
     },
 }
 """Named learner settings: preset -> algorithm -> config overrides.

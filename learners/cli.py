@@ -184,6 +184,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--export", metavar="PATH", type=output_file, default=None,
                         help="after training, copy the best evaluated policy to PATH (e.g. "
                              "allocator/weights/3v3/bicnet-ipf.safetensors)")
+    parser.add_argument("--curriculum", metavar="SCENARIO:EPISODES,...", default=None,
+                        help="train one entity learner (maddpg-e, bicnet-e) through stages of "
+                             "growing N with the same weights, e.g. "
+                             "'3v3:2000,6v6:2000,10v10:1000,20v20:500' (replaces --scenario "
+                             "and --episodes; see docs/learners.md)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -226,6 +231,9 @@ def run_train(args: argparse.Namespace) -> int:
     """Run ``agv train``; returns the exit status (0 done, 130 interrupted, 2 bad input)."""
     from learners.train import TrainConfig, load_run_config, train
 
+    curriculum = getattr(args, "curriculum", None)
+    if curriculum is not None or (args.resume and _is_curriculum(args.resume)):
+        return _run_curriculum(args)
     try:
         if args.resume:
             config, saved = load_run_config(args.resume)
@@ -267,6 +275,66 @@ def run_train(args: argparse.Namespace) -> int:
           f"{result.updates} updates, {result.seconds:.0f} s; task response "
           f"{ev.get('response_rate', float('nan')):.3f} (best "
           f"{result.best_response_rate:.3f}); checkpoints in {result.run_dir}")
+    return 130 if result.interrupted else 0
+
+
+def _is_curriculum(run_dir: str) -> bool:
+    from learners.curriculum import is_curriculum_run
+
+    return is_curriculum_run(run_dir)
+
+
+def _run_curriculum(args: argparse.Namespace) -> int:
+    """``agv train --curriculum ...`` or ``--resume`` of a curriculum run."""
+    from learners.curriculum import load_curriculum, parse_curriculum, train_curriculum
+    from learners.train import TrainConfig
+
+    try:
+        if args.scenario is not None or args.episodes is not None:
+            raise ValueError("--curriculum sets the scenario and episodes of every stage; "
+                             "leave out --scenario and --episodes")
+        if args.resume:
+            config, stages, saved = load_curriculum(args.resume)
+            for key in ("algo", "reward", "seed"):
+                given = getattr(args, key)
+                if given is not None and given != getattr(config, key):
+                    raise ValueError(f"cannot resume {args.resume}: it was trained with {key}="
+                                     f"{getattr(config, key)!r}, --{key} asks for {given!r}")
+            if args.curriculum is not None:
+                stages = parse_curriculum(args.curriculum)
+            learner_config: Any = {**saved, **_preset(config.algo, args),
+                                   **_parse_overrides(config.algo, args.overrides)}
+        else:
+            stages = parse_curriculum(args.curriculum)
+            config = TrainConfig(algo=args.algo or "maddpg-e", reward=args.reward or "ipf",
+                                 scenario=stages[0].scenario, seed=args.seed or 0,
+                                 run_dir=args.run_dir or os.path.join(
+                                     "runs", f"{args.algo or 'maddpg-e'}-"
+                                     f"{args.reward or 'ipf'}-curriculum-s{args.seed or 0}"))
+            learner_config = {**_preset(config.algo, args),
+                              **_parse_overrides(config.algo, args.overrides)}
+        for key in ("eval_every", "eval_episodes", "eval_seed", "checkpoint_every",
+                    "stop_response", "threads"):
+            if getattr(args, key) is not None:
+                setattr(config, key, getattr(args, key))
+        config.progress = not args.no_progress
+        result = train_curriculum(config, stages, learner_config, resume=bool(args.resume))
+        if args.export and not result.interrupted:
+            from learners.checkpoint import export_policy
+
+            best = result.run_dir / "best.safetensors"
+            exported = export_policy(best if best.is_file() else
+                                     result.run_dir / "policy.safetensors", args.export)
+            print(f"exported the best policy of the last stage to {exported}")
+    except (ValueError, FileNotFoundError) as err:
+        print(f"agv train: error: {err}", file=sys.stderr)
+        return 2
+    ev = result.last_eval
+    print(f"{config.algo}-{config.reward} curriculum "
+          f"{','.join(f'{s.scenario}:{s.episodes}' for s in stages)}: last stage "
+          f"{result.episodes} episodes, {result.updates} updates in all; task response "
+          f"{ev.get('response_rate', float('nan')):.3f} (best "
+          f"{result.best_response_rate:.3f}); checkpoints in {result.run_dir.parent}")
     return 130 if result.interrupted else 0
 
 

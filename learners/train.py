@@ -296,6 +296,7 @@ def train(
     *,
     resume: bool = False,
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
+    init_from: str | os.PathLike[str] | None = None,
 ) -> TrainResult:
     """Train a MADDPG or BiCNet learner.
 
@@ -311,6 +312,12 @@ def train(
     on_checkpoint : callable, optional
         Called with the checkpoint's counters after every periodic checkpoint (used by tests to
         simulate a crash).
+    init_from : path-like, optional
+        A training checkpoint of the same algorithm and learner config (possibly on another
+        scenario, e.g. the previous stage of a curriculum, :mod:`learners.curriculum`) whose
+        networks, targets, Adam moments and update count start this new run; the replay
+        buffer, environments and counters start afresh. Only for the entity learners
+        (``learners.algorithms.ENTITY_ALGORITHMS``), whose weights do not depend on N.
 
     Returns
     -------
@@ -353,6 +360,9 @@ def train(
         learner_cfg = (learner_config if learner_config is not None and
                        not isinstance(learner_config, dict)
                        else make_config(config.algo, learner_config))
+    init: dict[str, Tensor] | None = None
+    if init_from is not None:
+        init = _init_tensors(init_from, config, learner_cfg, resume)
     cfg = learner_cfg
     config_class = ALGORITHMS[config.algo][1]
     if not isinstance(cfg, config_class):
@@ -393,6 +403,14 @@ def train(
         for t in terms:
             recent_terms[t].extend(saved[f"stats.recent_term.{t}"].tolist())
         counters.update({k: meta[k] for k in counters})
+    elif init is not None:
+        learner.load_training_tensors(init)
+    shield = None
+    if getattr(cfg, "shield", False):  # the entity learners' option: the shield in the loop
+        from allocator.shield import SafetyShield
+
+        shield = SafetyShield(_Still())
+        shield.reset(env)
     run_dir.mkdir(parents=True, exist_ok=True)
     clean_stale_temporaries(run_dir)  # left by a run killed in the middle of a write
     if resume:  # a kill between a checkpoint and its sidecar leaves the sidecar behind
@@ -449,6 +467,8 @@ def train(
             # 1. collect one vectorized step with exploration noise
             noise_std = _noise_std(cfg, counters["episodes"])
             action = learner.explore(obs, noise_std, noise_gen)
+            if shield is not None:  # what the simulator executes is what is stored
+                action = shield.filter(action)
             next_obs, reward, done, info = env.step(action)
             next_state = env.global_state()
             # every task claimed: terminal; step limit only: truncated, so bootstrap
@@ -527,6 +547,49 @@ def train(
     return TrainResult(run_dir, learner, counters["episodes"], counters["env_steps"],
                        counters["updates"], counters["seconds"], counters["last_eval"],
                        counters["best_response_rate"], interrupted)
+
+
+class _Still:
+    """The controller a training shield wraps (the learner's actions go to ``filter``)."""
+
+    name = "learner"
+
+    def reset(self, env: Any) -> None:
+        pass
+
+    def act(self, obs: Tensor) -> Tensor:  # pragma: no cover - filter() is used instead
+        return torch.zeros(*obs.shape[:2], 2)
+
+
+def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
+                  resume: bool) -> dict[str, Tensor]:
+    """The learner tensors of a training checkpoint that starts a new run (``init_from``).
+
+    Raises
+    ------
+    ValueError
+        When resuming, for a non-entity algorithm, or for a checkpoint of another algorithm,
+        reward or learner config.
+    """
+    from learners.algorithms import ENTITY_ALGORITHMS
+
+    if resume:
+        raise ValueError("init_from starts a new run; a resumed run continues from its own "
+                         "checkpoint")
+    if config.algo not in ENTITY_ALGORITHMS:
+        raise ValueError(f"init_from needs an algorithm whose weights do not depend on N "
+                         f"({list(ENTITY_ALGORITHMS)}), got {config.algo!r}")
+    tensors, meta = load_checkpoint(path, kind="training")
+    for key in ("algo", "reward"):
+        if meta[key] != getattr(config, key):
+            raise ValueError(f"init_from {path} was trained with {key}={meta[key]!r}, this run "
+                             f"has {getattr(config, key)!r}")
+    if meta["config"] != dataclasses.asdict(learner_cfg):
+        diff = {k: v for k, v in dataclasses.asdict(learner_cfg).items()
+                if meta["config"].get(k) != v}
+        raise ValueError(f"init_from {path} was trained with other hyperparameters: this run "
+                         f"has {diff}")
+    return tensors
 
 
 def load_run_config(run_dir: str | os.PathLike[str]) -> tuple[TrainConfig, dict[str, Any]]:

@@ -1,0 +1,505 @@
+"""Entity-token learners: one set of weights for any fleet size N (issue 17).
+
+An observation (:class:`sim.observations.ObsLayout`) is read as **tokens**: the AGV's own
+state, its K nearest task slots and its K nearest AGV slots, each slot with its mask bit.
+Every network here is built from parts shared across AGVs and across tokens, and pools tokens
+with masked attention, so
+
+* the output does not depend on the order of the task (or AGV) slots (permutation invariance),
+* padded slots (mask 0) do not change it, whatever their values, and neither does the number
+  of slots K (a scene with K = 3 or K = 6 slots is read by the same weights),
+* the parameter count depends on neither N nor K.
+
+Two learners are registered (``learners.algorithms.ALGORITHMS``):
+
+``maddpg-e`` (:class:`MADDPGE`)
+    A decentralized actor shared by all AGVs (:class:`EntityActor`) and a centralized critic
+    shared by all AGVs (:class:`PooledCritic`): Q_i reads AGV i's own tokens and action and the
+    mean of the other AGVs' (observation, action) embeddings, so its cost grows linearly with
+    N and its parameters do not depend on N. The actor update is MADDPG's: AGV i's action is
+    replaced by mu(o_i), the other AGVs' actions are the stored ones.
+``bicnet-e`` (:class:`BiCNetE`)
+    BiCNet's communication kept: the per-AGV token embeddings go through a bidirectional GRU
+    along the AGVs, which are ordered by a fixed rule (their position, x then y; not their
+    index), then shared output layers. Actor and critic have that shape; the actor update is
+    BiCNet's (every AGV's action credited with its effect on every Q).
+
+``docs/learners.md`` ("Entity policies") lists every change to the papers' designs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from learners.buffer import Batch
+from learners.common import ActorCritic, OffPolicyConfig, check_bool, movable_mask
+from sim.observations import AGENT_FEATURES, TASK_FEATURES, ObsLayout
+
+__all__ = [
+    "EntityConfig", "MADDPGEConfig", "BiCNetEConfig", "MADDPGE", "BiCNetE", "EntityEncoder",
+    "EntityActor", "PooledCritic", "SortedBiRNN", "Tokens", "tokens", "infer_layout",
+    "agent_order", "SELF_FEATURES", "TASK_TOKEN_FEATURES", "AGENT_TOKEN_FEATURES",
+    "MARGIN_CLIP",
+]
+
+SELF_FEATURES = 3
+"""Own-state token: velocity (2) and the "holds a task" bit. The absolute position is left
+out: the open box grows with N (half-width sqrt(N / 6)), so positions seen at N = 50 lie
+outside every position seen in training at N <= 20."""
+TASK_TOKEN_FEATURES = 5
+"""Task token: relative position (2), distance, the margin (nearest visible other AGV's
+distance to the task minus this AGV's, clipped to [-MARGIN_CLIP, MARGIN_CLIP]; +MARGIN_CLIP
+when no other AGV is visible) and whether another AGV is visible at all."""
+AGENT_TOKEN_FEATURES = 5
+"""AGV token: relative position (2), velocity (2), distance."""
+MARGIN_CLIP = 1.0
+"""Clip of the task tokens' margin feature (world units)."""
+
+
+# ---------------------------------------------------------------------- tokens
+def infer_layout(num_agents: int, obs_dim: int) -> ObsLayout:
+    """The observation layout of an ``NvM`` or ``warehouse`` scene from N and O alone.
+
+    Those scenarios observe ``k_agents = min(N - 1, 5)`` AGV slots; the task slots follow from
+    O = 5 + 3 k_tasks + 5 k_agents. Other layouts must be given (:meth:`EntityLearner.reset`
+    or :meth:`EntityLearner.set_layout`).
+
+    Raises
+    ------
+    ValueError
+        If no layout with ``min(N - 1, 5)`` AGV slots has size O.
+    """
+    k_agents = min(int(num_agents) - 1, 5)
+    rest = int(obs_dim) - 5 - len(AGENT_FEATURES) * k_agents
+    if k_agents < 0 or rest < 0 or rest % len(TASK_FEATURES):
+        raise ValueError(f"cannot read observations of size {obs_dim} for {num_agents} AGVs as "
+                         f"an NvM layout (5 + 3 k_tasks + 5 min(N - 1, 5)); give the layout "
+                         f"with set_layout(env.obs_layout) or reset(env)")
+    return ObsLayout(rest // len(TASK_FEATURES), k_agents)
+
+
+@dataclass
+class Tokens:
+    """An observation read as tokens (B batch, N AGVs, Kt task slots, Ka AGV slots)."""
+
+    own: Tensor
+    """(B, N, SELF_FEATURES)"""
+    task: Tensor
+    """(B, N, Kt, TASK_TOKEN_FEATURES), zero in masked slots"""
+    task_mask: Tensor
+    """(B, N, Kt) bool"""
+    agent: Tensor
+    """(B, N, Ka, AGENT_TOKEN_FEATURES), zero in masked slots"""
+    agent_mask: Tensor
+    """(B, N, Ka) bool"""
+
+
+def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
+    """Split observations into masked tokens and derive the token features.
+
+    Parameters
+    ----------
+    obs : Tensor, shape (B, N, layout.size)
+    layout : ObsLayout
+
+    Returns
+    -------
+    Tokens
+    """
+    B, N, _ = obs.shape
+    kt, ka = layout.k_tasks, layout.k_agents
+    own = torch.cat([obs[..., layout.vel], obs[..., layout.holding]], dim=-1)
+    t = obs[..., layout.tasks].reshape(B, N, kt, len(TASK_FEATURES))
+    a = obs[..., layout.agents].reshape(B, N, ka, len(AGENT_FEATURES))
+    t_mask, a_mask = t[..., 2] > 0.5, a[..., 4] > 0.5
+    t_rel = t[..., :2] * t_mask.unsqueeze(-1)
+    a_rel = a[..., :2] * a_mask.unsqueeze(-1)
+    a_vel = a[..., 2:4] * a_mask.unsqueeze(-1)
+    t_dist = torch.linalg.vector_norm(t_rel, dim=-1)
+    # distance of every visible other AGV to every task slot: (B, N, Kt, Ka)
+    other = torch.linalg.vector_norm(t_rel.unsqueeze(3) - a_rel.unsqueeze(2), dim=-1)
+    other = other.masked_fill(~a_mask.unsqueeze(2), math.inf)
+    nearest_other = other.amin(-1) if ka else torch.full_like(t_dist, math.inf)
+    margin = (nearest_other - t_dist).clamp(-MARGIN_CLIP, MARGIN_CLIP)
+    seen = a_mask.any(-1, keepdim=True).expand_as(t_dist).to(obs.dtype)
+    task = torch.stack([t_rel[..., 0], t_rel[..., 1], t_dist, margin, seen], dim=-1)
+    agent = torch.cat([a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)],
+                      dim=-1)
+    return Tokens(own, task * t_mask.unsqueeze(-1), t_mask, agent * a_mask.unsqueeze(-1),
+                  a_mask)
+
+
+def agent_order(obs: Tensor, layout: ObsLayout) -> Tensor:
+    """The fixed order of the AGVs along BiCNet-E's recurrence: by x, then y, then index.
+
+    Parameters
+    ----------
+    obs : Tensor, shape (B, N, O)
+
+    Returns
+    -------
+    Tensor of int64, shape (B, N)
+        ``order[b, r]`` is the AGV at rank r.
+    """
+    pos = obs[..., layout.pos]
+    by_y = torch.argsort(pos[..., 1], dim=1, stable=True)
+    x = pos[..., 0].gather(1, by_y)
+    return by_y.gather(1, torch.argsort(x, dim=1, stable=True))
+
+
+# ---------------------------------------------------------------------- networks
+def _mlp(sizes: list[int], last_relu: bool = True) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2 or last_relu:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class _AttentionPool(nn.Module):
+    """Masked single-head attention of a query (the own-state embedding) over tokens.
+
+    A slot whose mask is 0 gets weight exactly 0 and its value is zeroed before the sum, so
+    its content never reaches the output; with no visible token the pooled vector is 0.
+    """
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.query = nn.Linear(hidden, hidden, bias=False)
+        self.key = nn.Linear(hidden, hidden, bias=False)
+        self.scale = 1.0 / math.sqrt(hidden)
+
+    def forward(self, own: Tensor, emb: Tensor, mask: Tensor) -> Tensor:
+        """(..., H), (..., K, H), (..., K) bool -> (..., H)."""
+        if emb.shape[-2] == 0:
+            return own.new_zeros(own.shape)
+        # q . (W_k e) = (q W_k) . e: one (H, H) product per AGV, not one per token; K is
+        # small (<= 6 here), so a broadcast product beats K-long batched matrix products
+        qk = self.query(own) @ self.key.weight
+        logits = (qk.unsqueeze(-2) * emb).sum(-1) * self.scale
+        logits = logits.masked_fill(~mask, -1e9)  # exp(-1e9 - top) is exactly 0
+        top = logits.amax(-1, keepdim=True).detach()
+        w = torch.exp(logits - top) * mask
+        w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
+        values = emb.masked_fill(~mask.unsqueeze(-1), 0.0)
+        return (w.unsqueeze(-1) * values).sum(-2)
+
+
+class EntityEncoder(nn.Module):
+    """Own state + task tokens + AGV tokens -> one embedding per AGV, (B, N, H).
+
+    Token encoders are shared by all slots (and all AGVs); each kind of token is pooled by
+    masked attention with the own-state embedding as the query.
+    """
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.own = _mlp([SELF_FEATURES, hidden])
+        self.task = _mlp([TASK_TOKEN_FEATURES, hidden])
+        self.agent = _mlp([AGENT_TOKEN_FEATURES, hidden])
+        self.task_pool = _AttentionPool(hidden)
+        self.agent_pool = _AttentionPool(hidden)
+        self.out = _mlp([3 * hidden, hidden])
+
+    def forward(self, tok: Tokens) -> Tensor:
+        """Tokens -> (B, N, H)."""
+        own = self.own(tok.own)
+        task = self.task_pool(own, self.task(tok.task), tok.task_mask)
+        agent = self.agent_pool(own, self.agent(tok.agent), tok.agent_mask)
+        return self.out(torch.cat([own, task, agent], dim=-1))
+
+
+class EntityActor(nn.Module):
+    """Decentralized actor: AGV i's tokens -> its pre-tanh action, (B, N, 2)."""
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.encoder = EntityEncoder(hidden)
+        self.head = _mlp([hidden, hidden, 2], last_relu=False)
+
+    def forward(self, tok: Tokens, order: Tensor | None = None) -> Tensor:
+        """Tokens -> (B, N, 2) (``order`` unused: no communication)."""
+        return self.head(self.encoder(tok))
+
+
+class PooledCritic(nn.Module):
+    """MADDPG-E's centralized critic, shared by the AGVs.
+
+    Q_i = f(z_i, mean_{j != i} z_j) with z_j = g(encoder(o_j), a_j): every AGV's observation
+    and action reach every Q through the mean, whose cost is linear in N and whose weights
+    do not depend on N (Lowe et al. concatenate all N observations and actions instead).
+    """
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.encoder = EntityEncoder(hidden)
+        self.joint = _mlp([hidden + 2, hidden])
+        self.head = _mlp([2 * hidden, hidden, 1], last_relu=False)
+
+    def embed(self, tok: Tokens, action: Tensor, encoded: Tensor | None = None) -> Tensor:
+        """z, (B, N, H): each AGV's (observation, action) embedding (``encoded``: the
+        encoder's output for ``tok`` when already computed)."""
+        enc = self.encoder(tok) if encoded is None else encoded
+        return self.joint(torch.cat([enc, action], dim=-1))
+
+    @staticmethod
+    def others(z: Tensor) -> Tensor:
+        """The mean of the other AGVs' embeddings, (B, N, H) (0 when N = 1)."""
+        n = z.shape[1]
+        return (z.sum(1, keepdim=True) - z) / max(n - 1, 1)
+
+    def q(self, z_own: Tensor, z_others: Tensor) -> Tensor:
+        """(B, N, H), (B, N, H) -> (B, N)."""
+        return self.head(torch.cat([z_own, z_others], dim=-1)).squeeze(-1)
+
+    def forward(self, tok: Tokens, action: Tensor, order: Tensor | None = None) -> Tensor:
+        """Q_i(o, a) for every AGV, (B, N)."""
+        z = self.embed(tok, action)
+        return self.q(z, self.others(z))
+
+
+class SortedBiRNN(nn.Module):
+    """BiCNet-E's network: entity embeddings -> bidirectional GRU along the AGVs taken in a
+    fixed order (:func:`agent_order`) -> shared output layers.
+
+    Parameters
+    ----------
+    hidden : int
+    out_features : int
+        2 (actor) or 1 (critic).
+    action_input : bool
+        Whether the AGV's action joins its embedding before the recurrence (critic).
+    """
+
+    def __init__(self, hidden: int, out_features: int, action_input: bool = False) -> None:
+        super().__init__()
+        self.encoder = EntityEncoder(hidden)
+        self.action_input = action_input
+        self.inp = _mlp([hidden + (2 if action_input else 0), hidden])
+        self.rnn = nn.GRU(hidden, hidden, batch_first=True, bidirectional=True)
+        self.head = _mlp([2 * hidden, hidden, out_features], last_relu=False)
+
+    def forward(self, tok: Tokens, order: Tensor, action: Tensor | None = None) -> Tensor:
+        """(B, N, out): the AGVs' outputs in their own (index) order."""
+        h = self.encoder(tok)
+        if self.action_input:
+            if action is None:
+                raise ValueError("the BiCNet-E critic needs the actions")
+            h = torch.cat([h, action], dim=-1)
+        h = self.inp(h)
+        at = order.unsqueeze(-1).expand_as(h)
+        h, _ = self.rnn(h.gather(1, at))
+        out = self.head(h)
+        return torch.empty_like(out).scatter_(1, order.unsqueeze(-1).expand_as(out), out)
+
+
+# ---------------------------------------------------------------------- learners
+@dataclass
+class EntityConfig(OffPolicyConfig):
+    """Hyperparameters of the entity learners (``OffPolicyConfig``'s, and ``shield``)."""
+
+    hidden: int = 32
+    """Width of every layer (token encoders, attention, heads, GRU directions)."""
+    batch_size: int = 512
+    """Joint transitions per gradient update (each holds N AGVs' experience)."""
+    shield: bool = False
+    """Train with :class:`allocator.shield.SafetyShield` in the loop: the exploring action
+    goes through the shield, and the shield's action (what the simulator executed) is what is
+    stored and what the critic is trained on."""
+
+    def validate(self) -> None:
+        """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield`` too."""
+        super().validate()
+        self.shield = check_bool("shield", self.shield)
+
+
+@dataclass
+class MADDPGEConfig(EntityConfig):
+    """Hyperparameters of MADDPG-E (:class:`MADDPGE`)."""
+
+
+@dataclass
+class BiCNetEConfig(EntityConfig):
+    """Hyperparameters of BiCNet-E (:class:`BiCNetE`)."""
+
+
+class EntityLearner(ActorCritic):
+    """What MADDPG-E and BiCNet-E share: token parsing, the observation layout, acting.
+
+    Parameters
+    ----------
+    obs_dim, state_dim, num_agents : int
+        The sizes of the scenario it is built for (the weights depend on none of them; the
+        layout of the observations is inferred from N and O, see :func:`infer_layout`, until
+        :meth:`reset` or :meth:`set_layout` gives it).
+    config : EntityConfig
+    """
+
+    def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
+                 config: EntityConfig) -> None:
+        super().__init__(obs_dim, state_dim, num_agents, config)
+        self.layout: ObsLayout | None = None
+
+    def set_layout(self, layout: ObsLayout) -> None:
+        """Read observations with this layout from now on."""
+        if not isinstance(layout, ObsLayout):
+            raise ValueError(f"layout must be a sim.observations.ObsLayout, got "
+                             f"{type(layout).__name__}")
+        self.layout = layout
+
+    def reset(self, env: Any) -> None:
+        """Take the observation layout of ``env`` (called by :func:`sim.evaluate`).
+
+        Raises
+        ------
+        ValueError
+            For a lifelong env (its observations are not read by these networks yet).
+        """
+        layout = getattr(env, "obs_layout", None)
+        if not isinstance(layout, ObsLayout):
+            raise ValueError(f"{self.name} reads the episodic observations (ObsLayout); "
+                             f"{type(env).__name__} has {type(layout).__name__}")
+        self.set_layout(layout)
+
+    def _layout(self, obs: Tensor) -> ObsLayout:
+        if obs.dim() != 3:
+            raise ValueError(f"observations must have shape (B, N, O), got {tuple(obs.shape)}")
+        if self.layout is not None and self.layout.size == obs.shape[-1]:
+            return self.layout
+        return infer_layout(obs.shape[1], obs.shape[-1])
+
+    def _read(self, obs: Tensor) -> tuple[Tokens, Tensor]:
+        layout = self._layout(obs)
+        return tokens(obs, layout), agent_order(obs, layout)
+
+    def policy(self, obs: Tensor, target: bool = False) -> Tensor:
+        """Deterministic actions, (B, N, O) -> (B, N, 2), zero for parked AGVs."""
+        return self._policy(obs, *self._read(obs), target)
+
+    def _policy(self, obs: Tensor, tok: Tokens, order: Tensor, target: bool) -> Tensor:
+        net = self.target_actor if target else self.actor
+        a = torch.tanh(net(tok, order))
+        return a * movable_mask(obs) if self.config.mask_parked else a
+
+    def _clip_step(self, params: list[Tensor], grads: tuple[Tensor, ...],
+                   optimizer: torch.optim.Optimizer) -> None:
+        for p, g in zip(params, grads, strict=True):
+            p.grad = g
+        torch.nn.utils.clip_grad_norm_(params, self.config.grad_clip)
+        optimizer.step()
+
+
+class MADDPGE(EntityLearner):
+    """MADDPG over entity tokens: shared decentralized actor, shared pooled centralized critic.
+
+    Updates (mean over the batch and the AGVs, so that the step size does not depend on N):
+
+    * critic: L = mean_{b, i} (Q_i(o, a) - y_i)^2, y_i = r_i + gamma Q'_i(o', mu'(o'));
+    * actor: J = mean over movable AGVs of Q_i(o, a_1..mu(o_i)..a_N), the other AGVs' actions
+      as stored (Lowe et al.'s per-agent gradient), plus the L2 penalty on the pre-tanh
+      actions.
+    """
+
+    name = "maddpg-e"
+
+    def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
+                 config: MADDPGEConfig | None = None) -> None:
+        config = config or MADDPGEConfig()
+        super().__init__(obs_dim, state_dim, num_agents, config)
+        self.actor = EntityActor(config.hidden)
+        self.critic = PooledCritic(config.hidden)
+        self._finish_init()
+
+    def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:
+        """Per-AGV Q, (B, N, O), (B, N, 2) -> (B, N)."""
+        net = self.target_critic if target else self.critic
+        return net(self._read(obs)[0], action)
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One MADDPG-E update (see the class docstring); returns the losses and mean Q."""
+        cfg = self.config
+        with torch.no_grad():
+            tok2, order2 = self._read(batch.next_obs)
+            next_action = self._policy(batch.next_obs, tok2, order2, True)
+            y = self.td_target(batch, self.target_critic(tok2, next_action))
+        tok, order = self._read(batch.obs)
+        q = self.critic(tok, batch.action)
+        critic_loss = (q - y).pow(2).mean()
+        critic_params = list(self.critic.parameters())
+        self._clip_step(critic_params, torch.autograd.grad(critic_loss, critic_params),
+                        self.critic_optimizer)
+
+        movable = movable_mask(batch.obs).squeeze(-1) if cfg.mask_parked \
+            else torch.ones_like(q)
+        pre = self.actor(tok, order)
+        mu = torch.tanh(pre) * movable.unsqueeze(-1)
+        with torch.no_grad():  # the critic's side does not depend on the actor's weights
+            encoded = self.critic.encoder(tok)
+            others = self.critic.others(self.critic.embed(tok, batch.action, encoded))
+        q_pi = self.critic.q(self.critic.embed(tok, mu, encoded), others)
+        actor_loss = -(q_pi * movable).sum() / movable.sum().clamp_min(1.0)
+        reg = cfg.action_l2 * pre.pow(2).mean()
+        actor_params = list(self.actor.parameters())
+        self._clip_step(actor_params, torch.autograd.grad(actor_loss + reg, actor_params),
+                        self.actor_optimizer)
+        self._soft_update()
+        self.updates += 1
+        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(),
+                "q": q.detach().mean().item()}
+
+
+class BiCNetE(EntityLearner):
+    """BiCNet over entity tokens: the bidirectional GRU runs along the AGVs in a fixed order
+    (:func:`agent_order`), after a shared entity encoder, in the actor and in the critic.
+
+    Updates: critic L = mean_{b, i} (Q_i(o, a) - y_i)^2; actor J = mean_{b, i} Q_i(o, mu(o))
+    (BiCNet's sum over i, divided by N so that the step size does not depend on N).
+    """
+
+    name = "bicnet-e"
+
+    def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
+                 config: BiCNetEConfig | None = None) -> None:
+        config = config or BiCNetEConfig()
+        super().__init__(obs_dim, state_dim, num_agents, config)
+        self.actor = SortedBiRNN(config.hidden, 2)
+        self.critic = SortedBiRNN(config.hidden, 1, action_input=True)
+        self._finish_init()
+
+    def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:
+        """Per-AGV Q, (B, N, O), (B, N, 2) -> (B, N)."""
+        net = self.target_critic if target else self.critic
+        tok, order = self._read(obs)
+        return net(tok, order, action).squeeze(-1)
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One BiCNet-E update (see the class docstring); returns the losses and mean Q."""
+        cfg = self.config
+        with torch.no_grad():
+            tok2, order2 = self._read(batch.next_obs)
+            next_action = self._policy(batch.next_obs, tok2, order2, True)
+            y = self.td_target(batch, self.target_critic(tok2, order2, next_action).squeeze(-1))
+        tok, order = self._read(batch.obs)
+        q = self.critic(tok, order, batch.action).squeeze(-1)
+        critic_loss = (q - y).pow(2).mean()
+        critic_params = list(self.critic.parameters())
+        self._clip_step(critic_params, torch.autograd.grad(critic_loss, critic_params),
+                        self.critic_optimizer)
+
+        pre = self.actor(tok, order)
+        mu = torch.tanh(pre) * (movable_mask(batch.obs) if cfg.mask_parked else 1.0)
+        actor_loss = -self.critic(tok, order, mu).mean()
+        reg = cfg.action_l2 * pre.pow(2).mean()
+        actor_params = list(self.actor.parameters())
+        self._clip_step(actor_params, torch.autograd.grad(actor_loss + reg, actor_params),
+                        self.actor_optimizer)
+        self._soft_update()
+        self.updates += 1
+        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(),
+                "q": q.detach().mean().item()}

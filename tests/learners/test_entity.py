@@ -1,0 +1,211 @@
+"""The entity-token learners (``learners/entity.py``): shapes, masks, permutation invariance
+over the tokens and equivariance over the AGVs, any-N forward, parameter counts independent of
+N, the updates, bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import sim
+from learners.algorithms import ENTITY_ALGORITHMS, make_learner
+from learners.entity import (
+    AGENT_TOKEN_FEATURES,
+    MARGIN_CLIP,
+    TASK_TOKEN_FEATURES,
+    EntityConfig,
+    agent_order,
+    infer_layout,
+    tokens,
+)
+from sim.observations import AGENT_FEATURES, TASK_FEATURES, ObsLayout
+from tests.learners.conftest import TINY, make_batch
+
+ALGOS = list(ENTITY_ALGORITHMS)
+
+
+def _obs(scenario: str, num_envs: int = 8, seed: int = 0, steps: int = 3) -> tuple:
+    """Observations after a few random steps (AGVs moving, some tasks claimed)."""
+    env = sim.make_env(scenario, num_envs=num_envs, seed=seed)
+    obs = env.reset()
+    gen = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        obs, *_ = env.step(torch.rand(num_envs, env.num_agents, 2, generator=gen) * 2 - 1)
+    return env, obs
+
+
+def _learner(algo: str, env: sim.AGVEnv, **over) -> torch.nn.Module:
+    torch.manual_seed(0)
+    return make_learner(algo, env.obs_dim, env.state_dim, env.num_agents, {**TINY, **over})
+
+
+def _permute_slots(obs: torch.Tensor, layout: ObsLayout, perm_t: torch.Tensor,
+                   perm_a: torch.Tensor) -> torch.Tensor:
+    out = obs.clone()
+    B, N, _ = obs.shape
+    t = obs[..., layout.tasks].reshape(B, N, layout.k_tasks, len(TASK_FEATURES))
+    a = obs[..., layout.agents].reshape(B, N, layout.k_agents, len(AGENT_FEATURES))
+    out[..., layout.tasks] = t[:, :, perm_t].reshape(B, N, -1)
+    out[..., layout.agents] = a[:, :, perm_a].reshape(B, N, -1)
+    return out
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_shapes_and_any_n_forward_with_one_set_of_weights(algo):
+    env, obs = _obs("6v6")
+    learner = _learner(algo, env)
+    n_params = sum(p.numel() for p in learner.parameters())
+    for scenario in ("1v1", "2v3", "3v3", "6v6", "10v10", "20v20", "50v50"):
+        e, o = _obs(scenario, num_envs=2, steps=1)
+        learner.reset(e)
+        a = learner.act(o)
+        assert a.shape == (2, e.num_agents, 2) and torch.isfinite(a).all()
+        assert a.abs().max() <= 1.0
+        q = learner.q_values(o, a)
+        assert q.shape == (2, e.num_agents) and torch.isfinite(q).all()
+    # the weights do not depend on N
+    other, _ = _obs("20v20", num_envs=1, steps=0)
+    assert sum(p.numel() for p in _learner(algo, other).parameters()) == n_params
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_padded_slots_do_not_change_the_output(algo):
+    env, obs = _obs("3v3", num_envs=16, steps=6)  # some tasks claimed: masked task slots
+    layout = env.obs_layout
+    learner = _learner(algo, env)
+    base = learner.act(obs)
+    q_base = learner.q_values(obs, base)
+    masked_t = obs[..., layout.tasks].reshape(16, 3, layout.k_tasks, 3)[..., 2] < 0.5
+    assert masked_t.any(), "the test needs masked task slots"
+    # 1. garbage in the masked slots (their mask bit stays 0)
+    noisy = obs.clone()
+    gen = torch.Generator().manual_seed(3)
+    t = noisy[..., layout.tasks].reshape(16, 3, layout.k_tasks, 3)
+    garbage = torch.randn(t[..., :2].shape, generator=gen) * 5
+    t[..., :2] = torch.where(masked_t.unsqueeze(-1), garbage, t[..., :2])
+    noisy[..., layout.tasks] = t.reshape(16, 3, -1)
+    assert not torch.equal(noisy, obs)
+    assert torch.equal(learner.act(noisy), base)
+    assert torch.equal(learner.q_values(noisy, base), q_base)
+    # 2. more slots, all padding: the same scene read with K = 6 task and 5 AGV slots
+    wide = ObsLayout(6, 5)
+    padded = torch.zeros(16, 3, wide.size)
+    padded[..., wide.vel] = obs[..., layout.vel]
+    padded[..., wide.pos] = obs[..., layout.pos]
+    padded[..., wide.holding] = obs[..., layout.holding]
+    padded[..., wide.tasks.start:wide.tasks.start + 3 * layout.k_tasks] = obs[..., layout.tasks]
+    padded[..., wide.agents.start:wide.agents.start + 5 * layout.k_agents] = \
+        obs[..., layout.agents]
+    learner.set_layout(wide)
+    torch.testing.assert_close(learner.act(padded), base, rtol=0, atol=1e-6)
+    torch.testing.assert_close(learner.q_values(padded, base), q_base, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_order_of_the_token_slots_does_not_matter(algo):
+    env, obs = _obs("6v6", num_envs=16, steps=4)
+    layout = env.obs_layout
+    learner = _learner(algo, env)
+    a = learner.act(obs)
+    q = learner.q_values(obs, a)
+    for seed in range(3):
+        gen = torch.Generator().manual_seed(seed)
+        perm_t = torch.randperm(layout.k_tasks, generator=gen)
+        perm_a = torch.randperm(layout.k_agents, generator=gen)
+        shuffled = _permute_slots(obs, layout, perm_t, perm_a)
+        assert not torch.equal(shuffled, obs)
+        torch.testing.assert_close(learner.act(shuffled), a, rtol=0, atol=1e-6)
+        torch.testing.assert_close(learner.q_values(shuffled, a), q, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_renumbering_the_agvs_renumbers_the_actions(algo):
+    """Equivariance over AGV indices: MADDPG-E trivially, BiCNet-E because its recurrence
+    orders the AGVs by position, not by index."""
+    env, obs = _obs("10v10", num_envs=4, steps=2)
+    learner = _learner(algo, env)
+    a = learner.act(obs)
+    q = learner.q_values(obs, a)
+    perm = torch.randperm(10, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(learner.act(obs[:, perm]), a[:, perm], rtol=0, atol=1e-6)
+    torch.testing.assert_close(learner.q_values(obs[:, perm], a[:, perm]), q[:, perm],
+                               rtol=0, atol=1e-5)
+
+
+def test_bicnet_e_communicates_and_maddpg_e_actor_does_not():
+    env, obs = _obs("6v6", num_envs=4, steps=2)
+    moved = obs.clone()
+    moved[:, 5, env.obs_layout.vel] += 0.3  # AGV 5's own velocity: only its own input
+    for algo, shared in (("maddpg-e", False), ("bicnet-e", True)):
+        learner = _learner(algo, env)
+        a, b = learner.act(obs), learner.act(moved)
+        assert not torch.equal(a[:, 5], b[:, 5])
+        assert torch.equal(a[:, :5], b[:, :5]) is not shared, algo
+        # both critics are centralized: AGV 0's Q depends on AGV 5's observation
+        assert not torch.equal(learner.q_values(obs, a)[:, 0], learner.q_values(moved, a)[:, 0])
+
+
+def test_tokens_features_and_margin():
+    layout = ObsLayout(2, 1)
+    obs = torch.zeros(1, 1, layout.size)
+    obs[0, 0, layout.vel] = torch.tensor([0.1, -0.2])
+    obs[0, 0, layout.task_rel(0)] = torch.tensor([0.3, 0.4])  # distance 0.5
+    obs[0, 0, layout.task_mask(0)] = 1.0
+    obs[0, 0, layout.agent_rel(0)] = torch.tensor([0.3, 0.0])  # 0.4 from task 0
+    obs[0, 0, layout.agent_mask(0)] = 1.0
+    tok = tokens(obs, layout)
+    assert tok.own.shape == (1, 1, 3) and tok.task.shape == (1, 1, 2, TASK_TOKEN_FEATURES)
+    assert tok.agent.shape == (1, 1, 1, AGENT_TOKEN_FEATURES)
+    torch.testing.assert_close(tok.task[0, 0, 0], torch.tensor([0.3, 0.4, 0.5, -0.1, 1.0]))
+    assert torch.equal(tok.task[0, 0, 1], torch.zeros(5))  # padded slot: all zero
+    assert tok.task_mask.tolist() == [[[True, False]]]
+    obs[0, 0, layout.agent_mask(0)] = 0.0  # no other AGV visible: margin +clip, seen 0
+    tok = tokens(obs, layout)
+    assert tok.task[0, 0, 0, 3] == MARGIN_CLIP and tok.task[0, 0, 0, 4] == 0
+    assert torch.equal(tok.agent, torch.zeros(1, 1, 1, AGENT_TOKEN_FEATURES))
+
+
+def test_agent_order_is_by_x_then_y():
+    layout = ObsLayout(0, 0)
+    obs = torch.zeros(1, 4, layout.size)
+    obs[0, :, layout.pos] = torch.tensor([[0.5, 0.0], [-0.5, 1.0], [-0.5, -1.0], [0.1, 0.0]])
+    assert agent_order(obs, layout).tolist() == [[2, 1, 3, 0]]
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_updates_change_the_weights_and_keep_them_finite(algo):
+    env, batch = make_batch("6v6", num_envs=32, reward="ipf")
+    learner = _learner(algo, env)
+    before = {k: v.clone() for k, v in learner.training_tensors().items()}
+    for _ in range(3):
+        out = learner.update(batch)
+    assert set(out) == {"critic_loss", "actor_loss", "q"}
+    after = learner.training_tensors()
+    assert all(torch.isfinite(v).all() for v in after.values() if v.is_floating_point())
+    for prefix in ("actor.", "critic."):
+        assert any(not torch.equal(before[k], after[k]) for k in after if k.startswith(prefix))
+    # the same batches on another N: the same weights keep training
+    env3, batch3 = make_batch("3v3", num_envs=32, reward="ipf")
+    learner.update(batch3)
+    assert learner.updates == 4
+
+
+def test_layout_inference_and_bad_input():
+    assert infer_layout(3, 24) == ObsLayout(3, 2)
+    assert infer_layout(50, 48) == ObsLayout(6, 5)
+    with pytest.raises(ValueError, match="cannot read observations of size 25"):
+        infer_layout(3, 25)
+    env, obs = _obs("3v3", num_envs=2, steps=0)
+    learner = _learner("maddpg-e", env)
+    with pytest.raises(ValueError, match="cannot read observations"):
+        learner.act(obs[..., :-1])
+    with pytest.raises(ValueError, match=r"shape \(B, N, O\)"):
+        learner.act(obs[0])
+    with pytest.raises(ValueError, match="ObsLayout"):
+        learner.set_layout((3, 2))
+    with pytest.raises(ValueError, match="lifelong|ObsLayout"):
+        learner.reset(sim.make_env("warehouse-20", num_envs=1, seed=0))
+    with pytest.raises(ValueError, match="shield"):
+        EntityConfig(shield="yes")
+    with pytest.raises(ValueError, match="hidden"):
+        EntityConfig(hidden=0)
