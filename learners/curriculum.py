@@ -23,6 +23,7 @@ import dataclasses
 import json
 import os
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -130,6 +131,7 @@ def train_curriculum(
     learner_config: Any = None,
     *,
     resume: bool = False,
+    on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
 ) -> TrainResult:
     """Train one entity learner through the stages (see the module docstring).
 
@@ -145,6 +147,8 @@ def train_curriculum(
     resume : bool
         Continue the curriculum in ``config.run_dir``; its stages and settings must be the
         recorded ones (a later stage may be appended).
+    on_checkpoint : callable, optional
+        Passed to every stage's :func:`train` (tests use it to simulate a crash).
 
     Returns
     -------
@@ -208,9 +212,9 @@ def train_curriculum(
             previous = folder / "checkpoint.safetensors"
             continue
         if (folder / "checkpoint.safetensors").is_file():
-            result = train(stage_config, cfg, resume=True)
+            result = train(stage_config, cfg, resume=True, on_checkpoint=on_checkpoint)
         else:
-            result = train(stage_config, cfg, init_from=previous)
+            result = train(stage_config, cfg, init_from=previous, on_checkpoint=on_checkpoint)
         if result.interrupted:
             return result
         atomic_write_text(done, json.dumps({"episodes": result.episodes,

@@ -1,0 +1,170 @@
+"""Training over a curriculum of fleet sizes (``learners/curriculum.py``, ``agv train
+--curriculum``), the shield in the training loop, and ``train(init_from=...)``."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+
+from learners.cli import add_train_arguments, run_train
+from learners.curriculum import Stage, load_curriculum, parse_curriculum, train_curriculum
+from learners.train import TrainConfig, train
+from tests.learners.conftest import TINY
+
+STAGES = "3v3:16,5v5:16"
+
+
+def _config(run_dir, algo: str = "maddpg-e", seed: int = 2) -> TrainConfig:
+    return TrainConfig(algo=algo, reward="ipf", scenario="3v3", episodes=1, seed=seed,
+                       run_dir=str(run_dir), eval_every=16, eval_episodes=4, log_every=8,
+                       checkpoint_every=8, progress=False, tensorboard=False)
+
+
+def _weights(learner) -> dict[str, torch.Tensor]:
+    return learner.training_tensors()
+
+
+def _rows(path) -> list[dict[str, str]]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+class _Crash(Exception):
+    pass
+
+
+def test_parse_curriculum_and_bad_values():
+    assert parse_curriculum(" 3v3:10, 6v6:20 ") == [Stage("3v3", 10), Stage("6v6", 20)]
+    assert parse_curriculum([("3v3", 5)]) == [Stage("3v3", 5)]
+    for bad, match in (("", "at least one stage"), ("3v3", "SCENARIO:EPISODES"),
+                       ("3v3:0", "positive integer|>= 1"), ("3v3:1.5", "positive integer"),
+                       ("nope:10", "unknown scenario"), ("warehouse-20:10", "lifelong"),
+                       ("3v3:10:2", "positive integer")):
+        with pytest.raises(ValueError, match=match):
+            parse_curriculum(bad)
+    with pytest.raises(ValueError, match="list of stages"):
+        parse_curriculum(3)
+    with pytest.raises(ValueError, match="do not depend on N"):
+        train_curriculum(TrainConfig(algo="maddpg", progress=False), "3v3:4")
+
+
+@pytest.mark.parametrize("algo", ["maddpg-e", "bicnet-e"])
+def test_curriculum_carries_the_weights_and_resumes_bit_for_bit(tmp_path, algo):
+    whole = train_curriculum(_config(tmp_path / "whole", algo), STAGES, TINY)
+    first = tmp_path / "whole" / "stage-0-3v3"
+    second = tmp_path / "whole" / "stage-1-5v5"
+    assert (first / "done.json").is_file() and (second / "done.json").is_file()
+    # stage 1 started from stage 0's weights and update count
+    assert _rows(second / "progress.csv")[0]["updates"] > "0"
+    assert whole.updates > json.loads((first / "done.json").read_text())["updates"] > 0
+    assert (tmp_path / "whole" / "policy.safetensors").is_file()
+
+    # killed right after stage 1's first periodic checkpoint, then resumed
+    def crash(counters):
+        if counters["episodes"] >= 8 and (tmp_path / "cut" / "stage-1-5v5").is_dir():
+            raise _Crash
+
+    with pytest.raises(_Crash):
+        train_curriculum(_config(tmp_path / "cut", algo), STAGES, TINY, on_checkpoint=crash)
+    assert not (tmp_path / "cut" / "stage-1-5v5" / "done.json").exists()
+    resumed = train_curriculum(_config(tmp_path / "cut", algo), STAGES, TINY, resume=True)
+    assert (resumed.episodes, resumed.env_steps, resumed.updates) == (
+        whole.episodes, whole.env_steps, whole.updates)
+    wa, wb = _weights(whole.learner), _weights(resumed.learner)
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    for stage in ("stage-0-3v3", "stage-1-5v5"):
+        keep = ("episode", "env_steps", "updates", "train_response_rate", "eval_response_rate")
+        a = [{k: r[k] for k in keep} for r in _rows(tmp_path / "whole" / stage / "progress.csv")]
+        b = [{k: r[k] for k in keep} for r in _rows(tmp_path / "cut" / stage / "progress.csv")]
+        assert a == b
+
+    # a stage appended on resume starts from the last one; everything else must match
+    config, stages, learner = load_curriculum(tmp_path / "whole")
+    assert stages == parse_curriculum(STAGES) and learner["hidden"] == TINY["hidden"]
+    with pytest.raises(ValueError, match="keeps those stages"):
+        train_curriculum(_config(tmp_path / "whole", algo), "3v3:16,6v6:16", TINY, resume=True)
+    with pytest.raises(ValueError, match="different hyperparameters"):
+        train_curriculum(_config(tmp_path / "whole", algo), STAGES, {**TINY, "hidden": 8},
+                         resume=True)
+    with pytest.raises(ValueError, match="seed"):
+        train_curriculum(_config(tmp_path / "whole", algo, seed=3), STAGES, TINY, resume=True)
+    with pytest.raises(ValueError, match="already holds a curriculum"):
+        train_curriculum(_config(tmp_path / "whole", algo), STAGES, TINY)
+    with pytest.raises(ValueError, match="nothing to resume"):
+        train_curriculum(_config(tmp_path / "none", algo), STAGES, TINY, resume=True)
+
+
+def test_init_from_checks_what_it_starts_from(tmp_path):
+    first = _config(tmp_path / "a")
+    first.episodes = 8
+    base = train(first, TINY)
+    ckpt = base.run_dir / "checkpoint.safetensors"
+    other = _config(tmp_path / "b")
+    other.episodes = 8
+    with pytest.raises(ValueError, match="other hyperparameters"):
+        train(other, {**TINY, "tau": 0.5}, init_from=ckpt)
+    other.algo = "bicnet-e"
+    with pytest.raises(ValueError, match="algo='maddpg-e'"):
+        train(other, TINY, init_from=ckpt)
+    plain = _config(tmp_path / "c")
+    plain.algo = "maddpg"
+    with pytest.raises(ValueError, match="do not depend on N"):
+        train(plain, TINY, init_from=ckpt)
+    started = _config(tmp_path / "d")
+    started.scenario, started.episodes = "4v4", 8
+    result = train(started, TINY, init_from=ckpt)
+    assert result.updates > base.updates  # the update count carried over
+
+
+def test_shield_in_the_loop_stores_the_executed_actions(tmp_path):
+    """With shield=True the actions executed (and stored) are the shield's: no training step
+    has overlapping AGVs (the collision reward term stays 0), while the same exploration
+    without the shield collides; the stored actions differ between the two runs."""
+    from learners.checkpoint import load_checkpoint
+
+    out = {}
+    for shield in (False, True):
+        config = _config(tmp_path / f"s{shield}")
+        config.scenario, config.episodes, config.log_every = "6v6", 16, 16
+        result = train(config, {**TINY, "shield": shield, "learning_starts": 2000})
+        assert result.learner.config.shield is shield
+        tensors, meta = load_checkpoint(result.run_dir / "checkpoint.safetensors")
+        assert meta["config"]["shield"] is shield
+        row = _rows(result.run_dir / "progress.csv")[-1]
+        out[shield] = (float(row["train_term_collision"]), tensors["buffer.action"])
+    assert out[False][0] < 0.0 and out[True][0] == 0.0
+    n = min(len(out[False][1]), len(out[True][1]))
+    assert not torch.equal(out[False][1][:n], out[True][1][:n])
+    assert out[True][1].abs().max() <= 1.0
+
+
+def test_agv_train_curriculum_cli(tmp_path, capsys):
+    run_dir = tmp_path / "cli"
+    args = ["--algo", "maddpg-e", "--reward", "ipf", "--curriculum", "3v3:8,4v4:8",
+            "--run-dir", str(run_dir), "--eval-every", "8", "--eval-episodes", "2",
+            "--checkpoint-every", "8", "--no-progress", "--set", "hidden=16",
+            "--set", "batch_size=32", "--set", "num_envs=8", "--set", "learning_starts=64",
+            "--set", "buffer_size=2000"]
+    import argparse
+
+    def cli(argv):
+        parser = argparse.ArgumentParser()
+        add_train_arguments(parser)
+        return run_train(parser.parse_args(argv))
+
+    assert cli(args) == 0
+    assert (run_dir / "stage-1-4v4" / "done.json").is_file()
+    assert cli(["--resume", str(run_dir), "--no-progress"]) == 0  # done: nothing to run
+    assert cli(["--algo", "maddpg", "--curriculum", "3v3:8", "--run-dir",
+                str(tmp_path / "x"), "--no-progress"]) == 2
+    assert "do not depend on N" in capsys.readouterr().err
+    assert cli(["--algo", "maddpg-e", "--curriculum", "3v3:x", "--run-dir",
+                str(tmp_path / "y"), "--no-progress"]) == 2
+    assert "positive integer" in capsys.readouterr().err
+    assert cli(["--algo", "maddpg-e", "--curriculum", "3v3:8", "--scenario", "3v3",
+                "--run-dir", str(tmp_path / "z"), "--no-progress"]) == 2
+    assert "leave out --scenario" in capsys.readouterr().err
