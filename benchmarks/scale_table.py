@@ -3,6 +3,7 @@
     python benchmarks/scale_table.py [--sizes 3 6 10 20 50 100] [--episodes 100 100 50 20 10 5]
         [--floors warehouse-20 warehouse-50 warehouse-100] [--lifelong-steps 1000]
         [--seed 0] [--quick] [--out benchmarks/results/scale]
+        [--methods hungarian maddpg-ipf ...] [--any-n] [--entity POLICY.safetensors ...]
 
 Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
 ``fifo`` and ``auction`` (its radio range equal to the scenario's sensing range, so that the
@@ -13,6 +14,13 @@ through :func:`sim.evaluate` on the same seeded episodes. Columns: task response
 time (steps until every task is claimed, the step limit where not), that time over
 Hungarian's, overlapping AGV pairs summed over an episode's steps (averaged), the shield's
 interventions per movable AGV-step, wall-clock seconds.
+
+Any-N rows (issue 17): ``--any-n`` adds ``maddpg-ipf`` / ``bicnet-ipf`` with the shipped
+any-N weights (``allocator/weights/any``, the entity-token learners of
+:mod:`learners.entity`) at every N, and ``--entity FILE`` the policy file of an entity learner
+run (e.g. ``runs/.../best.safetensors``), plain and shielded, named ``<algo>-<reward> any-N``
+and ``FILE's algo-reward (FILE)``. ``--methods`` keeps only the named rows (``hungarian`` is
+always run: the time column is relative to it).
 
 Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
 ``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) with their default
@@ -56,6 +64,17 @@ LIFELONG_COMM_RANGE = 3.0
 
 def episodic_method(name: str, n: int, shield: bool, sensing_range: float) -> Any:
     """The controller for one episodic row."""
+    if name.endswith(" any-N"):
+        return allocator.make(name.split()[0], scenario=f"{n}v{n}", shield=shield,
+                              weights="any")
+    if name.startswith("entity:"):
+        from learners.checkpoint import read_metadata
+
+        path = name.split(":", 1)[1]
+        meta = read_metadata(path)
+        family = meta["algo"].removesuffix("-e")
+        return allocator.make(f"{family}-{meta['reward']}", scenario=f"{n}v{n}",
+                              shield=shield, checkpoint=path)
     if name in LEARNED:
         weights = "3v3" if n <= 3 else "6v6"
         return allocator.make(name, scenario=weights, shield=shield)
@@ -87,14 +106,25 @@ class OverlapCounter:
         return self.controller.act(obs)
 
 
-def episodic_rows(sizes: list[int], episodes: list[int], seed: int) -> list[dict]:
+def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
+                  methods: list[str] | None = None, any_n: bool = False,
+                  entity: list[str] | None = None) -> list[dict]:
     rows = []
+    learned = list(LEARNED)
+    if any_n:
+        learned += [f"{m} any-N" for m in LEARNED]
+    learned += [f"entity:{p}" for p in entity or []]
+    keep = None if methods is None else set(methods) | {"hungarian"}
     for n, eps in zip(sizes, episodes, strict=True):
         scenario = f"{n}v{n}"
         rng = float(sim.get_scenario(scenario).sensing_range)
         hung_time = None
-        variants = [(m, False) for m in CLASSICAL] + [(m, s) for m in LEARNED
+        variants = [(m, False) for m in CLASSICAL] + [(m, s) for m in learned
                                                       for s in (False, True)]
+        if keep is not None:
+            variants = [(m, s) for m, s in variants
+                        if m in keep or m.split()[0] in keep and m.endswith("any-N")
+                        or m.startswith("entity:")]
         for name, shield in variants:
             ctl = episodic_method(name, n, shield, rng)
             t = time.perf_counter()
@@ -154,7 +184,9 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
         f"`{command}` on {platform.machine()}, Python {platform.python_version()}, torch "
         f"{torch.__version__}, {stamp}; seed {seed} (the same episodes and orders for every "
         "method). Learned rows: the shipped weights (3v3 at N = 3, 6v6 zero-shot above), "
-        "plain and shielded (`shield=True`). Auction: radio range = the scenario's sensing "
+        "plain and shielded (`shield=True`); `any-N` rows: the shipped any-N weights "
+        "(`allocator/weights/any`), `entity:FILE` rows: an entity learner's policy file, "
+        "both run zero-shot at every N. Auction: radio range = the scenario's sensing "
         "range (episodic), 3.0 (lifelong).",
         "",
         "## Episodic (`NvN`)",
@@ -231,6 +263,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="3 6 20, few episodes, one floor")
     p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--methods", nargs="+", default=None,
+                   help="episodic rows to run (default all; hungarian is always run)")
+    p.add_argument("--any-n", action="store_true",
+                   help="add the learned rows with the shipped any-N weights")
+    p.add_argument("--entity", nargs="+", default=[], metavar="FILE",
+                   help="add rows for these entity-learner policy files")
     args = p.parse_args(argv)
     if args.quick:
         args.sizes, args.episodes = [3, 6, 20], [20, 20, 4]
@@ -246,7 +284,8 @@ def main(argv: list[str] | None = None) -> None:
         p.error("--lifelong-steps must be a positive integer")
     torch.set_num_threads(1)
     np.seterr(all="ignore")
-    rows = episodic_rows(args.sizes, episodes, args.seed)
+    rows = episodic_rows(args.sizes, episodes, args.seed, args.methods, args.any_n,
+                         args.entity)
     rows += lifelong_rows(args.floors, args.lifelong_steps, args.seed)
     given = sys.argv[1:] if argv is None else argv
     write(rows, args.out, " ".join(["python benchmarks/scale_table.py", *given]), args.seed)

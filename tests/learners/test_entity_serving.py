@@ -1,0 +1,99 @@
+"""Serving the entity learners' weights (any N) through the learned allocators
+(``allocator/learned.py``: ``weights=``, ``allocator/weights/any``) and the scale table's
+any-N rows."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import allocator
+import sim
+from allocator.learned import MissingWeightsError, any_n_weights_path, weights_path
+from learners.train import TrainConfig, train
+from tests.learners.conftest import TINY
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def entity_policy(tmp_path_factory) -> Path:
+    run = tmp_path_factory.mktemp("entity") / "run"
+    train(TrainConfig(algo="maddpg-e", reward="ipf", scenario="3v3", episodes=8, seed=1,
+                      run_dir=str(run), eval_every=8, eval_episodes=2, checkpoint_every=8,
+                      progress=False, tensorboard=False), TINY)
+    return run / "policy.safetensors"
+
+
+@pytest.mark.parametrize("scenario", ["4v4", "10v10", "20v20", "7v12"])
+def test_entity_weights_drive_any_nvm(entity_policy, scenario):
+    solver = allocator.make("maddpg-ipf", scenario=scenario, checkpoint=entity_policy)
+    assert solver.any_n
+    m = sim.evaluate(solver, scenario, episodes=2, seed=0)
+    assert 0.0 <= m.response_rate <= 1.0
+    shielded = allocator.make("maddpg-ipf", scenario=scenario, checkpoint=entity_policy,
+                              shield=True)
+    m = sim.evaluate(shielded, scenario, episodes=2, seed=0)
+    assert m.collisions == 0 and shielded.safety.agent_steps > 0
+
+
+def test_entity_weights_assign_a_scene_of_any_size(entity_policy):
+    solver = allocator.make("maddpg-ipf", scenario="12v12", checkpoint=entity_policy,
+                            max_steps=5)
+    rng = np.random.default_rng(0)
+    agents, tasks = rng.uniform(-1.2, 1.2, (12, 2)), rng.uniform(-1.2, 1.2, (9, 2))
+    result = solver.assign(agents, tasks)
+    assert result.task_of_agent.shape == (12,) and result.agent_of_task.shape == (9,)
+    assert solver.last_trajectories.shape == (6, 12, 2)
+
+
+def test_entity_weights_bad_uses_are_clear_errors(entity_policy):
+    with pytest.raises(ValueError, match="algo='maddpg-e', expected algo='bicnet-e'"):
+        allocator.make("bicnet-ipf", scenario="20v20", checkpoint=entity_policy)
+    with pytest.raises(ValueError, match="reward='ipf', expected reward='greedy'"):
+        allocator.make("maddpg-greedy", scenario="20v20", checkpoint=entity_policy)
+    with pytest.raises(ValueError, match="lifelong floor"):
+        allocator.make("maddpg-ipf", scenario="warehouse-20", checkpoint=entity_policy)
+    with pytest.raises(ValueError, match="weights must be one of"):
+        allocator.make("maddpg-ipf", scenario="20v20", weights="all")
+
+
+def test_which_shipped_weights_are_chosen():
+    """The paper's 3v3 / 6v6 weights stay what those scenarios load; other NvM scenarios take
+    the any-N weights when they ship, and fail naming both files when they do not."""
+    for name in ("maddpg-ipf", "bicnet-ipf"):
+        algo, reward = name.split("-")
+        if weights_path(algo, reward, "6v6").is_file():
+            assert not allocator.make(name, scenario="6v6").any_n
+        anyn = any_n_weights_path(algo, reward)
+        if anyn.is_file():
+            solver = allocator.make(name, scenario="50v50")
+            assert solver.any_n and solver.checkpoint == anyn
+            assert allocator.make(name, scenario="6v6", weights="any").any_n
+        else:
+            with pytest.raises(MissingWeightsError) as info:
+                allocator.make(name, scenario="50v50")
+            msg = str(info.value)
+            assert f"50v50/{name}.safetensors" in msg and f"any/{name}.safetensors" in msg
+            assert f"--algo {algo}-e" in msg and "--curriculum" in msg
+            with pytest.raises(MissingWeightsError, match=f"any/{name}"):
+                allocator.make(name, scenario="6v6", weights="any")
+    with pytest.raises(MissingWeightsError):
+        allocator.make("maddpg-greedy", scenario="50v50", weights="scenario")
+
+
+def test_scale_table_entity_rows(entity_policy, tmp_path):
+    spec = importlib.util.spec_from_file_location("scale_table",
+                                                  ROOT / "benchmarks" / "scale_table.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    bench.main(["--sizes", "4", "--episodes", "2", "--floors", "--methods", "hungarian",
+                "--entity", str(entity_policy), "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
+    assert [(r["method"].split(":")[0], r["shield"]) for r in rows] == [
+        ("hungarian", False), ("entity", False), ("entity", True)]
+    assert rows[2]["overlaps"] == 0
