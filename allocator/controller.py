@@ -20,7 +20,10 @@
    against perfectly symmetric deadlocks); an AGV that makes no progress for a few steps while a
    neighbour blocks its way yields when that neighbour has the higher (seeded, random) priority
    (it sidesteps to its right and backs off) and otherwise turns right progressively, so that a
-   jam becomes a roundabout; an AGV stalled against a parked AGV is re-routed at once.
+   jam becomes a roundabout; an AGV stalled against a parked AGV is re-routed at once; and in
+   open worlds the plan itself is untangled (:mod:`allocator.avoidance.ordering`): tasks are
+   exchanged between AGVs where a leg would pass where another AGV parks first, above all
+   through a gap between two parked AGVs (or one and a wall) narrower than an AGV needs.
 
 The simulator moves positions with the *current* velocity before the action acts
 (``pos += vel dt``; ``vel = (1 - damping) vel + action sensitivity dt / mass``), so the
@@ -68,14 +71,18 @@ class AllocatorController:
     avoidance_options : dict, optional
         Overrides of :class:`~allocator.avoidance.AvoidanceConfig` (defaults here with the
         shield on: ``time_horizon=0.3``, ``static_time_horizon=0.15``, ``margin=0.02``; the
-        shield guarantees safety, so the QP need not be conservative), and five keys of the
+        shield guarantees safety, so the QP need not be conservative), and seven keys of the
         controller's own: ``"shield"`` (bool, default True: the braking safety filter),
         ``"liveness"`` (bool, default True: perturbation, yielding and early re-routing),
         ``"shield_margin"`` (float, default 0.01: gap kept between two AGVs' braking segments),
         ``"perturbation"`` (float, default 1e-4: size of the symmetry-breaking noise) and
         ``"detour"`` (bool, default True: steer around a standing AGV that blocks the straight
         line to the next waypoint, on the side with room, as soon as it blocks; see
-        :meth:`_detour`).
+        :meth:`_detour`), ``"untangle"`` (bool, default True: in open worlds, exchange tasks
+        of the allocator's plan so that fewer legs pass where another AGV parks first, see
+        :func:`~allocator.avoidance.ordering.untangle`; plans of more than
+        :attr:`UNTANGLE_MAX_AGENTS` idle AGVs are kept) and ``"untangle_weight"`` (float,
+        default 0.2: distance paid per conflict removed).
     waypoint_tolerance : float
         Distance at which an intermediate waypoint counts as reached.
     stuck_steps : int
@@ -95,6 +102,10 @@ class AllocatorController:
     timing : dict
         Seconds spent assigning, planning and avoiding.
     """
+
+    UNTANGLE_MAX_AGENTS = 32
+    """Largest number of idle AGVs whose plan :meth:`_untangle` checks (its exchange rounds
+    cost O(N^3) each)."""
 
     def __init__(
         self,
@@ -125,9 +136,14 @@ class AllocatorController:
         self.shield_margin = float(opts.pop("shield_margin", 0.01))
         self.perturbation = float(opts.pop("perturbation", 1e-4))
         self.detour = bool(opts.pop("detour", True))
+        self.untangle = bool(opts.pop("untangle", True))
+        self.untangle_weight = float(opts.pop("untangle_weight", 0.2))
         if not (np.isfinite(self.shield_margin) and self.shield_margin >= 0):
             raise ValueError(f"avoidance_options['shield_margin'] must be >= 0, got "
                              f"{self.shield_margin!r}")
+        if not (np.isfinite(self.untangle_weight) and self.untangle_weight >= 0):
+            raise ValueError(f"avoidance_options['untangle_weight'] must be >= 0, got "
+                             f"{self.untangle_weight!r}")
         if not (np.isfinite(self.perturbation) and self.perturbation >= 0):
             raise ValueError(f"avoidance_options['perturbation'] must be >= 0, got "
                              f"{self.perturbation!r}")
@@ -144,6 +160,7 @@ class AllocatorController:
         self.shield_brakes = 0
         self.yields = 0
         self.reassignments = 0
+        self.untangled = 0
         self.timing = {"assign": 0.0, "plan": 0.0, "avoid": 0.0, "shield": 0.0, "act": 0.0}
 
     # ------------------------------------------------------------------ planning
@@ -207,7 +224,10 @@ class AllocatorController:
         result = self.allocator.assign(pos[idle], tasks[open_tasks], world=world)
         self.timing["assign"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        for k, j in enumerate(result.task_of_agent):
+        plan = np.asarray(result.task_of_agent, dtype=np.int64)
+        if self.liveness and self.untangle and result.paths is None and not world.has_obstacles:
+            plan = self._untangle(pos[idle], tasks[open_tasks], plan)
+        for k, j in enumerate(plan):
             if j < 0:
                 continue
             i, task = idle[k], open_tasks[j]
@@ -221,6 +241,23 @@ class AllocatorController:
                 path = np.stack([pos[i], tasks[task]])
             self._paths[b][i] = np.asarray(path, dtype=np.float64)
         self.timing["plan"] += time.perf_counter() - t0
+
+    def _untangle(self, agents: np.ndarray, tasks: np.ndarray, plan: np.ndarray) -> np.ndarray:
+        """The allocator's plan with tasks exchanged so that fewer legs pass a parked AGV
+        (:func:`~allocator.avoidance.ordering.untangle`; straight legs, open worlds)."""
+        from allocator.avoidance.ordering import untangle
+
+        world = self._world
+        if len(agents) > self.UNTANGLE_MAX_AGENTS:
+            return plan  # O(N^3) per exchange round: large scenes keep the allocator's plan
+        step = self._cruise_speed() * world.physics.dt
+        new = untangle(agents, tasks, plan, clearance=2 * world.agent_radius + 0.03,
+                       capture=world.capture_radius, step=float(step),
+                       weight=self.untangle_weight, radius=world.agent_radius,
+                       bounds=world.bounds if world.walls else None,
+                       gate_weight=3.0)
+        self.untangled += int((new != plan).any())
+        return new
 
     def _plan(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
         if self._planner is None:

@@ -158,21 +158,53 @@ SCENES = (("3v3", "hungarian", 600), ("6v6", "hungarian", 600), ("20v20", "greed
           ("50v50", "hungarian", 40), ("warehouse", "hungarian", 200))
 
 
+def plan_fits(scenario: Any, method: str, episodes: int, seed: int) -> np.ndarray:
+    """Per test episode of :func:`sim.evaluate` (``episodes``, ``seed``): whether every leg of
+    the allocator's first plan fits the step limit (E,).
+
+    A leg of length L (straight, or the obstacle-aware grid path length of
+    :func:`allocator.paths.travel_costs` where shelves are in the way) fits when an AGV that
+    starts at rest reaches the task's capture disc within ``max_steps``: two steps to reach
+    cruise speed (the terminal speed) and ``(L - capture radius) / (cruise dt)`` more.
+    """
+    import allocator
+    from allocator.paths import travel_costs
+    from sim.evaluate import evaluation_scenes
+
+    agents, tasks = evaluation_scenes(scenario, episodes, seed)
+    world = scenario.world
+    step = world.physics.terminal_speed * world.physics.dt
+    solver = allocator.make(method)
+    fits = np.ones(episodes, dtype=bool)
+    for e in range(episodes):
+        a, t = agents[e].double().numpy(), tasks[e].double().numpy()
+        plan = np.asarray(solver.assign(a, t, world=world).task_of_agent)
+        cost = travel_costs(a, t, world)
+        k = np.flatnonzero(plan >= 0)
+        need = 2 + np.maximum(cost[k, plan[k]] - world.capture_radius, 0) / step
+        fits[e] = bool((need <= scenario.max_steps).all())
+    return fits
+
+
 def run_scenes(mode: str, scale: float = 1.0, seeds: tuple[int, ...] = (0,),
-               only: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+               only: tuple[str, ...] | None = None, untangle: bool = True,
+               ) -> list[dict[str, Any]]:
     """The paper's scenes through :func:`sim.evaluate`: overlaps, response, ms per step
-    (each seed's episodes are a separate :func:`sim.evaluate` call; the rows sum them)."""
+    (each seed's episodes are a separate :func:`sim.evaluate` call; the rows sum them), and
+    the response on the episodes whose first plan fits the step limit (:func:`plan_fits`)."""
     import allocator
     import sim
 
     off = {"shield": False, "liveness": False} if mode == "orca" else {}
+    if not untangle:
+        off["untangle"] = False
     rows = []
     for name, method, episodes in SCENES:
         if only is not None and name not in only:
             continue
         episodes = max(4, int(episodes * scale))
         scn = sim.scenarios.get_scenario(name)
-        missed = collisions = 0
+        missed = collisions = fit_missed = fit_episodes = 0
         avg_time = wall = act_s = 0.0
         calls = [0]
         brakes = yields = replans = detours = 0
@@ -190,6 +222,9 @@ def run_scenes(mode: str, scale: float = 1.0, seeds: tuple[int, ...] = (0,),
             wall += time.perf_counter() - t0
             ctl = solver.controller
             missed += int(round((1 - m.response_rate) * episodes * scn.num_tasks))
+            fits = plan_fits(scn, method, episodes, seed)
+            fit_episodes += int(fits.sum())
+            fit_missed += int((scn.num_tasks - m.claims_per_episode)[fits].sum())
             collisions += m.collisions * episodes
             avg_time += m.avg_time * episodes
             act_s += ctl.timing["act"]
@@ -200,6 +235,8 @@ def run_scenes(mode: str, scale: float = 1.0, seeds: tuple[int, ...] = (0,),
         total = episodes * len(seeds)
         row = dict(scene=name, method=method, mode=mode, episodes=total, seeds=list(seeds),
                    response_rate=1 - missed / (total * scn.num_tasks), missed_tasks=missed,
+                   plan_fits_episodes=fit_episodes, plan_fits_missed=fit_missed,
+                   response_rate_plan_fits=1 - fit_missed / max(1, fit_episodes * scn.num_tasks),
                    collisions_per_episode=collisions / total, avg_time=avg_time / total,
                    wall_s=wall, act_ms_per_step=1e3 * act_s / max(1, calls[0]),
                    shield_brakes=brakes, yields=yields, replans=replans, detours=detours)
@@ -251,6 +288,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scale", type=float, default=1.0, help="episodes factor for --scenes")
     p.add_argument("--seeds", default="0", help="--scenes: evaluation seeds, comma-separated")
     p.add_argument("--only", default="", help="--scenes: only these scenes (comma-separated)")
+    p.add_argument("--no-untangle", action="store_true",
+                   help="--scenes: the controller without the plan untangling (before)")
     p.add_argument("--figure", action="store_true", help="docs/figures/safety_antipodal.png")
     args = p.parse_args(argv)
     import torch
@@ -266,18 +305,20 @@ def main(argv: list[str] | None = None) -> None:
     if args.scenes:
         seeds = tuple(int(x) for x in args.seeds.split(","))
         only = tuple(args.only.split(",")) if args.only else None
-        rows = run_scenes(args.mode, args.scale, seeds, only)
+        rows = run_scenes(args.mode, args.scale, seeds, only, untangle=not args.no_untangle)
         doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
                    date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
         atomic_write(OUT / f"scenes-{args.label}.json", json.dumps(doc, indent=1))
         lines = [f"# Episodic scenes ({args.label})", "", f"Command: `{doc['command']}`; "
                  f"date {doc['date']}; seeds {args.seeds}; 1 thread.", "",
-                 "| scene | method | episodes | response | missed tasks | overlapping pairs "
+                 "| scene | method | episodes | response | missed tasks | episodes whose plan "
+                 "fits the step limit | response on those | overlapping pairs "
                  "per episode | avg time | act ms/step | shield brakes | yields |",
-                 "|---|---|---|---|---|---|---|---|---|---|"]
+                 "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             lines.append(f"| {r['scene']} | {r['method']} | {r['episodes']} | "
                          f"{r['response_rate']:.4f} | {r['missed_tasks']} | "
+                         f"{r['plan_fits_episodes']} | {r['response_rate_plan_fits']:.4f} | "
                          f"{r['collisions_per_episode']:.4f} | {r['avg_time']:.2f} | "
                          f"{r['act_ms_per_step']:.2f} | {r['shield_brakes']} | {r['yields']} |")
         atomic_write(OUT / f"scenes-{args.label}.md", "\n".join(lines) + "\n")
