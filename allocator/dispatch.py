@@ -46,7 +46,7 @@ from allocator.distances import FloorDistances
 from allocator.lap import IncrementalLAP, _lookup, _sub
 
 __all__ = ["AuctionDispatcher", "FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher",
-           "MatchingDispatcher", "WaypointDriver", "at_risk", "lateness"]
+           "MatchingDispatcher", "WaypointDriver", "at_risk", "lateness", "next_empty"]
 
 _OPEN, _ASSIGNED = 1, 2
 _IDLE, _TO_PICKUP, _LOADED, _BROKEN = 0, 1, 2, 3
@@ -85,6 +85,51 @@ def lateness(eta: np.ndarray, latest: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         late = eta - latest[None, :]
     return np.where(late > 0, late, 0.0)
+
+
+def next_empty(distances: FloorDistances, dropoff: np.ndarray, pickup: np.ndarray,
+               k: int = 1) -> np.ndarray:
+    """The empty trip each order leaves behind: from its drop-off to the other open pickups.
+
+    For order j, the mean travel from ``dropoff[j]`` to the ``k`` nearest pickups of the
+    other orders (all of them when there are fewer; 0 for a lone order). An order that ends
+    near other pickups shortens the next empty trip of the AGV that serves it.
+
+    Parameters
+    ----------
+    distances : FloorDistances
+    dropoff : np.ndarray, shape (O, 2)
+    pickup : np.ndarray, shape (O, 2)
+    k : int
+        Nearest pickups averaged, >= 1.
+
+    Returns
+    -------
+    np.ndarray of float64, shape (O,)
+        World units (an unreachable pickup counts 0: it says nothing of the next trip).
+    """
+    n = len(pickup)
+    if n < 2:
+        return np.zeros(n)
+    # Drop-offs repeat (stations): one row of the table per distinct point.
+    uniq, inv = np.unique(dropoff, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    kk = min(k, n - 1)
+    d = distances.distance(uniq, pickup)  # (U, O)
+    # The kk + 1 nearest of each row; order j drops its own pickup when it is among them.
+    near = np.argpartition(d, kk, axis=1)[:, :kk + 1] if kk + 1 < n else \
+        np.broadcast_to(np.arange(n), (len(uniq), n))
+    vals = np.take_along_axis(d, near, axis=1)  # (U, kk + 1)
+    order = np.argsort(vals, axis=1)
+    vals = np.take_along_axis(vals, order, axis=1)
+    near = np.take_along_axis(near, order, axis=1)
+    rows_v, rows_n = vals[inv], near[inv]  # (O, kk + 1)
+    own = rows_n == np.arange(n)[:, None]
+    keep = ~own
+    # Without its own pickup among them, an order keeps the first kk (drop the farthest).
+    keep[~own.any(axis=1), kk] = False
+    keep &= np.isfinite(rows_v)
+    return np.where(keep, rows_v, 0.0).sum(axis=1) / kk
 
 
 def at_risk(eta: np.ndarray, latest: np.ndarray, horizon: float) -> np.ndarray:
@@ -353,6 +398,8 @@ class MatchingDispatcher(LifelongDispatcher):
         - deadline_bonus * at_risk[j]
         - 1e5 * (j was just returned by a breakdown and i is not loaded)
         + switching_cost * (j is not i's current or held order)
+        + trip_weight * travel(pickup_j, dropoff_j)         # the loaded trip
+        + next_weight * next_empty[j]                       # the empty trip j leaves behind
 
     with ``eta[i, j] = lag[i] + travel(ready_i, pickup_j) / speed``; ``lag`` is 0 for an AGV
     that is free (plus service steps still to stand), and for a loaded AGV the remaining
@@ -388,6 +435,15 @@ class MatchingDispatcher(LifelongDispatcher):
     ahead_steps : float
         With ``plan_ahead``, only loaded AGVs at most this many steps from being free are
         matched to a next order (default ``inf``: every loaded AGV).
+    next_weight : float
+        World units per unit of the empty trip an order leaves behind (:func:`next_empty`:
+        the mean travel from its drop-off to the ``next_k`` nearest other open pickups)
+        added to its column (default 0): > 0 prefers orders that end near other work.
+        Measured on warehouse-50 at saturation (1500 steps, seed 0): 402.0 orders per 1000
+        steps at 1.0 (``next_k`` 3) against 392.7 at 0, p95 wait 378.5 against 320.0; the
+        spread between seeds is as large (docs/classical.md), so it is not the default.
+    next_k : int
+        Nearest other pickups :func:`next_empty` averages (default 1).
     driver : WaypointDriver, optional
     """
 
@@ -395,7 +451,8 @@ class MatchingDispatcher(LifelongDispatcher):
                  priority_weight: float = 2.0, driver: WaypointDriver | None = None, *,
                  deadline_bonus: float = 5.0, lateness_weight: float = 1.0,
                  deadline_horizon: float = 100.0, plan_ahead: bool = True,
-                 trip_weight: float = 0.0, ahead_steps: float = math.inf) -> None:
+                 trip_weight: float = 0.0, ahead_steps: float = math.inf,
+                 next_weight: float = 0.0, next_k: int = 1) -> None:
         super().__init__(driver)
         if not callable(matching):
             raise ValueError(f"matching must be a callable cost -> (rows, cols), got "
@@ -404,7 +461,8 @@ class MatchingDispatcher(LifelongDispatcher):
                             ("priority_weight", priority_weight),
                             ("deadline_bonus", deadline_bonus),
                             ("lateness_weight", lateness_weight),
-                            ("trip_weight", trip_weight)):
+                            ("trip_weight", trip_weight),
+                            ("next_weight", next_weight)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
                     or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -419,6 +477,11 @@ class MatchingDispatcher(LifelongDispatcher):
         self.plan_ahead = bool(plan_ahead)
         self.trip_weight = float(trip_weight)
         self.ahead_steps = _check_nonneg("ahead_steps", ahead_steps)
+        if isinstance(next_k, (bool, np.bool_)) or not isinstance(next_k, (int, np.integer)) \
+                or next_k < 1:
+            raise ValueError(f"next_k must be an int >= 1, got {next_k!r}")
+        self.next_weight = float(next_weight)
+        self.next_k = int(next_k)
         self.last_cost: np.ndarray | None = None
         self._travel_cache: dict[int, tuple | None] = {}
 
@@ -510,6 +573,9 @@ class MatchingDispatcher(LifelongDispatcher):
         if self.trip_weight and dropoff is not None:
             column += self.trip_weight * self.distances.pairwise(pickup[orders],
                                                                  dropoff[orders])
+        if self.next_weight and dropoff is not None:
+            column += self.next_weight * next_empty(self.distances, dropoff[orders],
+                                                    pickup[orders], self.next_k)
         if self.priority_weight:
             column -= self.priority_weight * priority[orders]
         late = None

@@ -43,6 +43,7 @@ import torch  # noqa: E402
 import allocator  # noqa: E402
 import sim  # noqa: E402
 from sim.controllers import NearestTaskController  # noqa: E402
+from sim.orders import ASSIGNED, OPEN  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "results" / "dispatch"
@@ -75,9 +76,15 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
             seed: int) -> dict:
     scenario, options = floor_scenario(floor)
     ctrl = controller(name)
+    seen = Probe(ctrl, record=False)
     start = time.perf_counter()
-    m = sim.evaluate_lifelong(ctrl, scenario, steps=steps, seed=seed, arrival_rate=rate,
+    m = sim.evaluate_lifelong(seen, scenario, steps=steps, seed=seed, arrival_rate=rate,
                               faults=sim.Breakdowns(**FAULTS) if faults else None, **options)
+    # The waits above count picked-up orders only: an order a dispatcher leaves behind for
+    # good is in none of them, so the age of the oldest order still open at the end is kept.
+    o = seen.env.orders
+    waiting = (o.status == OPEN) | (o.status == ASSIGNED)
+    ages = (seen.env.steps.unsqueeze(1) - o.release)[waiting]
     row = dict(floor=floor, dispatcher=name, load="saturation" if rate is None else "poisson",
                rate=rate, faults=faults, throughput=m.throughput,
                throughput_bound=m.throughput_bound, wait_mean=m.wait_mean,
@@ -85,6 +92,7 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
                reassignments=m.reassignments, lost=m.lost, released=m.released,
                delivered=m.delivered, open_at_end=m.open_at_end,
                collisions_per_1000=m.collisions_per_1000,
+               oldest_open_at_end=int(ages.max()) if ages.numel() else 0,
                seconds=time.perf_counter() - start, commit=_commit(),
                date=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
     dispatcher = getattr(ctrl, "_dispatcher", None)
@@ -97,10 +105,12 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
 
 
 class Probe:
-    """Wraps a controller and records, at every step, the fleet's time shares and speeds."""
+    """Wraps a controller (keeping its env in :attr:`env`) and records, at every step, the
+    fleet's time shares and speeds (unless ``record`` is False)."""
 
-    def __init__(self, inner: object) -> None:
+    def __init__(self, inner: object, record: bool = True) -> None:
         self.inner = inner
+        self.record = record
         self.counts: list = []
         self.speed: list = []
         self.slow: list = []
@@ -110,6 +120,8 @@ class Probe:
         self.inner.reset(env)
 
     def act(self, obs: object) -> object:
+        if not self.record:
+            return self.inner.act(obs)
         st = self.env.agent_status[0].cpu().numpy()
         sp = self.env.agent_vel[0].norm(dim=-1).cpu().numpy()
         self.counts.append(np.bincount(st, minlength=4))
@@ -232,7 +244,10 @@ def report() -> None:
     lines = ["# Load curves of the lifelong dispatchers", "",
              "`OMP_NUM_THREADS=1 python benchmarks/load_curve.py` (one process per floor, "
              "`--floor NAME`). Throughput in orders delivered per 1000 steps; waits release to "
-             "pickup, steps; *bound* = `throughput_bound` (every AGV always on a shortest "
+             "pickup, steps, over the orders picked up; *oldest open at end* = the age in "
+             "steps of the oldest order not picked up when the run ends (an order a "
+             "dispatcher leaves behind for good is in no wait; '-': run before this column "
+             "was kept); *bound* = `throughput_bound` (every AGV always on a shortest "
              "loaded trip at top speed). Poisson rates as fractions of the bound; *saturation* "
              "= the scenario's backlog (ceil(1.5 N) open orders at all times); *faults* = "
              f"`sim.Breakdowns(rate={FAULTS['rate']}, repair_steps={FAULTS['repair_steps']})` "
@@ -246,8 +261,9 @@ def report() -> None:
                   + (f", map `{cfg['map']}` at cell_size {cfg['cell_size']} with "
                      f"{cfg['num_agents']} AGVs" if "map" in cfg else "") + ".", "",
                   "| load | rate (orders/step) | dispatcher | throughput | / bound | wait mean |"
-                  " wait p95 | reassignments | lost | auction messages / re-plan |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  " wait p95 | oldest open at end | reassignments | lost |"
+                  " auction messages / re-plan |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             # The floor's bound (cfg), not the run's: a Poisson run's throughput_bound is
             # capped by its own arrival rate, which made every rate read "1.00 x bound".
@@ -259,6 +275,7 @@ def report() -> None:
                 f"| {load} | {_fmt(r['rate'], '.4f')} | {r['dispatcher']} | "
                 f"{r['throughput']:.1f} | {r['throughput'] / cfg['throughput_bound']:.2f} | "
                 f"{_fmt(r['wait_mean'])} | {_fmt(r['wait_p95'])} | "
+                f"{_fmt(r.get('oldest_open_at_end'), 'd')} | "
                 f"{r['reassignments']:.0f} | {r['lost']} | "
                 f"{_fmt(r.get('messages_per_replan'), '.0f')} |")
         sat = {r["dispatcher"]: r for r in rows if r["load"] == "saturation" and not r["faults"]}

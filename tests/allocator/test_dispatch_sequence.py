@@ -1,0 +1,97 @@
+"""Sequence-aware costs of the lifelong dispatchers (issue 14): the loaded trip and the empty
+trip an order leaves behind, on a tiny built floor and against brute force."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sim
+from allocator.dispatch import HungarianDispatcher, next_empty
+from allocator.distances import FloorDistances
+
+IDLE, OPEN = 0, 1
+ROOM = """type octile
+height 6
+width 12
+map
+@@@@@@@@@@@@
+@r........e@
+@..........@
+@..........@
+@e........r@
+@@@@@@@@@@@@
+"""
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory) -> sim.World:
+    path = Path(tmp_path_factory.mktemp("floor")) / "room.map"
+    path.write_text(ROOM)
+    return sim.load_floor(path, cell_size=1.0)  # an open 10 x 4 room, no shelves
+
+
+def _bound(room: sim.World, **options) -> HungarianDispatcher:
+    d = HungarianDispatcher(**options)
+    d.reset(sim.make_env(room, num_envs=1, seed=0, num_agents=1))
+    return d
+
+
+def _one_agv_two_orders() -> dict:
+    # X: the nearer pickup, but it ends at the far right, away from Y's pickup.
+    # Y: one unit farther, and it ends right next to X's pickup.
+    return dict(pos=np.array([[1.5, 2.5]]), status=np.array([IDLE]), current=np.array([-1]),
+                order_status=np.array([OPEN, OPEN]),
+                pickup=np.array([[3.5, 2.5], [4.5, 2.5]]), order_id=np.array([0, 1]),
+                priority=np.array([0, 0]), dropoff=np.array([[10.5, 4.5], [2.5, 1.5]]),
+                release=np.array([0, 0]), deadline=np.array([-1, -1]), now=0)
+
+
+def test_next_empty_is_the_mean_travel_to_the_nearest_other_pickups() -> None:
+    scenario = sim.get_scenario("warehouse-20")
+    fd = FloorDistances(scenario.world)
+    rng = np.random.default_rng(3)
+    pickup = scenario.pickups[rng.integers(0, len(scenario.pickups), 40)]
+    dropoff = scenario.stations[rng.integers(0, len(scenario.stations), 40)]
+    table = fd.distance(dropoff, pickup)
+    np.fill_diagonal(table, np.inf)  # an order's own pickup is not its next one
+    ranked = np.sort(table, axis=1)
+    for k in (1, 3, 39, 100):
+        want = ranked[:, :min(k, 39)].mean(axis=1)
+        np.testing.assert_allclose(next_empty(fd, dropoff, pickup, k), want, rtol=1e-12)
+    assert next_empty(fd, dropoff[:1], pickup[:1]).tolist() == [0.0]  # a lone order
+
+
+def test_the_plain_cost_takes_the_nearer_pickup(room) -> None:
+    d = _bound(room, trip_weight=0.0, next_weight=0.0)
+    assert d.plan(**_one_agv_two_orders()).tolist() == [0]
+
+
+def test_next_weight_takes_the_order_that_ends_near_the_other_pickups(room) -> None:
+    d = _bound(room, trip_weight=0.0, next_weight=1.0)
+    state = _one_agv_two_orders()
+    assert d.plan(**state).tolist() == [1]
+    fd = d.distances
+    travel = fd.distance(state["pos"], state["pickup"])[0]
+    after = fd.pairwise(state["dropoff"], state["pickup"][::-1])
+    np.testing.assert_allclose(d.last_cost[0], travel + d.switching_cost + after)
+
+
+def test_trip_weight_takes_the_shorter_loaded_trip(room) -> None:
+    d = _bound(room, trip_weight=1.0, next_weight=0.0)
+    state = _one_agv_two_orders()
+    assert d.plan(**state).tolist() == [1]
+    trip = d.distances.pairwise(state["pickup"], state["dropoff"])
+    travel = d.distances.distance(state["pos"], state["pickup"])[0]
+    np.testing.assert_allclose(d.last_cost[0], travel + d.switching_cost + trip)
+
+
+def test_bad_sequence_options() -> None:
+    with pytest.raises(ValueError, match="next_weight"):
+        HungarianDispatcher(next_weight=-1.0)
+    with pytest.raises(ValueError, match="next_k"):
+        HungarianDispatcher(next_k=0)
+    with pytest.raises(ValueError, match="next_k"):
+        HungarianDispatcher(next_k=True)
