@@ -114,10 +114,14 @@ class Probe:
         self.counts: list = []
         self.speed: list = []
         self.slow: list = []
+        # Per delivery: free step, free x and y, picked, finished, pickup x, y, drop-off x, y.
+        self.trips: list = []
 
     def reset(self, env: object) -> None:
         self.env = env
         self.inner.reset(env)
+        pos = env.agent_pos[0].double().cpu().numpy()
+        self.free = {a: (0, pos[a].copy()) for a in range(env.num_agents)}
 
     def act(self, obs: object) -> object:
         if not self.record:
@@ -128,17 +132,46 @@ class Probe:
         self.speed.append([sp[st == k].mean() if (st == k).any() else np.nan for k in range(3)])
         self.slow.append([(sp[st == k] < 0.2).mean() if (st == k).any() else np.nan
                           for k in range(3)])
+        o = self.env.orders
+        for q in np.flatnonzero(self.env.events.delivered[0].cpu().numpy()):
+            a = int(o.agent[0, q])
+            t0, p0 = self.free[a]
+            drop = o.dropoff[0, q].double().cpu().numpy()
+            self.trips.append((t0, *p0, int(o.picked[0, q]), int(o.finished[0, q]),
+                               *o.pickup[0, q].double().cpu().numpy(), *drop))
+            self.free[a] = (int(o.finished[0, q]), drop.copy())
         return self.inner.act(obs)
 
+    def cycle(self, distances: object, per_step: float, after: int = 100) -> dict:
+        """Mean empty and loaded trip of the orders delivered (by AGVs free after step
+        ``after``, past the start from the depot): path length on the floor's distance table,
+        steps, and the steps beyond path / ``per_step`` (the top speed's distance a step)."""
+        t = np.array(self.trips).reshape(-1, 9)
+        t = t[t[:, 0] > after]
+        if not len(t):
+            return {}
+        empty = distances.pairwise(t[:, 1:3], t[:, 5:7])
+        loaded = distances.pairwise(t[:, 5:7], t[:, 7:9])
+        e_steps, l_steps = t[:, 3] - t[:, 0], t[:, 4] - t[:, 3]
+        return dict(orders=len(t), empty_path=empty.mean(), empty_steps=e_steps.mean(),
+                    empty_extra_steps=(e_steps - empty / per_step).mean(),
+                    loaded_path=loaded.mean(), loaded_steps=l_steps.mean(),
+                    loaded_extra_steps=(l_steps - loaded / per_step).mean())
 
-def probe(floor: str, names: list[str], steps: int, seed: int) -> None:
+
+def probe(floor: str, names: list[str], steps: int, seed: int,
+          num_agents: int | None = None) -> None:
     """Print, per dispatcher, the throughput and the share of the time the AGVs spend idle, to a
-    pickup, loaded and broken, their mean speed in the first three, and the share of them
-    under 0.2 (world units per second). A name is ``hungarian``, ``fifo`` or
-    ``hungarian:{json options of HungarianDispatcher}``."""
+    pickup, loaded and broken, their mean speed in the first three, the share of them
+    under 0.2 (world units per second), and the mean cycle of an order (:meth:`Probe.cycle`).
+    A name is ``hungarian``, ``fifo`` or ``hungarian:{json options of HungarianDispatcher}``;
+    ``num_agents`` runs the floor with another fleet (e.g. 2: AGVs that hardly meet)."""
     from allocator.dispatch import FifoDispatcher, HungarianDispatcher
 
     scenario, options = floor_scenario(floor)
+    if num_agents is not None:
+        scenario = sim.get_scenario(scenario, **options).world
+        options = {"num_agents": num_agents}
     for name in names:
         base, _, opts = name.partition(":")
         kw = json.loads(opts) if opts else {}
@@ -152,7 +185,11 @@ def probe(floor: str, names: list[str], steps: int, seed: int) -> None:
             wait_p95=m.wait_p95, reassignments=m.reassignments,
             share_idle_pickup_loaded_broken=(counts.sum(0) / counts.sum()).round(3).tolist(),
             speed_idle_pickup_loaded=np.nanmean(p.speed, 0).round(3).tolist(),
-            slow_idle_pickup_loaded=np.nanmean(p.slow, 0).round(3).tolist())), flush=True)
+            slow_idle_pickup_loaded=np.nanmean(p.slow, 0).round(3).tolist(),
+            num_agents=p.env.num_agents,
+            cycle={k: round(float(v), 3) for k, v in
+                   p.cycle(inner.distances, inner.speed).items()}
+            if hasattr(inner, "distances") else None)), flush=True)
 
 
 def _commit() -> str:
@@ -365,11 +402,13 @@ def main() -> None:
     parser.add_argument("--probe", nargs="+", metavar="NAME[:JSON]",
                         help="only print time shares and speeds of these dispatchers "
                              "(saturation, the first --floor)")
+    parser.add_argument("--num-agents", type=int, default=None,
+                        help="with --probe: the floor with this many AGVs instead")
     parser.add_argument("--redo", nargs="+", default=[], choices=DISPATCHERS,
                         help="measure these dispatchers again (drop their stored runs)")
     args = parser.parse_args()
     if args.probe:
-        probe((args.floor or FLOORS)[0], args.probe, args.steps, args.seed)
+        probe((args.floor or FLOORS)[0], args.probe, args.steps, args.seed, args.num_agents)
         return
     if not args.report_only:
         for floor in args.floor or FLOORS:
