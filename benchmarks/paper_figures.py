@@ -7,7 +7,10 @@ Writes PNGs (and GIFs) to ``benchmarks/results/figures/``:
 - ``fig8_claims_per_episode_<scenario>.png``: tasks completed per test episode for each reward
   and learner, beside the classical solvers (the paper's Fig. 8);
 - ``fig9_training_<scenario>.png``: task response during training for the three rewards, mean
-  and range over the training seeds (Fig. 9), from ``benchmarks/results/training/``;
+  and range over the training seeds (Fig. 9), from ``benchmarks/results/training/``, each
+  reward's final response in the paper's table drawn as a dashed line of its colour;
+  ``--tag paper-budget`` draws the runs at the paper's budgets
+  (``training/<scenario>/paper-budget/``) as ``fig9_training_<scenario>_paper-budget.png``;
 - ``fig10_preferences_<scenario>.png``: for MADDPG-IPF and BiCNet-IPF, how often AGV i claims
   task j, and how often it claims its k-th nearest task (Figs. 10-12);
 - ``fig3_ipf_field.png``: one AGV's information potential field in a ``3v3`` scene and in the
@@ -28,6 +31,7 @@ import torch
 
 import allocator
 import sim
+from allocator.paper import PAPER_TABLES
 from sim.evaluate import run_episodes
 from sim.io import atomic_save
 from sim.render import _plt
@@ -69,11 +73,12 @@ def claims_figure(scenario: str, episodes: int, seed: int, out: Path) -> None:
     _save(fig, out / f"fig8_claims_per_episode_{scenario}.png")
 
 
-def read_curves(scenario: str, training: Path) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+def read_curves(scenario: str, training: Path,
+                tag: str = "") -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     """``method -> [(episodes, eval response rate) per seed]`` from the training logs."""
     curves: dict[str, list[tuple[np.ndarray, np.ndarray]]] = defaultdict(list)
     pattern = re.compile(r"^(\w+-\w+)-s(\d+)\.csv$")
-    for path in sorted((training / scenario).glob("*.csv")):
+    for path in sorted((training / scenario / tag).glob("*.csv")):
         match = pattern.match(path.name)
         if not match:
             continue
@@ -86,11 +91,13 @@ def read_curves(scenario: str, training: Path) -> dict[str, list[tuple[np.ndarra
     return curves
 
 
-def training_figure(scenario: str, training: Path, out: Path) -> None:
-    """Fig. 9: evaluation task response during training, per reward, mean and seed range."""
-    curves = read_curves(scenario, training)
+def training_figure(scenario: str, training: Path, out: Path, tag: str = "") -> None:
+    """Fig. 9: evaluation task response during training, per reward, mean and seed range,
+    beside each reward's final response in the paper's table (dashed)."""
+    curves = read_curves(scenario, training, tag)
     if not curves:
-        print(f"no training logs under {training / scenario}; skipping Fig. 9 for {scenario}")
+        print(f"no training logs under {training / scenario / tag}; skipping Fig. 9 for "
+              f"{scenario}")
         return
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), sharey=True)
@@ -105,13 +112,18 @@ def training_figure(scenario: str, training: Path, out: Path) -> None:
             line = ax.plot(x, ys.mean(0), label=f"{reward} ({len(runs)} seed(s))")[0]
             if len(runs) > 1:
                 ax.fill_between(x, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.2)
-        ax.set_title(f"{'MADDPG' if algo == 'maddpg' else 'BiCNet'}, {scenario}")
+            paper = PAPER_TABLES.get(scenario, {}).get(f"{algo}-{reward}")
+            if paper:
+                ax.axhline(paper[0], color=line.get_color(), linestyle="--", linewidth=1)
+        ax.set_title(f"{'MADDPG' if algo == 'maddpg' else 'BiCNet'}, {scenario}"
+                     + (f" ({tag})" if tag else "") + "; dashed: the paper's table")
         ax.set_xlabel("training episodes")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
     axes[0].set_ylabel("task response rate (validation)")
     fig.tight_layout()
-    _save(fig, out / f"fig9_training_{scenario}.png")
+    _save(fig, out / f"fig9_training_{scenario}{'_' + tag if tag else ''}.png")
 
 
 @torch.no_grad()
@@ -194,6 +206,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS / "figures")
     parser.add_argument("--training", type=Path, default=RESULTS / "training",
                         help="folder of the training logs (<scenario>/<algo>-<reward>-s<k>.csv)")
+    parser.add_argument("--tag", default="", help="training logs of tagged runs "
+                        "(training/<scenario>/<tag>/, e.g. paper-budget): Fig. 9 only")
     parser.add_argument("--only", nargs="+", default=["claims", "training", "preferences",
                                                       "field", "animations"])
     args = parser.parse_args(argv)
@@ -202,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         if "claims" in args.only:
             claims_figure(scenario, args.episodes, args.seed, args.out)
         if "training" in args.only:
-            training_figure(scenario, args.training, args.out)
+            training_figure(scenario, args.training, args.out, args.tag)
         if "preferences" in args.only:
             preference_figure(scenario, args.episodes, args.seed, args.out)
     if "field" in args.only:

@@ -90,3 +90,15 @@ def test_paper_budget_seeds_are_scored_beside_the_5k_ones(tmp_path: Path, monkey
     assert line.rstrip().endswith("| 2 |")
     none = paper_tables.Row("3v3", "greedy", row.shipped).interval("avg_time", budget=True)
     assert all(math.isnan(x) for x in none)  # no paper-budget seeds: no figure, not a zero
+
+
+def test_training_figure_of_tagged_runs_reads_their_folder_only(tmp_path: Path) -> None:
+    logs = Path(paper_figures.RESULTS) / "training" / "3v3"
+    tagged = tmp_path / "training" / "3v3" / "paper-budget"
+    tagged.mkdir(parents=True)
+    (tagged / "maddpg-ipf-s0.csv").write_text((logs / "maddpg-ipf-s0.csv").read_text())
+    curves = paper_figures.read_curves("3v3", tmp_path / "training", "paper-budget")
+    assert list(curves) == ["maddpg-ipf"] and len(curves["maddpg-ipf"]) == 1
+    assert not paper_figures.read_curves("3v3", tmp_path / "training")  # untagged: empty
+    paper_figures.training_figure("3v3", tmp_path / "training", tmp_path, "paper-budget")
+    assert (tmp_path / "fig9_training_3v3_paper-budget.png").stat().st_size > 1000
