@@ -111,8 +111,11 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
                   entity: list[str] | None = None) -> list[dict]:
     rows = []
     learned = list(LEARNED)
-    if any_n:
-        learned += [f"{m} any-N" for m in LEARNED]
+    if any_n:  # the families whose any-N weights ship
+        from allocator.learned import any_n_weights_path
+
+        learned += [f"{m} any-N" for m in LEARNED
+                    if any_n_weights_path(*m.split("-")).is_file()]
     learned += [f"entity:{p}" for p in entity or []]
     keep = None if methods is None else set(methods) | {"hungarian"}
     for n, eps in zip(sizes, episodes, strict=True):
