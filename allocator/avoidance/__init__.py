@@ -48,6 +48,8 @@ Modules, one per part:
 - :mod:`~allocator.avoidance.braking`: the braking shield (the safety guarantee);
 - :mod:`~allocator.avoidance.liveness`: the deadlock rules; :mod:`~allocator.avoidance.detour`:
   grid paths round standing AGVs as discs.
+- :mod:`~allocator.avoidance.ordering`: plans whose AGVs do not park on each other's way
+  (the episodic controller's untangling of the allocator's plan).
 
 OSQP and cvxpy are imported on first use only.
 """
