@@ -96,6 +96,8 @@ class AllocatorController:
         The current plan (-1: no task).
     fallbacks : int
         AGV-steps in which the avoidance QP had to fall back.
+    untangled : int
+        Plans that :meth:`_untangle` changed (not reset by :meth:`reset`).
     resolves : int
         Scene-steps whose QP was solved again around AGVs that claim (and stop) or fall back
         in the next step (see :meth:`_avoid_step`); reset by :meth:`reset`.
