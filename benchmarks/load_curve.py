@@ -291,6 +291,10 @@ def report() -> None:
              "at saturation. One run per point (seed and steps below).", ""]
     for floor, part in parts.items():
         cfg, rows = part["config"], part["results"]
+        order = _ordered([r["dispatcher"] for r in rows])
+        # Saturation, then with faults, then the Poisson rates from light to heavy.
+        rows = sorted(rows, key=lambda r: (r["load"] != "saturation", r["faults"],
+                                           r["rate"] or 0.0, order.index(r["dispatcher"])))
         lines += [f"## {floor}", "",
                   f"{cfg['steps']} steps, seed {cfg['seed']}, {cfg['runs']} run per point, "
                   f"bound {cfg['throughput_bound']:.1f}, auction comm_range "
