@@ -245,6 +245,45 @@ def run_scenes(mode: str, scale: float = 1.0, seeds: tuple[int, ...] = (0,),
     return rows
 
 
+def untangle_cost(scenes: int, seed: int = 0) -> list[dict[str, Any]]:
+    """What :func:`allocator.avoidance.ordering.untangle` costs per plan, beside the allocator's
+    own ``assign`` timed in the same loop: 6v6 with Hungarian plans, 20v20 with greedy plans
+    (the first ``scenes`` test scenes of ``seed``, the controller's parameters)."""
+    import allocator
+    from allocator.avoidance.ordering import untangle
+    from sim.evaluate import evaluation_scenes
+    from sim.scenarios import get_scenario
+
+    rows = []
+    for name, method in (("6v6", "hungarian"), ("20v20", "greedy")):
+        scn = get_scenario(name)
+        world = scn.world
+        agents, tasks = evaluation_scenes(scn, scenes, seed)
+        solver = allocator.make(method)
+        t_assign, t_untangle, changed = [], [], 0
+        for e in range(scenes):
+            a, t = agents[e].double().numpy(), tasks[e].double().numpy()
+            t0 = time.perf_counter()
+            plan = np.asarray(solver.assign(a, t, world=world).task_of_agent)
+            t_assign.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            new = untangle(a, t, plan, clearance=2 * world.agent_radius + 0.03,
+                           capture=world.capture_radius,
+                           step=world.physics.terminal_speed * world.physics.dt,
+                           radius=world.agent_radius, bounds=world.bounds, gate_weight=3.0)
+            t_untangle.append(time.perf_counter() - t0)
+            changed += int((new != plan).any())
+        row = dict(scene=name, method=method, scenes=scenes, seed=seed,
+                   assign_ms_median=1e3 * float(np.median(t_assign)),
+                   untangle_ms_median=1e3 * float(np.median(t_untangle)),
+                   untangle_ms_mean=1e3 * float(np.mean(t_untangle)),
+                   ratio_of_medians=float(np.median(t_untangle) / np.median(t_assign)),
+                   plans_changed=changed)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
 def run_lifelong(steps: int, driver_name: str, rate: float = 1e-3,
                  repair_steps: int = 50) -> dict[str, Any]:
     """``warehouse-50`` with breakdowns under ``HungarianDispatcher`` and the given driver."""
@@ -288,6 +327,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scale", type=float, default=1.0, help="episodes factor for --scenes")
     p.add_argument("--seeds", default="0", help="--scenes: evaluation seeds, comma-separated")
     p.add_argument("--only", default="", help="--scenes: only these scenes (comma-separated)")
+    p.add_argument("--untangle-cost", type=int, default=0,
+                   help="time the plan untangling on this many 6v6 and 20v20 scenes instead")
     p.add_argument("--no-untangle", action="store_true",
                    help="--scenes: the controller without the plan untangling (before)")
     p.add_argument("--figure", action="store_true", help="docs/figures/safety_antipodal.png")
@@ -295,6 +336,22 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     torch.set_num_threads(1)
+    if args.untangle_cost:
+        rows = untangle_cost(args.untangle_cost)
+        doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
+                   date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
+        atomic_write(OUT / "untangle-cost.json", json.dumps(doc, indent=1))
+        lines = ["# What the plan untangling costs per plan", "",
+                 f"Command: `{doc['command']}`; date {doc['date']}; seed 0; 1 thread.", "",
+                 "| scene | allocator | scenes | assign ms (median) | untangle ms (median / "
+                 "mean) | untangle / assign | plans changed |", "|---|---|---|---|---|---|---|"]
+        for r in rows:
+            lines.append(f"| {r['scene']} | {r['method']} | {r['scenes']} | "
+                         f"{r['assign_ms_median']:.2f} | {r['untangle_ms_median']:.1f} / "
+                         f"{r['untangle_ms_mean']:.1f} | {r['ratio_of_medians']:.1f} | "
+                         f"{r['plans_changed']} |")
+        atomic_write(OUT / "untangle-cost.md", "\n".join(lines) + "\n")
+        return
     if args.lifelong:
         row = run_lifelong(args.lifelong, args.driver)
         row["command"] = "python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:])

@@ -238,6 +238,70 @@ def _gates(a: np.ndarray, t: np.ndarray, plan: np.ndarray, clearance: float, cap
     return out
 
 
+def _scores(a: np.ndarray, t: np.ndarray, plans: np.ndarray, clearance: float,
+            capture: float, step: float, radius: float | None, box: np.ndarray | None,
+            gate_weight: float, lead: float, slack: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scores (P,) and involved AGVs (P, N) of P plans (P, N) at once: the same counts as
+    :func:`_conflicts` and :func:`_gates` (the tests compare them), vectorised over plans."""
+    P, n = plans.shape
+    valid = plans >= 0  # (P, N)
+    goal = t[np.maximum(plans, 0)]  # (P, N, 2)
+    seg = goal - a[None]
+    length = np.linalg.norm(seg, axis=-1)
+    unit = -seg / np.maximum(length, 1e-12)[..., None]
+    park = goal + np.minimum(capture, length)[..., None] * unit
+    parked_at = lead + np.maximum(length - capture, 0.0) / step
+    len_sq = np.maximum(length ** 2, 1e-24)
+    # conflicts [p, k, i]: k's leg passes i's parking point
+    rel = park[:, None, :, :] - a[None, :, None, :]
+    s = np.clip((rel * seg[:, :, None, :]).sum(-1) / len_sq[:, :, None], 0.0, 1.0)
+    gap = np.linalg.norm(seg[:, :, None, :] * s[..., None] - rel, axis=-1)
+    passes_at = lead + s * length[:, :, None] / step
+    pair = valid[:, :, None] & valid[:, None, :] & ~np.eye(n, dtype=bool)[None]
+    hit = pair & (gap < clearance) & (parked_at[:, None, :] <= passes_at + slack)
+    total = hit.sum((1, 2)).astype(np.float64)
+    involved = hit.any(1) | hit.any(2)
+    if radius is None or gate_weight == 0 or n < 2:
+        return total, involved
+    both = valid.sum(1) >= 2
+    gates = np.zeros((P, n), dtype=np.int64)
+    # gates between two parking points: sparse (p, i, j)
+    d = np.linalg.norm(park[:, :, None, :] - park[:, None, :, :], axis=-1)
+    close = np.triu(np.ones((n, n), dtype=bool), 1)[None] & (d < 2 * clearance) \
+        & valid[:, :, None] & valid[:, None, :] & both[:, None, None]
+    gp, gi, gj = np.nonzero(close)
+    ends = [(gp, park[gp, gi], park[gp, gj], np.maximum(parked_at[gp, gi], parked_at[gp, gj]),
+             gi, gj)]
+    if box is not None:
+        for axis, side, wall in ((0, -1, box[0]), (1, -1, box[1]), (0, 1, box[2]),
+                                 (1, 1, box[3])):
+            wp, wi = np.nonzero(valid & both[:, None]
+                                & (side * (wall - park[..., axis]) < radius + clearance))
+            foot = park[wp, wi].copy()
+            foot[:, axis] = wall
+            ends.append((wp, park[wp, wi], foot, parked_at[wp, wi], wi, wi))
+    for gp, g0, g1, closes, oi, oj in ends:
+        if not len(gp):
+            continue
+        start = np.broadcast_to(a[None], (len(gp), n, 2))  # (G, K, 2)
+        sg = seg[gp]
+        end = start + sg
+        crosses = _cross(start, end, g0[:, None], g1[:, None])  # (G, K)
+        den = sg[..., 0] * (g1[:, None, 1] - g0[:, None, 1]) \
+            - sg[..., 1] * (g1[:, None, 0] - g0[:, None, 0])
+        num = (g0[:, None, 0] - start[..., 0]) * (g1[:, None, 1] - g0[:, None, 1]) \
+            - (g0[:, None, 1] - start[..., 1]) * (g1[:, None, 0] - g0[:, None, 0])
+        frac = np.clip(num / np.where(np.abs(den) > 1e-12, den, 1e-12), 0.0, 1.0)
+        at = lead + frac * length[gp] / step
+        k = np.arange(n)[None]
+        mine = (k == oi[:, None]) | (k == oj[:, None])
+        hit = crosses & ~mine & valid[gp] & (closes[:, None] <= at + slack)
+        np.add.at(gates, (np.repeat(gp, n), np.tile(np.arange(n), len(gp))), hit.ravel())
+    total += gate_weight * gates.sum(1)
+    involved |= gates > 0
+    return total, involved
+
+
 def untangle(agents: np.ndarray, tasks: np.ndarray, task_of_agent: np.ndarray,
              clearance: float, capture: float, step: float, weight: float = 0.2,
              radius: float | None = None, bounds: tuple[float, float, float, float] | None = None,
@@ -313,37 +377,42 @@ def untangle(agents: np.ndarray, tasks: np.ndarray, task_of_agent: np.ndarray,
         out[m] = np.linalg.norm(t[p[m]] - a[m], axis=1)
         return out
 
-    def score(p: np.ndarray) -> tuple[float, np.ndarray]:
-        c = _conflicts(a, t, p, clearance, capture, step, lead, slack)
-        involved = c.any(0) | c.any(1)
-        total = float(c.sum())
-        if radius is not None and gate_weight > 0:
-            g = _gates(a, t, p, clearance, capture, step, radius, box, lead, slack)
-            total += gate_weight * float(g.sum())
-            involved |= g > 0
-        return total, involved
+    def score(plans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out_t, out_i = [], []
+        for lo in range(0, len(plans), 256):  # bounded memory: (256, N, N, 2) arrays
+            tt, ii = _scores(a, t, plans[lo:lo + 256], clearance, capture, step, radius, box,
+                             gate_weight, lead, slack)
+            out_t.append(tt)
+            out_i.append(ii)
+        return np.concatenate(out_t), np.concatenate(out_i)
 
-    total, involved = score(plan)
+    totals, inv = score(plan[None])
+    total, involved = float(totals[0]), inv[0]
     for _ in range(limit):
         if total == 0:
             break
-        legs = length(plan)
-        best_gain, best, best_total, best_inv = 0.0, None, total, involved
-        for i in np.flatnonzero(involved):
-            for j in range(n):
-                if j == i or (plan[i] < 0 and plan[j] < 0):
-                    continue
-                trial = plan.copy()
-                trial[i], trial[j] = plan[j], plan[i]
-                new_total, new_inv = score(trial)
-                removed = total - new_total
-                if removed <= 0:
-                    continue
-                added = float(length(trial)[[i, j]].sum() - legs[[i, j]].sum())
-                gain = weight * removed - added
-                if added <= weight * removed and gain > best_gain + 1e-12:
-                    best_gain, best, best_total, best_inv = gain, trial, new_total, new_inv
-        if best is None:
+        pairs = [(i, j) for i in np.flatnonzero(involved) for j in range(n)
+                 if j != i and not (plan[i] < 0 and plan[j] < 0)]
+        if not pairs:
             break
-        plan, total, involved = best, best_total, best_inv
+        ij = np.array(pairs)
+        trials = np.repeat(plan[None], len(ij), axis=0)
+        rows = np.arange(len(ij))
+        trials[rows, ij[:, 0]] = plan[ij[:, 1]]
+        trials[rows, ij[:, 1]] = plan[ij[:, 0]]
+        new_totals, new_inv = score(trials)
+        removed = total - new_totals
+        legs = length(plan)
+        after = np.zeros((len(ij), 2))
+        for c in range(2):
+            task = trials[rows, ij[:, c]]
+            ok = task >= 0
+            after[ok, c] = np.linalg.norm(t[task[ok]] - a[ij[ok, c]], axis=1)
+        added = after.sum(1) - legs[ij].sum(1)
+        gain = weight * removed - added
+        worth = (removed > 0) & (added <= weight * removed) & (gain > 1e-12)
+        if not worth.any():
+            break
+        b = int(np.argmax(np.where(worth, gain, -np.inf)))
+        plan, total, involved = trials[b], float(new_totals[b]), new_inv[b]
     return plan

@@ -120,3 +120,22 @@ def test_bad_untangle_weight_option_names_the_option(value: float) -> None:
     with pytest.raises(ValueError, match="untangle_weight"):
         AllocatorController(allocator.make("hungarian"),
                             avoidance_options={"untangle_weight": value})
+
+
+def test_the_batched_score_counts_what_the_single_plan_functions_count() -> None:
+    from allocator.avoidance.ordering import _scores
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        n = int(rng.integers(2, 9))
+        agents = rng.uniform(-1, 1, (n, 2))
+        tasks = rng.uniform(-1, 1, (n + 1, 2))
+        plans = np.stack([rng.permutation(n + 1)[:n] for _ in range(4)])
+        plans[1, 0] = -1
+        total, involved = _scores(agents, tasks, plans, 0.33, 0.1, 0.15, 0.15,
+                                  np.array([-1.0, -1.0, 1.0, 1.0]), 3.0, 2.0, 2.0)
+        for k, plan in enumerate(plans):
+            c = parking_conflicts(agents, tasks, plan, **MODEL)
+            g = closed_gates(agents, tasks, plan, radius=0.15, bounds=(-1, -1, 1, 1), **MODEL)
+            assert total[k] == c.sum() + 3 * g.sum()
+            assert (involved[k] == (c.any(0) | c.any(1) | (g > 0))).all()
