@@ -12,10 +12,10 @@ Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidis
 **Any fleet size.** ``allocator/weights/any/<algo>-<reward>.safetensors`` holds the weights of
 the entity-token learner of the same family (``maddpg-e`` for ``maddpg-*``, ``bicnet-e`` for
 ``bicnet-*``; :mod:`learners.entity`), trained over a curriculum of fleet sizes, when they
-have been shipped. ``allocator.make("bicnet-ipf", scenario="50v50")`` uses the scenario's own
-weights where they exist (``3v3``, ``6v6``: the paper's table) and the any-N weights for every
-other ``NvM`` scenario; ``weights="any"`` asks for the any-N weights on every scenario,
-``weights="scenario"`` for the scenario's own only.
+have been shipped. ``allocator.make("maddpg-ipf", scenario="50v50", weights="auto")`` uses the
+scenario's own weights where they exist (``3v3``, ``6v6``: the paper's table) and the any-N
+weights for every other ``NvM`` scenario; ``weights="any"`` asks for the any-N weights on every
+scenario; ``weights="scenario"`` (the default, as before) for the scenario's own only.
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ REWARDS = ("minidist", "greedy", "ipf")
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 ANY_N = "any"
 """The folder of ``allocator/weights`` with the any-N (entity-token) weights."""
-WEIGHT_CHOICES = ("auto", "scenario", "any")
-"""``weights=``: the scenario's own if shipped, else the any-N ones (``auto``); only the
-scenario's; only the any-N ones."""
+WEIGHT_CHOICES = ("scenario", "auto", "any")
+"""``weights=``: only the scenario's own (the default); the scenario's own if shipped, else the
+any-N ones (``auto``); only the any-N ones."""
 
 
 class MissingWeightsError(FileNotFoundError, ValueError):
@@ -83,10 +83,11 @@ class LearnedAllocator:
         Pass the policy's actions through :class:`allocator.shield.SafetyShield` (the ORCA QP,
         then the braking filter) when it drives an env (default False: the policy as
         trained). :attr:`safety` then holds the shield and its intervention counts.
-    weights : {"auto", "scenario", "any"}
-        Which shipped weights (when no ``checkpoint`` is given): the scenario's own if they
-        exist, else the any-N ones (``"auto"``, default); only the scenario's; only the any-N
-        ones (``allocator/weights/any``), which serve every ``NvM`` scenario.
+    weights : {"scenario", "auto", "any"}
+        Which shipped weights (when no ``checkpoint`` is given): only the scenario's own
+        (``"scenario"``, the default); the scenario's own if they exist, else the any-N ones
+        (``"auto"``); only the any-N ones (``allocator/weights/any``, ``"any"``), which serve
+        every ``NvM`` scenario.
 
     Raises
     ------
@@ -105,7 +106,7 @@ class LearnedAllocator:
 
     def __init__(
         self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
-        max_steps: int | None = None, shield: bool = False, weights: str = "auto",
+        max_steps: int | None = None, shield: bool = False, weights: str = "scenario",
         **options: Any,
     ) -> None:
         from learners.policy import LearnedPolicy
@@ -176,6 +177,11 @@ class LearnedAllocator:
             if path.is_file():
                 return path
         looked = " nor ".join(str(p) for p in candidates)
+        if weights == "scenario" and anyn.is_file():
+            raise MissingWeightsError(
+                f"no trained weights for {self.name!r} on scenario {self.scenario.name!r}: "
+                f"expected {own}. Weights for any N ship at {anyn}: pass weights='any' (or "
+                "'auto'), or checkpoint=<a policy .safetensors file>")
         hints = []
         if own in candidates:
             hints.append(f"`agv train --algo {self.algo} --reward {self.reward} --scenario "

@@ -63,27 +63,31 @@ def test_entity_weights_bad_uses_are_clear_errors(entity_policy):
 
 
 def test_which_shipped_weights_are_chosen():
-    """The paper's 3v3 / 6v6 weights stay what those scenarios load; other NvM scenarios take
-    the any-N weights when they ship, and fail naming both files when they do not."""
+    """The default (weights="scenario") loads the scenario's own weights, as before; "auto"
+    falls back to the any-N weights where a scenario has none; "any" always takes them. A
+    missing file is a MissingWeightsError naming what was looked for."""
     for name in ("maddpg-ipf", "bicnet-ipf"):
         algo, reward = name.split("-")
         if weights_path(algo, reward, "6v6").is_file():
             assert not allocator.make(name, scenario="6v6").any_n
+            assert not allocator.make(name, scenario="6v6", weights="auto").any_n
         anyn = any_n_weights_path(algo, reward)
         if anyn.is_file():
-            solver = allocator.make(name, scenario="50v50")
+            solver = allocator.make(name, scenario="50v50", weights="auto")
             assert solver.any_n and solver.checkpoint == anyn
             assert allocator.make(name, scenario="6v6", weights="any").any_n
+            with pytest.raises(MissingWeightsError, match="weights='any'"):
+                allocator.make(name, scenario="50v50")
         else:
             with pytest.raises(MissingWeightsError) as info:
-                allocator.make(name, scenario="50v50")
+                allocator.make(name, scenario="50v50", weights="auto")
             msg = str(info.value)
             assert f"50v50/{name}.safetensors" in msg and f"any/{name}.safetensors" in msg
             assert f"--algo {algo}-e" in msg and "--curriculum" in msg
             with pytest.raises(MissingWeightsError, match=f"any/{name}"):
                 allocator.make(name, scenario="6v6", weights="any")
-    with pytest.raises(MissingWeightsError):
-        allocator.make("maddpg-greedy", scenario="50v50", weights="scenario")
+    with pytest.raises(MissingWeightsError, match="9v9/maddpg-greedy"):
+        allocator.make("maddpg-greedy", scenario="9v9")
 
 
 def test_scale_table_entity_rows(entity_policy, tmp_path):
