@@ -363,7 +363,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         description="Train a MADDPG or BiCNet policy, evaluating it on seeded validation "
                     "scenes and writing resumable checkpoints to the run folder.")
     add_train_arguments(p)
-    p.set_defaults(func=run_train)
+    # learners does not import allocator: the shield of `--set shield=true` is handed in here
+    p.set_defaults(func=run_train, make_shield=allocator.SafetyShield)
 
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:

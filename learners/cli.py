@@ -259,7 +259,8 @@ def run_train(args: argparse.Namespace) -> int:
             if getattr(args, key) is not None:
                 setattr(config, key, getattr(args, key))
         config.progress = not args.no_progress
-        result = train(config, learner_config, resume=bool(args.resume))
+        result = train(config, learner_config, resume=bool(args.resume),
+                       make_shield=getattr(args, "make_shield", None))
         if args.export and not result.interrupted:
             from learners.checkpoint import export_policy
 
@@ -318,7 +319,8 @@ def _run_curriculum(args: argparse.Namespace) -> int:
             if getattr(args, key) is not None:
                 setattr(config, key, getattr(args, key))
         config.progress = not args.no_progress
-        result = train_curriculum(config, stages, learner_config, resume=bool(args.resume))
+        result = train_curriculum(config, stages, learner_config, resume=bool(args.resume),
+                                  make_shield=getattr(args, "make_shield", None))
         if args.export and not result.interrupted:
             from learners.checkpoint import export_policy
 

@@ -132,6 +132,7 @@ def train_curriculum(
     *,
     resume: bool = False,
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
+    make_shield: Callable[[Any], Any] | None = None,
 ) -> TrainResult:
     """Train one entity learner through the stages (see the module docstring).
 
@@ -149,6 +150,9 @@ def train_curriculum(
         recorded ones (a later stage may be appended).
     on_checkpoint : callable, optional
         Passed to every stage's :func:`train` (tests use it to simulate a crash).
+    make_shield : callable, optional
+        Passed to every stage's :func:`train`: the shield of a ``shield=True`` learner config
+        (``allocator.SafetyShield``).
 
     Returns
     -------
@@ -212,9 +216,11 @@ def train_curriculum(
             previous = folder / "checkpoint.safetensors"
             continue
         if (folder / "checkpoint.safetensors").is_file():
-            result = train(stage_config, cfg, resume=True, on_checkpoint=on_checkpoint)
+            result = train(stage_config, cfg, resume=True, on_checkpoint=on_checkpoint,
+                           make_shield=make_shield)
         else:
-            result = train(stage_config, cfg, init_from=previous, on_checkpoint=on_checkpoint)
+            result = train(stage_config, cfg, init_from=previous, on_checkpoint=on_checkpoint,
+                           make_shield=make_shield)
         if result.interrupted:
             return result
         atomic_write_text(done, json.dumps({"episodes": result.episodes,
@@ -231,5 +237,5 @@ def train_curriculum(
     if result is None:  # every stage was already done: the last one, loaded (nothing runs)
         result = train(dataclasses.replace(config, scenario=stages[-1].scenario,
                                            episodes=stages[-1].episodes, run_dir=str(last)),
-                       cfg, resume=True)
+                       cfg, resume=True, make_shield=make_shield)
     return result

@@ -297,6 +297,7 @@ def train(
     resume: bool = False,
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     init_from: str | os.PathLike[str] | None = None,
+    make_shield: Callable[[Any], Any] | None = None,
 ) -> TrainResult:
     """Train a MADDPG or BiCNet learner.
 
@@ -318,6 +319,11 @@ def train(
         networks, targets, Adam moments and update count start this new run; the replay
         buffer, environments and counters start afresh. Only for the entity learners
         (``learners.algorithms.ENTITY_ALGORITHMS``), whose weights do not depend on N.
+    make_shield : callable, optional
+        Builds the safety shield of a learner config with ``shield=True`` from the controller
+        it wraps: ``allocator.SafetyShield`` (what ``agv train`` passes). ``learners`` does not
+        import ``allocator``, so the caller hands it in; ``shield=True`` without it is a
+        ``ValueError``.
 
     Returns
     -------
@@ -407,9 +413,10 @@ def train(
         learner.load_training_tensors(init)
     shield = None
     if getattr(cfg, "shield", False):  # the entity learners' option: the shield in the loop
-        from allocator.shield import SafetyShield
-
-        shield = SafetyShield(_Still())
+        if make_shield is None:
+            raise ValueError("shield=True needs make_shield=allocator.SafetyShield (learners "
+                             "does not import allocator; agv train passes it)")
+        shield = make_shield(_Still())
         shield.reset(env)
     run_dir.mkdir(parents=True, exist_ok=True)
     clean_stale_temporaries(run_dir)  # left by a run killed in the middle of a write

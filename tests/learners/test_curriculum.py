@@ -124,13 +124,15 @@ def test_shield_in_the_loop_stores_the_executed_actions(tmp_path):
     """With shield=True the actions executed (and stored) are the shield's: no training step
     has overlapping AGVs (the collision reward term stays 0), while the same exploration
     without the shield collides; the stored actions differ between the two runs."""
+    from allocator import SafetyShield
     from learners.checkpoint import load_checkpoint
 
     out = {}
     for shield in (False, True):
         config = _config(tmp_path / f"s{shield}")
         config.scenario, config.episodes, config.log_every = "6v6", 16, 16
-        result = train(config, {**TINY, "shield": shield, "learning_starts": 2000})
+        result = train(config, {**TINY, "shield": shield, "learning_starts": 2000},
+                       make_shield=SafetyShield)
         assert result.learner.config.shield is shield
         tensors, meta = load_checkpoint(result.run_dir / "checkpoint.safetensors")
         assert meta["config"]["shield"] is shield
@@ -168,3 +170,25 @@ def test_agv_train_curriculum_cli(tmp_path, capsys):
     assert cli(["--algo", "maddpg-e", "--curriculum", "3v3:8", "--scenario", "3v3",
                 "--run-dir", str(tmp_path / "z"), "--no-progress"]) == 2
     assert "leave out --scenario" in capsys.readouterr().err
+
+
+def test_shield_in_the_loop_without_a_shield_is_a_clear_error(tmp_path):
+    """learners does not import allocator: the shield is handed in, and asked for by name."""
+    with pytest.raises(ValueError, match="make_shield=allocator.SafetyShield"):
+        train(_config(tmp_path / "run"), {**TINY, "shield": True})
+
+
+def test_agv_train_hands_the_shield_in(tmp_path):
+    """`agv train --set shield=true` trains through allocator/cli.py, which passes
+    allocator.SafetyShield to learners (which cannot import it)."""
+    from allocator.cli import main
+
+    run_dir = tmp_path / "shielded"
+    code = main(["train", "--algo", "maddpg-e", "--reward", "ipf", "--scenario", "3v3",
+                 "--episodes", "8", "--run-dir", str(run_dir), "--eval-every", "0",
+                 "--eval-episodes", "2", "--no-progress", "--set", "shield=true",
+                 "--set", "hidden=16", "--set", "batch_size=32", "--set", "num_envs=8",
+                 "--set", "learning_starts=64", "--set", "buffer_size=2000"])
+    assert code == 0
+    row = _rows(run_dir / "progress.csv")[-1]
+    assert float(row["train_term_collision"]) == 0.0  # the shield drove: no overlap

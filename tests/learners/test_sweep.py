@@ -204,7 +204,7 @@ def flaky_make(name: str, **options: object) -> object:
     if name == "greedy":
         calls = Path(os.environ["AGV_SWEEP_TEST_CALLS"])
         with calls.open("a") as fh:
-            fh.write("x\n")
+            fh.write(f"nice {os.nice(0)}\n")  # the priority the call runs at
         if len(calls.read_text().splitlines()) == 2:
             raise RuntimeError("a deliberate first-attempt failure")
     return allocator.make(name, **options)
@@ -248,6 +248,8 @@ def test_agv_sweep_evaluate_on_a_local_ray_retries_a_failed_trial(tmp_path: Path
         m = sim.evaluate(allocator.make(name, **options), "3v3", episodes=4, seed=trial.seed)
         assert float(row["response_rate"]) == m.response_rate
         assert float(row["avg_reward"]) == pytest.approx(m.avg_reward, rel=1e-12)
+    # the trials ran at the driver's priority, not at Ray's worker niceness (15)
+    assert set((tmp_path / "calls.txt").read_text().splitlines()) == {f"nice {os.nice(0)}"}
     attempts = {r["trial"]: int(r["attempts"]) for r in rows}
     assert sorted(attempts.values()) == [1, 1, 1, 2]  # the failed greedy trial ran twice
     summary = _read_csv(results / "summary.csv")
