@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from learners.algorithms import check_algo, make_learner
+from learners.algorithms import ENTITY_ALGORITHMS, check_algo, make_learner
 from learners.checkpoint import load_checkpoint, resolve_checkpoint_path
 from learners.common import ActorCritic
 
@@ -31,6 +31,9 @@ class LearnedPolicy:
     ----------
     algo, reward, scenario : str
     num_agents, obs_dim : int
+    any_n : bool
+        Whether the weights are an entity learner's (``maddpg-e``, ``bicnet-e``), which read
+        observations of any size: their layout comes from :meth:`reset`.
     """
 
     def __init__(self, learner: ActorCritic, metadata: dict[str, Any]) -> None:
@@ -41,6 +44,19 @@ class LearnedPolicy:
         self.scenario: str = metadata["scenario"]
         self.num_agents: int = int(metadata["num_agents"])
         self.obs_dim: int = int(metadata["obs_dim"])
+        self.any_n: bool = self.algo in ENTITY_ALGORITHMS
+
+    def reset(self, env: Any) -> None:
+        """Called once per batch of episodes by :func:`sim.evaluate`: an entity policy takes
+        the env's observation layout (its K slots); the others need nothing.
+
+        Raises
+        ------
+        ValueError
+            For an entity policy on an env whose observations it cannot read (lifelong).
+        """
+        if self.any_n:
+            self.learner.reset(env)
 
     @classmethod
     def load(
@@ -93,7 +109,8 @@ class LearnedPolicy:
         Raises
         ------
         ValueError
-            If O differs from the training observation size.
+            If O differs from the training observation size (entity policies: if the
+            observations do not fit the layout given by :meth:`reset` or inferred from N, O).
 
         Notes
         -----
@@ -101,7 +118,7 @@ class LearnedPolicy:
         with N actors drives AGV i of a scene with another N by actor ``i mod N``.
         """
         obs = torch.as_tensor(obs, dtype=torch.float32)
-        if obs.dim() != 3 or obs.shape[-1] != self.obs_dim:
+        if obs.dim() != 3 or (obs.shape[-1] != self.obs_dim and not self.any_n):
             raise ValueError(f"observations must have shape (B, N, {self.obs_dim}) for this "
                              f"{self.algo} policy (trained on {self.scenario}), got "
                              f"{tuple(obs.shape)}")

@@ -101,3 +101,21 @@ def test_scale_table_entity_rows(entity_policy, tmp_path):
     assert [(r["method"].split(":")[0], r["shield"]) for r in rows] == [
         ("hungarian", False), ("entity", False), ("entity", True)]
     assert rows[2]["overlaps"] == 0
+
+
+def test_agv_evaluate_runs_an_entity_checkpoint_on_any_scenario(capsys):
+    """`agv evaluate CHECKPOINT --scenario S` reads S's observations with S's layout (the
+    checkpoint was trained on 20v20, whose observations have another size)."""
+    import torch
+
+    from allocator.cli import main
+    from learners.policy import LearnedPolicy
+
+    path = Path(allocator.__file__).parent / "weights" / "any" / "maddpg-ipf.safetensors"
+    policy = LearnedPolicy.load(path)
+    assert policy.any_n and policy.scenario != "8v8"
+    assert main(["evaluate", str(path), "--scenario", "8v8", "--episodes", "2", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["scenario"] == "8v8" and 0.0 <= out["response_rate"] <= 1.0
+    with pytest.raises(ValueError, match="cannot read observations of size 7"):
+        LearnedPolicy.load(path).act(torch.zeros(1, 4, 7))
