@@ -261,13 +261,7 @@ def run_train(args: argparse.Namespace) -> int:
         config.progress = not args.no_progress
         result = train(config, learner_config, resume=bool(args.resume),
                        make_shield=getattr(args, "make_shield", None))
-        if args.export and not result.interrupted:
-            from learners.checkpoint import export_policy
-
-            best = result.run_dir / "best.safetensors"
-            exported = export_policy(best if best.is_file() else
-                                     result.run_dir / "policy.safetensors", args.export)
-            print(f"exported the best policy to {exported}")
+        _export_best(args, result, "the best policy")
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)
         return 2
@@ -277,6 +271,17 @@ def run_train(args: argparse.Namespace) -> int:
           f"{ev.get('response_rate', float('nan')):.3f} (best "
           f"{result.best_response_rate:.3f}); checkpoints in {result.run_dir}")
     return 130 if result.interrupted else 0
+
+
+def _export_best(args: argparse.Namespace, result: Any, what: str) -> None:
+    """``--export``: copy the run's best policy (its latest if none was evaluated)."""
+    if args.export and not result.interrupted:
+        from learners.checkpoint import export_policy
+
+        best = result.run_dir / "best.safetensors"
+        exported = export_policy(best if best.is_file() else
+                                 result.run_dir / "policy.safetensors", args.export)
+        print(f"exported {what} to {exported}")
 
 
 def _is_curriculum(run_dir: str) -> bool:
@@ -321,13 +326,7 @@ def _run_curriculum(args: argparse.Namespace) -> int:
         config.progress = not args.no_progress
         result = train_curriculum(config, stages, learner_config, resume=bool(args.resume),
                                   make_shield=getattr(args, "make_shield", None))
-        if args.export and not result.interrupted:
-            from learners.checkpoint import export_policy
-
-            best = result.run_dir / "best.safetensors"
-            exported = export_policy(best if best.is_file() else
-                                     result.run_dir / "policy.safetensors", args.export)
-            print(f"exported the best policy of the last stage to {exported}")
+        _export_best(args, result, "the best policy of the last stage")
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)
         return 2

@@ -394,6 +394,19 @@ class EntityLearner(ActorCritic):
         torch.nn.utils.clip_grad_norm_(params, self.config.grad_clip)
         optimizer.step()
 
+    def _actor_step(self, actor_loss: Tensor, pre: Tensor, critic_loss: Tensor,
+                    q: Tensor) -> dict[str, float]:
+        """The end of both updates: the actor's step (with the pre-tanh L2 term), the soft
+        update of the targets, and the logged losses."""
+        reg = self.config.action_l2 * pre.pow(2).mean()
+        actor_params = list(self.actor.parameters())
+        self._clip_step(actor_params, torch.autograd.grad(actor_loss + reg, actor_params),
+                        self.actor_optimizer)
+        self._soft_update()
+        self.updates += 1
+        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(),
+                "q": q.detach().mean().item()}
+
 
 class MADDPGE(EntityLearner):
     """MADDPG over entity tokens: shared decentralized actor, shared pooled centralized critic.
@@ -444,14 +457,7 @@ class MADDPGE(EntityLearner):
             others = self.critic.others(self.critic.embed(tok, batch.action, encoded))
         q_pi = self.critic.q(self.critic.embed(tok, mu, encoded), others)
         actor_loss = -(q_pi * movable).sum() / movable.sum().clamp_min(1.0)
-        reg = cfg.action_l2 * pre.pow(2).mean()
-        actor_params = list(self.actor.parameters())
-        self._clip_step(actor_params, torch.autograd.grad(actor_loss + reg, actor_params),
-                        self.actor_optimizer)
-        self._soft_update()
-        self.updates += 1
-        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(),
-                "q": q.detach().mean().item()}
+        return self._actor_step(actor_loss, pre, critic_loss, q)
 
 
 class BiCNetE(EntityLearner):
@@ -495,11 +501,4 @@ class BiCNetE(EntityLearner):
         pre = self.actor(tok, order)
         mu = torch.tanh(pre) * (movable_mask(batch.obs) if cfg.mask_parked else 1.0)
         actor_loss = -self.critic(tok, order, mu).mean()
-        reg = cfg.action_l2 * pre.pow(2).mean()
-        actor_params = list(self.actor.parameters())
-        self._clip_step(actor_params, torch.autograd.grad(actor_loss + reg, actor_params),
-                        self.actor_optimizer)
-        self._soft_update()
-        self.updates += 1
-        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(),
-                "q": q.detach().mean().item()}
+        return self._actor_step(actor_loss, pre, critic_loss, q)
