@@ -57,6 +57,10 @@ bookkeeping (measured: at 100 x 150 the solve is 0.5 ms, the bookkeeping about 1
 _RETURNED_BONUS = 1e5
 """World units taken off an order a breakdown returned, for the AGVs free now: more than any
 travel on a floor, so the next plan reassigns it while an AGV is free."""
+_OVERDUE_BONUS = 1e3
+"""World units taken off an order that has waited ``max_wait`` steps: more than any travel on
+the built-in floors, less than :data:`_RETURNED_BONUS`, so overdue orders are matched first,
+each to an AGV near it."""
 
 
 def _check_nonneg(name: str, value: object, positive: bool = False) -> float:
@@ -400,6 +404,7 @@ class MatchingDispatcher(LifelongDispatcher):
         + switching_cost * (j is not i's current or held order)
         + trip_weight * travel(pickup_j, dropoff_j)         # the loaded trip
         + next_weight * next_empty[j]                       # the empty trip j leaves behind
+        - 1e3 * (j has waited max_wait steps or more since its release)
 
     with ``eta[i, j] = lag[i] + travel(ready_i, pickup_j) / speed``; ``lag`` is 0 for an AGV
     that is free (plus service steps still to stand), and for a loaded AGV the remaining
@@ -444,6 +449,13 @@ class MatchingDispatcher(LifelongDispatcher):
         spread between seeds is as large (docs/classical.md), so it is not the default.
     next_k : int
         Nearest other pickups :func:`next_empty` averages (default 1).
+    max_wait : float
+        Steps since its release after which an order not yet picked up is matched before
+        all others (default ``inf``: never). A min-sum plan at saturation can leave an order
+        that is far from every AGV unserved for good: under Hungarian on warehouse-50 the
+        oldest open order after 1500 steps was released at step 0 (``load_curve.py``, oldest
+        open at end; FIFO's 245-301 steps). Its effect on throughput is not measured yet, so
+        it is off by default.
     driver : WaypointDriver, optional
     """
 
@@ -452,7 +464,8 @@ class MatchingDispatcher(LifelongDispatcher):
                  deadline_bonus: float = 5.0, lateness_weight: float = 1.0,
                  deadline_horizon: float = 100.0, plan_ahead: bool = True,
                  trip_weight: float = 0.0, ahead_steps: float = math.inf,
-                 next_weight: float = 0.0, next_k: int = 1) -> None:
+                 next_weight: float = 0.0, next_k: int = 1,
+                 max_wait: float = math.inf) -> None:
         super().__init__(driver)
         if not callable(matching):
             raise ValueError(f"matching must be a callable cost -> (rows, cols), got "
@@ -482,6 +495,7 @@ class MatchingDispatcher(LifelongDispatcher):
             raise ValueError(f"next_k must be an int >= 1, got {next_k!r}")
         self.next_weight = float(next_weight)
         self.next_k = int(next_k)
+        self.max_wait = _check_nonneg("max_wait", max_wait, True)
         self.last_cost: np.ndarray | None = None
         self._travel_cache: dict[int, tuple | None] = {}
 
@@ -578,6 +592,8 @@ class MatchingDispatcher(LifelongDispatcher):
                                                     pickup[orders], self.next_k)
         if self.priority_weight:
             column -= self.priority_weight * priority[orders]
+        if math.isfinite(self.max_wait) and release is not None:
+            column[now - release[orders] >= self.max_wait] -= _OVERDUE_BONUS
         late = None
         if deadline is not None and (deadline[orders] >= 0).any():
             due = np.flatnonzero(deadline[orders] >= 0)

@@ -95,3 +95,29 @@ def test_bad_sequence_options() -> None:
         HungarianDispatcher(next_k=0)
     with pytest.raises(ValueError, match="next_k"):
         HungarianDispatcher(next_k=True)
+
+
+def test_max_wait_serves_an_overdue_order_first(room) -> None:
+    # Y (farther) was released at step 0, X at step 90; now is step 100.
+    state = {**_one_agv_two_orders(), "release": np.array([90, 0]), "now": 100}
+    assert _bound(room).plan(**state).tolist() == [0]                # default: never overdue
+    assert _bound(room, max_wait=200).plan(**state).tolist() == [0]  # Y waited 100 < 200
+    d = _bound(room, max_wait=100)                                   # Y waited 100 >= 100
+    assert d.plan(**state).tolist() == [1]
+    travel = d.distances.distance(state["pos"], state["pickup"])[0]
+    np.testing.assert_allclose(d.last_cost[0], travel + d.switching_cost - np.array([0, 1e3]))
+
+
+def test_an_order_is_never_starved_under_max_wait() -> None:
+    """Warehouse-20 at saturation: with max_wait every order still open at the end has
+    waited less than max_wait plus the time to drive to it and pick it up."""
+    steps, max_wait = 600, 150
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0, arrivals=sim.Backlog(30))
+    d = HungarianDispatcher(max_wait=max_wait)
+    d.reset(env)
+    for _ in range(steps):
+        env.step(d.act(env))
+    o = env.orders
+    waiting = (o.status[0] == OPEN) | (o.status[0] == 2)  # open or assigned
+    age = steps - o.release[0][waiting]
+    assert age.numel() and int(age.max()) < max_wait + 120
