@@ -99,10 +99,11 @@ def choose(rows: list[dict[str, str]]) -> dict[str, dict]:
     return chosen
 
 
-def table(rows: list[dict[str, str]], chosen: dict[str, dict]) -> str:
-    keys = [k for k in settings_of(rows[0])]
+def table(rows: list[dict[str, str]], chosen: dict[str, dict], command: str) -> str:
+    """Every configuration tried, per method, the chosen one marked (Markdown)."""
+    keys = list(settings_of(rows[0]))
     lines = ["# Each reward's own hyperparameters (issue 16)", "",
-             "`python benchmarks/reward_search.py " + " ".join(sys.argv[1:]) + "`, "
+             f"`{command}`, "
              + time.strftime("%Y-%m-%d") + ". Every configuration of the searches "
              "(`benchmarks/sweeps/reward-search-*.toml`: 3v3, 3000 episodes on the fast "
              "preset's learner, seeds 0 and 1), scored by the mean validation response "
@@ -138,12 +139,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"reward_search: {exc}", file=sys.stderr)
         return 2
     chosen = choose(rows)
-    record = {"command": "python benchmarks/reward_search.py "
-                         + " ".join(str(s) for s in args.sweeps),
+    command = "python benchmarks/reward_search.py " + " ".join(str(s) for s in args.sweeps)
+    record = {"command": command,
               "date": time.strftime("%Y-%m-%d"), "validation_seed": 12345,
               "methods": chosen}
     atomic_write_text(args.out / "reward_search.json", json.dumps(record, indent=2) + "\n")
-    atomic_write_text(args.out / "reward_search.md", table(rows, chosen) + "\n")
+    atomic_write_text(args.out / "reward_search.md", table(rows, chosen, command) + "\n")
     for folder in args.sweeps:
         trials = folder / "trials.csv"
         if trials.is_file():
