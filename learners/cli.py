@@ -254,11 +254,7 @@ def run_train(args: argparse.Namespace) -> int:
             config.run_dir = args.run_dir
             learner_config = {**_preset(config.algo, args),
                               **_parse_overrides(config.algo, args.overrides)}
-        for key in ("episodes", "eval_every", "eval_episodes", "eval_seed", "checkpoint_every",
-                    "stop_response", "threads"):
-            if getattr(args, key) is not None:
-                setattr(config, key, getattr(args, key))
-        config.progress = not args.no_progress
+        _set_run_flags(config, args, with_episodes=True)
         result = train(config, learner_config, resume=bool(args.resume),
                        make_shield=getattr(args, "make_shield", None))
         _export_best(args, result, "the best policy")
@@ -271,6 +267,16 @@ def run_train(args: argparse.Namespace) -> int:
           f"{ev.get('response_rate', float('nan')):.3f} (best "
           f"{result.best_response_rate:.3f}); checkpoints in {result.run_dir}")
     return 130 if result.interrupted else 0
+
+
+def _set_run_flags(config: Any, args: argparse.Namespace, with_episodes: bool) -> None:
+    """Copy the run flags given on the command line into the ``TrainConfig``."""
+    keys = ("episodes",) * with_episodes + ("eval_every", "eval_episodes", "eval_seed",
+                                            "checkpoint_every", "stop_response", "threads")
+    for key in keys:
+        if getattr(args, key) is not None:
+            setattr(config, key, getattr(args, key))
+    config.progress = not args.no_progress
 
 
 def _export_best(args: argparse.Namespace, result: Any, what: str) -> None:
@@ -319,11 +325,7 @@ def _run_curriculum(args: argparse.Namespace) -> int:
                                      f"{args.reward or 'ipf'}-curriculum-s{args.seed or 0}"))
             learner_config = {**_preset(config.algo, args),
                               **_parse_overrides(config.algo, args.overrides)}
-        for key in ("eval_every", "eval_episodes", "eval_seed", "checkpoint_every",
-                    "stop_response", "threads"):
-            if getattr(args, key) is not None:
-                setattr(config, key, getattr(args, key))
-        config.progress = not args.no_progress
+        _set_run_flags(config, args, with_episodes=False)  # each stage has its own
         result = train_curriculum(config, stages, learner_config, resume=bool(args.resume),
                                   make_shield=getattr(args, "make_shield", None))
         _export_best(args, result, "the best policy of the last stage")

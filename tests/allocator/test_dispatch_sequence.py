@@ -95,6 +95,10 @@ def test_bad_sequence_options() -> None:
         HungarianDispatcher(next_k=0)
     with pytest.raises(ValueError, match="next_k"):
         HungarianDispatcher(next_k=True)
+    for bad in (0, -5.0, float("nan"), "150", None, True):
+        with pytest.raises(ValueError, match="max_wait"):
+            HungarianDispatcher(max_wait=bad)
+    assert HungarianDispatcher(max_wait=1e18).max_wait == 1e18  # huge: never overdue
 
 
 def test_max_wait_serves_an_overdue_order_first(room) -> None:
