@@ -53,7 +53,16 @@ class LifelongMetrics:
         Upper bound for the scenario (:meth:`sim.lifelong.LifelongScenario.throughput_bound`):
         every AGV always on a shortest loaded trip.
     wait_mean, wait_p95 : float
-        Release to pickup, steps, over the orders picked up (nan if none).
+        Release to pickup, steps, over the orders picked up (nan if none). An order a
+        controller leaves behind for good is in neither: see ``wait_p95_all`` and
+        ``oldest_open``.
+    wait_mean_all, wait_p95_all : float
+        The same over the orders picked up and the orders still waiting at the end (open or
+        assigned, not yet picked up), these counted with their age so far (a lower bound of
+        their wait), so that a controller that starves orders cannot look fast (nan if none).
+    oldest_open : int
+        Age in steps at the end of the oldest order still waiting to be picked up, over every
+        run (0 if none).
     lead_mean, lead_p95 : float
         Release to delivery, steps, over the orders delivered (nan if none).
     deadline_miss_rate : float
@@ -98,6 +107,9 @@ class LifelongMetrics:
     released: int
     delivered: int
     open_at_end: int
+    wait_mean_all: float
+    wait_p95_all: float
+    oldest_open: int
     runs: int
     steps: int
     seconds: float
@@ -111,7 +123,8 @@ class LifelongMetrics:
         return {k: getattr(self, k) for k in (
             "throughput", "throughput_bound", "wait_mean", "wait_p95", "lead_mean",
             "lead_p95", "deadline_miss_rate", "collisions_per_1000", "utilization",
-            "reassignments", "lost", "released", "delivered", "open_at_end", "runs", "steps")}
+            "reassignments", "lost", "released", "delivered", "open_at_end",
+            "wait_mean_all", "wait_p95_all", "oldest_open", "runs", "steps")}
 
 
 class _NoReward:
@@ -254,6 +267,7 @@ def evaluate_lifelong(
     wait_sum = np.zeros(K)
     wait_count = np.zeros(K)
     waits: list[np.ndarray] = []
+    ages: list[np.ndarray] = []  # orders still waiting at the end of each batch of runs
     leads: list[np.ndarray] = []
     late = due = 0
     collisions = 0.0
@@ -304,6 +318,8 @@ def evaluate_lifelong(
             (o.status == OPEN) | (o.status == ASSIGNED) | (o.status == LOADED))
         due += int(overdue.sum())
         late += int(overdue.sum())
+        waiting = (o.status == OPEN) | (o.status == ASSIGNED)
+        ages.append((env.steps.unsqueeze(1) - o.release)[waiting].cpu().numpy())
         reassign += int(env.reassignments.sum())
         lost += int(env.order_balance().abs().sum())
         released += int(env.released.sum())
@@ -313,6 +329,8 @@ def evaluate_lifelong(
         bar.close()
     wait = np.concatenate(waits) if waits else np.zeros(0)
     lead = np.concatenate(leads) if leads else np.zeros(0)
+    age = np.concatenate(ages) if ages else np.zeros(0)
+    wait_all = np.concatenate([wait, age])
     ends = np.minimum(np.arange(1, K + 1) * window, steps)
     widths = ends - np.arange(K) * window
 
@@ -333,7 +351,9 @@ def evaluate_lifelong(
         utilization=busy / working if working else 0.0,
         reassignments=reassign / runs,
         lost=lost, released=released, delivered=delivered, open_at_end=open_end,
-        runs=runs, steps=steps, seconds=time.perf_counter() - start,
+        wait_mean_all=stat(wait_all, None), wait_p95_all=stat(wait_all, 95),
+        oldest_open=int(age.max()) if len(age) else 0, runs=runs, steps=steps,
+        seconds=time.perf_counter() - start,
         time=ends, throughput_series=1000.0 * delivered_series.mean(0) / widths,
         wait_series=wait_series, open_series=open_series.mean(0),
     )

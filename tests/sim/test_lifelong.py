@@ -710,3 +710,18 @@ def test_the_design_names_work_as_written(tmp_path) -> None:
     faulty = sim.make_env("warehouse-20", faults=[(1, 0, 3)])
     faulty.step(torch.zeros(1, 20, 2))
     assert bool(faulty.events.breakdown[0, 0])
+
+
+def test_waits_count_the_orders_left_waiting() -> None:
+    """An order no AGV picks up is in no wait of the picked-up orders, but it is in
+    wait_*_all with its age so far and in oldest_open."""
+    def still(obs: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(*obs.shape[:2], 2)
+
+    m = sim.evaluate_lifelong(still, "warehouse-20", steps=80, seed=0, runs=2)
+    assert m.delivered == 0 and math.isnan(m.wait_mean) and math.isnan(m.wait_p95)
+    assert m.oldest_open == 80  # the backlog released at step 0 waits for the whole run
+    assert m.wait_mean_all == 80 and m.wait_p95_all == 80
+    s = sim.evaluate_lifelong(NearestTaskController(), "warehouse-20", steps=300, seed=0)
+    assert s.delivered > 0 and 0 < s.oldest_open <= 300
+    assert {"wait_mean_all", "wait_p95_all", "oldest_open"} <= set(s.summary())
