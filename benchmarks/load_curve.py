@@ -80,11 +80,6 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
     start = time.perf_counter()
     m = sim.evaluate_lifelong(seen, scenario, steps=steps, seed=seed, arrival_rate=rate,
                               faults=sim.Breakdowns(**FAULTS) if faults else None, **options)
-    # The waits above count picked-up orders only: an order a dispatcher leaves behind for
-    # good is in none of them, so the age of the oldest order still open at the end is kept.
-    o = seen.env.orders
-    waiting = (o.status == OPEN) | (o.status == ASSIGNED)
-    ages = (seen.env.steps.unsqueeze(1) - o.release)[waiting]
     row = dict(floor=floor, dispatcher=name, load="saturation" if rate is None else "poisson",
                rate=rate, faults=faults, throughput=m.throughput,
                throughput_bound=m.throughput_bound, wait_mean=m.wait_mean,
@@ -92,7 +87,7 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
                reassignments=m.reassignments, lost=m.lost, released=m.released,
                delivered=m.delivered, open_at_end=m.open_at_end,
                collisions_per_1000=m.collisions_per_1000,
-               oldest_open_at_end=int(ages.max()) if ages.numel() else 0,
+               oldest_open_at_end=oldest_open(seen.env),
                seconds=time.perf_counter() - start, commit=_commit(),
                date=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
     dispatcher = getattr(ctrl, "_dispatcher", None)
@@ -102,6 +97,16 @@ def run_one(floor: str, name: str, rate: float | None, faults: bool, steps: int,
                    messages_per_replan=dispatcher.messages / max(len(per), 1),
                    comm_range=COMM_RANGE)
     return row
+
+
+def oldest_open(env: object) -> int:
+    """Age in steps of the oldest order not yet picked up (open or assigned) in any floor of
+    ``env`` (0 when none). The waits of :func:`sim.evaluate_lifelong` count picked-up orders
+    only: an order a dispatcher leaves behind for good is in none of them, so this is kept."""
+    o = env.orders
+    waiting = (o.status == OPEN) | (o.status == ASSIGNED)
+    ages = (env.steps.unsqueeze(1) - o.release)[waiting]
+    return int(ages.max()) if ages.numel() else 0
 
 
 class Probe:
@@ -182,7 +187,8 @@ def probe(floor: str, names: list[str], steps: int, seed: int,
         counts = np.array(p.counts)
         print(json.dumps(dict(
             floor=floor, dispatcher=name, steps=steps, seed=seed, throughput=m.throughput,
-            wait_p95=m.wait_p95, reassignments=m.reassignments,
+            wait_p95=m.wait_p95, oldest_open_at_end=oldest_open(p.env),
+            reassignments=m.reassignments,
             share_idle_pickup_loaded_broken=(counts.sum(0) / counts.sum()).round(3).tolist(),
             speed_idle_pickup_loaded=np.nanmean(p.speed, 0).round(3).tolist(),
             slow_idle_pickup_loaded=np.nanmean(p.slow, 0).round(3).tolist(),

@@ -1,0 +1,270 @@
+"""How much throughput can the choice of orders give at saturation, on a floor's order model?
+
+At saturation an AGV's cycle is an *empty trip* (from where it became free, a drop-off station,
+to its next pickup) and a *loaded trip* (that order's pickup to its station). With orders drawn
+uniformly (pickups among the floor's pickup points, drop-offs among its stations, as
+``sim.Poisson`` and ``sim.Backlog`` draw them) and a dispatcher that leaves no order behind for
+good, the orders served over a long run are the orders released: their loaded trips average the
+order model's own, whoever dispatches, and only the empty trip is the dispatcher's. Its mean
+over a long run cannot be below the **transport bound**: the cheapest way to move the
+drop-offs' distribution (uniform over stations) onto the pickups' (uniform over pickup points),
+an optimal-transport linear program on the floor's grid distances, because the (drop-off,
+next pickup) pairs of any dispatcher have those two marginals. A min-cost cycle cover of
+``--samples`` sampled orders (the drop-off of each to the pickup of the next, every order
+served, :func:`scipy.optimize.linear_sum_assignment`) is the same bound from a finite sample.
+
+For each floor this script prints and writes, in steps at the driver's top speed
+(``WaypointDriver.max_speed * dt``, 0.12 world units a step):
+
+- the free-flow loaded trip, the random empty trip (a uniform station to a uniform pickup), the
+  nearest-station empty trip (each pickup from its nearest station: below any dispatcher) and
+  the transport / cycle-cover empty trip;
+- the cycle of ``"fifo"`` and ``"hungarian"`` measured by a probe run at saturation
+  (``benchmarks/load_curve.py``'s :class:`Probe`: orders delivered by AGVs free after step 100;
+  empty / loaded steps and their path lengths, the extra steps over the path at top speed);
+- the highest hungarian / fifo throughput ratio the empty trip can give: FIFO's measured cycle
+  over a cycle whose empty trip is the transport bound (with no extra steps, and with
+  Hungarian's measured extra steps) and whose loaded trip is FIFO's measured one.
+
+Writes ``benchmarks/results/dispatch/dispatch_bound.{md,json}``::
+
+    OMP_NUM_THREADS=1 python benchmarks/dispatch_bound.py                 # both floors
+    OMP_NUM_THREADS=1 python benchmarks/dispatch_bound.py --floor kiva-small --steps 800
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shlex  # noqa: E402
+import sys  # noqa: E402
+from datetime import datetime, timezone  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.optimize import linear_sum_assignment, linprog  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import load_curve  # noqa: E402
+
+import sim  # noqa: E402
+from allocator.dispatch import FifoDispatcher, HungarianDispatcher, WaypointDriver  # noqa: E402
+from allocator.distances import FloorDistances  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "benchmarks" / "results" / "dispatch"
+TARGET = 1.2
+"""The issue's target: hungarian delivers 1.2x fifo at saturation."""
+
+
+def transport_bound(cost: np.ndarray) -> float:
+    """Least mean cost of moving a uniform distribution over the rows onto a uniform one over
+    the columns (optimal transport, solved as a linear program by HiGHS).
+
+    Parameters
+    ----------
+    cost : np.ndarray, shape (S, P)
+        Finite costs, e.g. the grid distance from station s to pickup p.
+
+    Returns
+    -------
+    float
+        ``min sum_sp x[s, p] cost[s, p]`` over ``x >= 0`` with row sums ``1/S`` and column
+        sums ``1/P``.
+
+    Raises
+    ------
+    ValueError
+        For a cost that is not a non-empty 2-D array of finite numbers, or an unsolved program.
+    """
+    cost = np.asarray(cost, dtype=np.float64)
+    if cost.ndim != 2 or not cost.size or not np.isfinite(cost).all():
+        raise ValueError(f"cost must be a non-empty (S, P) array of finite numbers, got shape "
+                         f"{cost.shape}")
+    s, p = cost.shape
+    rows = np.kron(np.eye(s), np.ones((1, p)))  # (S, S * P): sum over p of x[s, p]
+    cols = np.kron(np.ones((1, s)), np.eye(p))  # (P, S * P): sum over s of x[s, p]
+    res = linprog(cost.ravel(), A_eq=np.vstack([rows, cols]),
+                  b_eq=np.concatenate([np.full(s, 1.0 / s), np.full(p, 1.0 / p)]),
+                  bounds=(0, None), method="highs")
+    if not res.success:
+        raise ValueError(f"the transport program was not solved: {res.message}")
+    return float(res.fun)
+
+
+def cycle_cover(cost: np.ndarray, samples: int, seed: int) -> float:
+    """Mean empty trip of a min-cost cycle cover of ``samples`` orders drawn uniformly.
+
+    Order k has station ``s_k`` and pickup ``p_k``; serving order b right after order a costs
+    ``cost[s_a, p_b]``; every order has exactly one successor and one predecessor (an
+    assignment, :func:`scipy.optimize.linear_sum_assignment`), never itself.
+
+    Parameters
+    ----------
+    cost : np.ndarray, shape (S, P)
+    samples : int
+        Orders drawn, >= 2.
+    seed : int
+
+    Returns
+    -------
+    float
+        The mean successor cost of the optimal cover.
+    """
+    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 2:
+        raise ValueError(f"samples must be an int >= 2, got {samples!r}")
+    cost = np.asarray(cost, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    si = rng.integers(cost.shape[0], size=samples)
+    pi = rng.integers(cost.shape[1], size=samples)
+    c = cost[si][:, pi]  # (K, K): drop-off of a to pickup of b
+    np.fill_diagonal(c, np.inf)
+    c = np.where(np.isfinite(c), c, 1e9)
+    r, k = linear_sum_assignment(c)
+    return float(c[r, k].mean())
+
+
+def order_model(floor: str, samples: int, seed: int) -> dict:
+    """The floor's order-model figures, in world units and steps at the driver's top speed."""
+    scenario, options = load_curve.floor_scenario(floor)
+    sc = sim.get_scenario(scenario, **options)
+    world = sc.world
+    per_step = WaypointDriver().max_speed * world.physics.dt
+    stations, pickups = np.asarray(sc.stations), np.asarray(sc.pickups)
+    d = FloorDistances(world)
+    empty = d.distance(stations, pickups)  # (S, P)
+    loaded = d.distance(pickups, stations)  # (P, S)
+    if not (np.isfinite(empty).all() and np.isfinite(loaded).all()):
+        raise ValueError(f"{floor}: a station and a pickup do not reach each other")
+    out = dict(floor=floor, num_agents=sc.num_agents, pickups=len(pickups),
+               stations=len(stations), service_steps=sc.service_steps, per_step=per_step,
+               loaded_path=float(loaded.mean()), random_empty_path=float(empty.mean()),
+               nearest_station_empty_path=float(empty.min(axis=0).mean()),
+               transport_empty_path=transport_bound(empty),
+               cycle_cover_empty_path=cycle_cover(empty, samples, seed),
+               cycle_cover_samples=samples)
+    for key in ("loaded", "random_empty", "nearest_station_empty", "transport_empty",
+                "cycle_cover_empty"):
+        out[f"{key}_steps"] = out[f"{key}_path"] / per_step
+    return out
+
+
+def measure(floor: str, steps: int, seed: int) -> dict:
+    """Throughput, oldest open order and mean cycle of ``fifo`` and ``hungarian`` (defaults)
+    at the scenario's saturation, from one probe run each."""
+    scenario, options = load_curve.floor_scenario(floor)
+    out = {}
+    for name, inner in (("fifo", FifoDispatcher()), ("hungarian", HungarianDispatcher())):
+        p = load_curve.Probe(inner)
+        m = sim.evaluate_lifelong(p, scenario, steps=steps, seed=seed, **options)
+        cycle = p.cycle(inner.distances, inner.speed)
+        if not cycle:
+            raise ValueError(f"{floor}: no order of {name} was delivered by an AGV free after "
+                             f"step 100 in {steps} steps; run more steps")
+        out[name] = dict(throughput=m.throughput, wait_p95=m.wait_p95,
+                         oldest_open_at_end=load_curve.oldest_open(p.env),
+                         **{k: float(v) for k, v in cycle.items()})
+        print(json.dumps({"floor": floor, "dispatcher": name, **out[name]}), flush=True)
+    return out
+
+
+def ratios(model: dict, runs: dict) -> dict:
+    """The hungarian / fifo ratios: measured, and the highest the empty trip can give."""
+    f, h = runs["fifo"], runs["hungarian"]
+    fifo_cycle = f["empty_steps"] + f["loaded_steps"]
+    best_empty = model["transport_empty_steps"]
+    return dict(measured=h["throughput"] / f["throughput"],
+                cycle_measured=fifo_cycle / (h["empty_steps"] + h["loaded_steps"]),
+                no_extra=fifo_cycle / (best_empty + f["loaded_steps"]),
+                with_extra=fifo_cycle / (best_empty + h["empty_extra_steps"]
+                                         + f["loaded_steps"]),
+                fifo_cycle=fifo_cycle,
+                cycle_for_target=fifo_cycle / TARGET,
+                empty_for_target=fifo_cycle / TARGET - f["loaded_steps"])
+
+
+def report(rows: list[dict], command: str, out: Path) -> str:
+    lines = ["# What the empty trip can give: dispatch bounds at saturation", "",
+             f"`{command}` (commit {load_curve._commit()}, "
+             f"{datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}). Distances on the "
+             "floor's grid table (`allocator.distances.FloorDistances`), in steps at the "
+             "driver's top speed (0.12 world units a step). Order model: pickups uniform over "
+             "the floor's pickup points, drop-offs uniform over its stations. See the script's "
+             "docstring for each figure.", "",
+             "| floor | AGVs | loaded trip | random empty | nearest-station empty | transport"
+             " bound (empty) | cycle cover (empty) |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        m = r["model"]
+        lines.append(f"| {m['floor']} | {m['num_agents']} | {m['loaded_steps']:.1f} | "
+                     f"{m['random_empty_steps']:.1f} | {m['nearest_station_empty_steps']:.1f}"
+                     f" | {m['transport_empty_steps']:.1f} | "
+                     f"{m['cycle_cover_empty_steps']:.1f} ({m['cycle_cover_samples']}) |")
+    lines += ["", "Measured at saturation (the scenario's backlog, ceil(1.5 N) open orders), "
+              "default dispatchers, one probe run each (steps and seed in the JSON); paths in "
+              "steps at top speed, *extra* = steps over it:", "",
+              "| floor | dispatcher | throughput | oldest open at end | empty path | empty "
+              "steps (extra) | loaded path | loaded steps (extra) | cycle |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        per = r["model"]["per_step"]
+        for name, x in r["runs"].items():
+            lines.append(
+                f"| {r['model']['floor']} | {name} | {x['throughput']:.1f} | "
+                f"{x['oldest_open_at_end']} | {x['empty_path'] / per:.1f} | "
+                f"{x['empty_steps']:.1f} ({x['empty_extra_steps']:.1f}) | "
+                f"{x['loaded_path'] / per:.1f} | {x['loaded_steps']:.1f} "
+                f"({x['loaded_extra_steps']:.1f}) | "
+                f"{x['empty_steps'] + x['loaded_steps']:.1f} |")
+    lines += ["", "Hungarian / FIFO throughput: measured; the ratio of the measured cycles; "
+              "and the highest ratio the empty trip can give over a long run (FIFO's measured "
+              "cycle over the transport bound's empty trip plus FIFO's measured loaded trip), "
+              "with no extra steps on the empty trip and with Hungarian's measured ones:", "",
+              "| floor | measured | cycles | highest, no extra | highest, Hungarian's extra |"
+              " cycle for 1.2x | empty trip for 1.2x |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        q = r["ratios"]
+        lines.append(f"| {r['model']['floor']} | {q['measured']:.3f} | "
+                     f"{q['cycle_measured']:.3f} | {q['no_extra']:.3f} | "
+                     f"{q['with_extra']:.3f} | {q['cycle_for_target']:.1f} | "
+                     f"{q['empty_for_target']:.1f} |")
+    text = "\n".join(lines) + "\n"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "dispatch_bound.md").write_text(text)
+    (out / "dispatch_bound.json").write_text(json.dumps(dict(command=command, rows=rows),
+                                                        indent=2))
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--floor", action="append",
+                        help="warehouse-50, kiva-small or another lifelong scenario's name "
+                             "(repeatable; default warehouse-50 and kiva-small)")
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--samples", type=int, default=3000,
+                        help="orders of the cycle cover")
+    parser.add_argument("--out", type=Path, default=OUT)
+    args = parser.parse_args(argv)
+    if args.steps < 101:
+        parser.error(f"--steps must be > 100 (cycles count AGVs free after step 100), got "
+                     f"{args.steps}")
+    if args.samples < 2:
+        parser.error(f"--samples must be >= 2, got {args.samples}")
+    command = "OMP_NUM_THREADS=1 python benchmarks/dispatch_bound.py " + " ".join(
+        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    rows = []
+    for floor in args.floor or list(load_curve.FLOORS):
+        model = order_model(floor, args.samples, args.seed)
+        runs = measure(floor, args.steps, args.seed)
+        rows.append(dict(model=model, runs=runs, ratios=ratios(model, runs), steps=args.steps,
+                         seed=args.seed))
+    print(report(rows, command.strip(), args.out))
+
+
+if __name__ == "__main__":
+    main()
