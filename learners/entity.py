@@ -38,13 +38,15 @@ from torch import Tensor, nn
 
 from learners.buffer import Batch
 from learners.common import ActorCritic, OffPolicyConfig, check_bool, movable_mask
-from sim.observations import AGENT_FEATURES, TASK_FEATURES, ObsLayout
+from learners.floor import FloorWaypoints, obstacle_points
+from sim.observations import AGENT_FEATURES, TASK_FEATURES, LifelongObsLayout, ObsLayout
 
 __all__ = [
     "EntityConfig", "MADDPGEConfig", "BiCNetEConfig", "MADDPGE", "BiCNetE", "EntityEncoder",
     "EntityActor", "PooledCritic", "SortedBiRNN", "Tokens", "tokens", "infer_layout",
     "agent_order", "SELF_FEATURES", "TASK_TOKEN_FEATURES", "AGENT_TOKEN_FEATURES",
-    "MARGIN_CLIP",
+    "MARGIN_CLIP", "lifelong_tokens", "LIFELONG_SELF_FEATURES", "PICKUP_TOKEN_FEATURES",
+    "TARGET_TOKEN_FEATURES", "OBSTACLE_TOKEN_FEATURES", "PATH_CLIP",
 ]
 
 SELF_FEATURES = 3
@@ -59,6 +61,22 @@ AGENT_TOKEN_FEATURES = 5
 """AGV token: relative position (2), velocity (2), distance."""
 MARGIN_CLIP = 1.0
 """Clip of the task tokens' margin feature (world units)."""
+LIFELONG_SELF_FEATURES = 7
+"""Lifelong own-state token: velocity (2), status one-hot (4: idle, to pickup, loaded,
+broken) and the "in service" bit. No absolute position, as in the episodes."""
+TARGET_TOKEN_FEATURES = 6
+"""Lifelong target token (the AGV's own order's pickup or drop-off; masked when it has none):
+the next waypoint toward it relative to the AGV (2) and its distance, the shortest-path length
+to the target (clipped to PATH_CLIP), the straight-line offset to the target (2)."""
+PICKUP_TOKEN_FEATURES = 8
+"""Lifelong open-pickup token: relative position (2), distance, the next waypoint toward it
+relative to the AGV (2), the shortest-path length (clipped to PATH_CLIP), the margin and the
+"another AGV visible" bit of the episodic task token."""
+OBSTACLE_TOKEN_FEATURES = 3
+"""Obstacle token: the nearest point of a shelf or wall relative to the AGV (2), its distance
+(the OBSTACLE_SLOTS nearest within learners.floor.OBSTACLE_RANGE)."""
+PATH_CLIP = 10.0
+"""Clip of the shortest-path lengths in lifelong tokens (world units)."""
 
 
 # ---------------------------------------------------------------------- tokens
@@ -97,6 +115,14 @@ class Tokens:
     """(B, N, Ka, AGENT_TOKEN_FEATURES), zero in masked slots"""
     agent_mask: Tensor
     """(B, N, Ka) bool"""
+    target: Tensor | None = None
+    """Lifelong only: (B, N, 1, TARGET_TOKEN_FEATURES), zero when masked"""
+    target_mask: Tensor | None = None
+    """Lifelong only: (B, N, 1) bool"""
+    obstacle: Tensor | None = None
+    """Lifelong only: (B, N, OBSTACLE_SLOTS, OBSTACLE_TOKEN_FEATURES), zero when masked"""
+    obstacle_mask: Tensor | None = None
+    """Lifelong only: (B, N, OBSTACLE_SLOTS) bool"""
 
 
 def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
@@ -121,12 +147,8 @@ def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
     a_rel = a[..., :2] * a_mask.unsqueeze(-1)
     a_vel = a[..., 2:4] * a_mask.unsqueeze(-1)
     t_dist = torch.linalg.vector_norm(t_rel, dim=-1)
-    # distance of every visible other AGV to every task slot: (B, N, Kt, Ka)
-    other = torch.linalg.vector_norm(t_rel.unsqueeze(3) - a_rel.unsqueeze(2), dim=-1)
-    other = other.masked_fill(~a_mask.unsqueeze(2), math.inf)
-    nearest_other = other.amin(-1) if ka else torch.full_like(t_dist, math.inf)
-    margin = (nearest_other - t_dist).clamp(-MARGIN_CLIP, MARGIN_CLIP)
-    seen = a_mask.any(-1, keepdim=True).expand_as(t_dist).to(obs.dtype)
+    # margin: distance of the nearest visible other AGV to each task slot minus this AGV's
+    margin, seen = _margin(t_rel, t_dist, a_rel, a_mask)
     task = torch.stack([t_rel[..., 0], t_rel[..., 1], t_dist, margin, seen], dim=-1)
     agent = torch.cat([a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)],
                       dim=-1)
@@ -134,7 +156,74 @@ def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
                   a_mask)
 
 
-def agent_order(obs: Tensor, layout: ObsLayout) -> Tensor:
+def _margin(t_rel: Tensor, t_dist: Tensor, a_rel: Tensor, a_mask: Tensor) -> tuple[Tensor, Tensor]:
+    """The task tokens' margin and "another AGV visible" features, (B, N, Kt) each."""
+    ka = a_rel.shape[-2]
+    other = torch.linalg.vector_norm(t_rel.unsqueeze(3) - a_rel.unsqueeze(2), dim=-1)
+    other = other.masked_fill(~a_mask.unsqueeze(2), math.inf)
+    nearest_other = other.amin(-1) if ka else torch.full_like(t_dist, math.inf)
+    margin = (nearest_other - t_dist).clamp(-MARGIN_CLIP, MARGIN_CLIP)
+    seen = a_mask.any(-1, keepdim=True).expand_as(t_dist).to(t_dist.dtype)
+    return margin, seen
+
+
+def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoints) -> Tokens:
+    """Split lifelong observations into masked tokens (``docs/learners.md``, "Lifelong
+    operation").
+
+    Own state, the AGV's target (one slot), the K nearest open pickups, the K nearest other
+    AGVs, and the nearest obstacle points. Waypoints, path lengths and obstacle points come
+    from ``floor`` at the AGV's absolute position (which the observation holds).
+
+    Parameters
+    ----------
+    obs : Tensor, shape (B, N, layout.size)
+    layout : LifelongObsLayout
+    floor : FloorWaypoints
+        Of the floor the observations come from.
+
+    Returns
+    -------
+    Tokens
+        With ``target``, ``target_mask``, ``obstacle`` and ``obstacle_mask`` set.
+    """
+    B, N, _ = obs.shape
+    kt, ka = layout.k_pickups, layout.k_agents
+    pos = obs[..., layout.pos]
+    own = torch.cat([obs[..., layout.vel], obs[..., layout.status], obs[..., layout.service]],
+                    dim=-1)
+    # the target: waypoint, path length, straight offset
+    g_mask = obs[..., layout.target_mask] > 0.5  # (B, N, 1)
+    g_rel = obs[..., layout.target_rel] * g_mask
+    g_wp, g_len = floor.query(pos, pos + g_rel)
+    g_wp_rel = (g_wp - pos) * g_mask
+    target = torch.cat([g_wp_rel, torch.linalg.vector_norm(g_wp_rel, dim=-1, keepdim=True),
+                        g_len.clamp_max(PATH_CLIP).unsqueeze(-1) * g_mask, g_rel], dim=-1)
+    # the open pickups
+    t = obs[..., layout.pickups].reshape(B, N, kt, len(TASK_FEATURES))
+    a = obs[..., layout.agents].reshape(B, N, ka, len(AGENT_FEATURES))
+    t_mask, a_mask = t[..., 2] > 0.5, a[..., 4] > 0.5
+    t_rel = t[..., :2] * t_mask.unsqueeze(-1)
+    a_rel = a[..., :2] * a_mask.unsqueeze(-1)
+    a_vel = a[..., 2:4] * a_mask.unsqueeze(-1)
+    t_dist = torch.linalg.vector_norm(t_rel, dim=-1)
+    at = pos.unsqueeze(2).expand(B, N, kt, 2)
+    p_wp, p_len = floor.query(at, at + t_rel)
+    p_wp_rel = p_wp - at
+    margin, seen = _margin(t_rel, t_dist, a_rel, a_mask)
+    task = torch.cat([t_rel, t_dist.unsqueeze(-1), p_wp_rel,
+                      p_len.clamp_max(PATH_CLIP).unsqueeze(-1), margin.unsqueeze(-1),
+                      seen.unsqueeze(-1)], dim=-1)
+    agent = torch.cat([a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)],
+                      dim=-1)
+    o_rel, o_mask = obstacle_points(floor.world, pos)
+    obstacle = torch.cat([o_rel, torch.linalg.vector_norm(o_rel, dim=-1, keepdim=True)], -1)
+    return Tokens(own, task * t_mask.unsqueeze(-1), t_mask, agent * a_mask.unsqueeze(-1),
+                  a_mask, (target * g_mask).unsqueeze(-2), g_mask,
+                  obstacle * o_mask.unsqueeze(-1), o_mask)
+
+
+def agent_order(obs: Tensor, layout: ObsLayout | LifelongObsLayout) -> Tensor:
     """The fixed order of the AGVs along BiCNet-E's recurrence: by x, then y, then index.
 
     Parameters
@@ -195,32 +284,50 @@ class EntityEncoder(nn.Module):
     """Own state + task tokens + AGV tokens -> one embedding per AGV, (B, N, H).
 
     Token encoders are shared by all slots (and all AGVs); each kind of token is pooled by
-    masked attention with the own-state embedding as the query.
+    masked attention with the own-state embedding as the query. With ``lifelong`` the tokens
+    are :func:`lifelong_tokens`' (pickup tokens for task tokens) and two more kinds are pooled
+    the same way: the AGV's target (one slot) and the obstacle points.
     """
 
-    def __init__(self, hidden: int) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False) -> None:
         super().__init__()
-        self.own = _mlp([SELF_FEATURES, hidden])
-        self.task = _mlp([TASK_TOKEN_FEATURES, hidden])
+        self.lifelong = lifelong
+        self.own = _mlp([LIFELONG_SELF_FEATURES if lifelong else SELF_FEATURES, hidden])
+        self.task = _mlp([PICKUP_TOKEN_FEATURES if lifelong else TASK_TOKEN_FEATURES, hidden])
         self.agent = _mlp([AGENT_TOKEN_FEATURES, hidden])
         self.task_pool = _AttentionPool(hidden)
         self.agent_pool = _AttentionPool(hidden)
-        self.out = _mlp([3 * hidden, hidden])
+        kinds = 3
+        if lifelong:
+            self.target = _mlp([TARGET_TOKEN_FEATURES, hidden])
+            self.obstacle = _mlp([OBSTACLE_TOKEN_FEATURES, hidden])
+            self.target_pool = _AttentionPool(hidden)
+            self.obstacle_pool = _AttentionPool(hidden)
+            kinds = 5
+        self.out = _mlp([kinds * hidden, hidden])
 
     def forward(self, tok: Tokens) -> Tensor:
         """Tokens -> (B, N, H)."""
         own = self.own(tok.own)
         task = self.task_pool(own, self.task(tok.task), tok.task_mask)
         agent = self.agent_pool(own, self.agent(tok.agent), tok.agent_mask)
-        return self.out(torch.cat([own, task, agent], dim=-1))
+        parts = [own, task, agent]
+        if self.lifelong:
+            if tok.target is None or tok.obstacle is None:
+                raise ValueError("a lifelong entity network reads lifelong tokens "
+                                 "(lifelong_tokens), got episodic ones")
+            parts.append(self.target_pool(own, self.target(tok.target), tok.target_mask))
+            parts.append(self.obstacle_pool(own, self.obstacle(tok.obstacle),
+                                            tok.obstacle_mask))
+        return self.out(torch.cat(parts, dim=-1))
 
 
 class EntityActor(nn.Module):
     """Decentralized actor: AGV i's tokens -> its pre-tanh action, (B, N, 2)."""
 
-    def __init__(self, hidden: int) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden)
+        self.encoder = EntityEncoder(hidden, lifelong)
         self.head = _mlp([hidden, hidden, 2], last_relu=False)
 
     def forward(self, tok: Tokens, order: Tensor | None = None) -> Tensor:
@@ -236,9 +343,9 @@ class PooledCritic(nn.Module):
     do not depend on N (Lowe et al. concatenate all N observations and actions instead).
     """
 
-    def __init__(self, hidden: int) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden)
+        self.encoder = EntityEncoder(hidden, lifelong)
         self.joint = _mlp([hidden + 2, hidden])
         self.head = _mlp([2 * hidden, hidden, 1], last_relu=False)
 
@@ -275,11 +382,14 @@ class SortedBiRNN(nn.Module):
         2 (actor) or 1 (critic).
     action_input : bool
         Whether the AGV's action joins its embedding before the recurrence (critic).
+    lifelong : bool
+        Read lifelong tokens (:func:`lifelong_tokens`).
     """
 
-    def __init__(self, hidden: int, out_features: int, action_input: bool = False) -> None:
+    def __init__(self, hidden: int, out_features: int, action_input: bool = False,
+                 lifelong: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden)
+        self.encoder = EntityEncoder(hidden, lifelong)
         self.action_input = action_input
         self.inp = _mlp([hidden + (2 if action_input else 0), hidden])
         self.rnn = nn.GRU(hidden, hidden, batch_first=True, bidirectional=True)
@@ -339,44 +449,101 @@ class EntityLearner(ActorCritic):
         layout of the observations is inferred from N and O, see :func:`infer_layout`, until
         :meth:`reset` or :meth:`set_layout` gives it).
     config : EntityConfig
+    lifelong : bool
+        Networks that read lifelong observations (:func:`lifelong_tokens`), for a lifelong
+        floor; their input layers differ from the episodic ones, so one set of weights serves
+        one mode. :func:`learners.train.train` and :class:`learners.policy.LearnedPolicy` set
+        it from the scenario (it is not a hyperparameter: checkpoints say it through their
+        scenario).
     """
 
     def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
-                 config: EntityConfig) -> None:
+                 config: EntityConfig, lifelong: bool = False) -> None:
         super().__init__(obs_dim, state_dim, num_agents, config)
-        self.layout: ObsLayout | None = None
+        self.lifelong = check_bool("lifelong", lifelong)
+        self.layout: ObsLayout | LifelongObsLayout | None = None
+        self.floor: FloorWaypoints | None = None
 
-    def set_layout(self, layout: ObsLayout) -> None:
-        """Read observations with this layout from now on."""
-        if not isinstance(layout, ObsLayout):
-            raise ValueError(f"layout must be a sim.observations.ObsLayout, got "
-                             f"{type(layout).__name__}")
-        self.layout = layout
-
-    def reset(self, env: Any) -> None:
-        """Take the observation layout of ``env`` (called by :func:`sim.evaluate`).
+    def set_layout(self, layout: ObsLayout | LifelongObsLayout,
+                   floor: FloorWaypoints | None = None) -> None:
+        """Read observations with this layout from now on (lifelong: and this floor).
 
         Raises
         ------
         ValueError
-            For a lifelong env (its observations are not read by these networks yet).
+            For a layout of the other mode than the networks' (``config.lifelong``), or a
+            lifelong layout without a floor.
+        """
+        want = LifelongObsLayout if self.lifelong else ObsLayout
+        if not isinstance(layout, want):
+            mode = "lifelong" if self.lifelong else "episodic"
+            raise ValueError(f"these {self.name} networks read {mode} observations "
+                             f"({want.__name__}), got a {type(layout).__name__}; lifelong and "
+                             "episodic weights are separate (train on a warehouse-N scenario "
+                             "for lifelong ones)")
+        if self.lifelong:
+            if not isinstance(floor, FloorWaypoints):
+                raise ValueError("a lifelong layout needs the floor's FloorWaypoints")
+            self.floor = floor
+        self.layout = layout
+
+    def reset(self, env: Any) -> None:
+        """Take the observation layout of ``env`` (called by :func:`sim.evaluate` and
+        :func:`sim.evaluate_lifelong`); for a lifelong env also its floor's waypoints (built
+        once per floor and kept while the floor stays the same).
+
+        Raises
+        ------
+        ValueError
+            For an env of the other mode than the networks' (see :meth:`set_layout`).
         """
         layout = getattr(env, "obs_layout", None)
-        if not isinstance(layout, ObsLayout):
-            raise ValueError(f"{self.name} reads the episodic observations (ObsLayout); "
-                             f"{type(env).__name__} has {type(layout).__name__}")
-        self.set_layout(layout)
+        floor = None
+        if isinstance(layout, LifelongObsLayout) and self.lifelong:
+            world = env.world
+            floor = self.floor if self.floor is not None and self.floor.world is world \
+                else FloorWaypoints(world)
+        self.set_layout(layout, floor)
 
-    def _layout(self, obs: Tensor) -> ObsLayout:
+    def _layout(self, obs: Tensor) -> ObsLayout | LifelongObsLayout:
         if obs.dim() != 3:
             raise ValueError(f"observations must have shape (B, N, O), got {tuple(obs.shape)}")
         if self.layout is not None and self.layout.size == obs.shape[-1]:
             return self.layout
+        if self.lifelong:
+            raise ValueError(f"lifelong observations of size {obs.shape[-1]} need their "
+                             "layout and floor first: reset(env) or set_layout(layout, floor)")
         return infer_layout(obs.shape[1], obs.shape[-1])
 
     def _read(self, obs: Tensor) -> tuple[Tokens, Tensor]:
         layout = self._layout(obs)
+        if isinstance(layout, LifelongObsLayout):
+            assert self.floor is not None  # set_layout checks it
+            return lifelong_tokens(obs, layout, self.floor), agent_order(obs, layout)
         return tokens(obs, layout), agent_order(obs, layout)
+
+    def _movable(self, obs: Tensor) -> Tensor:
+        """1.0 for AGVs whose action moves them, (B, N, 1): episodic, all but parked ones
+        (with ``mask_parked``); lifelong, all but broken ones and those in service (an AGV
+        never parks in lifelong operation)."""
+        if self.lifelong:
+            layout = self._layout(obs)
+            assert isinstance(layout, LifelongObsLayout)
+            still = obs[..., layout.status][..., 3:4] + obs[..., layout.service]
+            return (still < 0.5).to(obs.dtype)
+        if self.config.mask_parked:
+            return movable_mask(obs)
+        return torch.ones_like(obs[..., :1])
+
+    @torch.no_grad()
+    def explore(self, obs: Tensor, noise_std: float, generator: torch.Generator) -> Tensor:
+        """Actions with Gaussian exploration noise, clipped to [-1, 1], zero for AGVs that
+        cannot move (:meth:`_movable`), (B, N, O) -> (B, N, 2)."""
+        a = self.policy(obs)
+        noise = torch.randn(a.shape, generator=generator, dtype=a.dtype, device=a.device)
+        a = (a + noise_std * noise).clamp(-1.0, 1.0)
+        return a * self._movable(obs) if self.config.mask_parked or self.lifelong \
+            else a
 
     def policy(self, obs: Tensor, target: bool = False) -> Tensor:
         """Deterministic actions, (B, N, O) -> (B, N, 2), zero for parked AGVs."""
@@ -385,7 +552,8 @@ class EntityLearner(ActorCritic):
     def _policy(self, obs: Tensor, tok: Tokens, order: Tensor, target: bool) -> Tensor:
         net = self.target_actor if target else self.actor
         a = torch.tanh(net(tok, order))
-        return a * movable_mask(obs) if self.config.mask_parked else a
+        return a * self._movable(obs) if self.config.mask_parked or self.lifelong \
+            else a
 
     def _clip_step(self, params: list[Tensor], grads: tuple[Tensor, ...],
                    optimizer: torch.optim.Optimizer) -> None:
@@ -422,11 +590,11 @@ class MADDPGE(EntityLearner):
     name = "maddpg-e"
 
     def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
-                 config: MADDPGEConfig | None = None) -> None:
+                 config: MADDPGEConfig | None = None, lifelong: bool = False) -> None:
         config = config or MADDPGEConfig()
-        super().__init__(obs_dim, state_dim, num_agents, config)
-        self.actor = EntityActor(config.hidden)
-        self.critic = PooledCritic(config.hidden)
+        super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
+        self.actor = EntityActor(config.hidden, self.lifelong)
+        self.critic = PooledCritic(config.hidden, self.lifelong)
         self._finish_init()
 
     def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:
@@ -448,8 +616,8 @@ class MADDPGE(EntityLearner):
         self._clip_step(critic_params, torch.autograd.grad(critic_loss, critic_params),
                         self.critic_optimizer)
 
-        movable = movable_mask(batch.obs).squeeze(-1) if cfg.mask_parked \
-            else torch.ones_like(q)
+        movable = self._movable(batch.obs).squeeze(-1) \
+            if cfg.mask_parked or self.lifelong else torch.ones_like(q)
         pre = self.actor(tok, order)
         mu = torch.tanh(pre) * movable.unsqueeze(-1)
         with torch.no_grad():  # the critic's side does not depend on the actor's weights
@@ -471,11 +639,11 @@ class BiCNetE(EntityLearner):
     name = "bicnet-e"
 
     def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
-                 config: BiCNetEConfig | None = None) -> None:
+                 config: BiCNetEConfig | None = None, lifelong: bool = False) -> None:
         config = config or BiCNetEConfig()
-        super().__init__(obs_dim, state_dim, num_agents, config)
-        self.actor = SortedBiRNN(config.hidden, 2)
-        self.critic = SortedBiRNN(config.hidden, 1, action_input=True)
+        super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
+        self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong)
+        self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong)
         self._finish_init()
 
     def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:
@@ -499,6 +667,7 @@ class BiCNetE(EntityLearner):
                         self.critic_optimizer)
 
         pre = self.actor(tok, order)
-        mu = torch.tanh(pre) * (movable_mask(batch.obs) if cfg.mask_parked else 1.0)
+        mu = torch.tanh(pre) * (self._movable(batch.obs) if cfg.mask_parked or self.lifelong
+                                else 1.0)
         actor_loss = -self.critic(tok, order, mu).mean()
         return self._actor_step(actor_loss, pre, critic_loss, q)

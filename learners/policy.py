@@ -9,11 +9,49 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from learners.algorithms import ENTITY_ALGORITHMS, check_algo, make_learner
+from learners.algorithms import ALGORITHMS, ENTITY_ALGORITHMS, check_algo, make_config, make_learner
 from learners.checkpoint import load_checkpoint, resolve_checkpoint_path
 from learners.common import ActorCritic
 
-__all__ = ["LearnedPolicy", "load_policy"]
+__all__ = ["LearnedPolicy", "load_policy", "build_learner", "is_lifelong"]
+
+
+def is_lifelong(scenario: str) -> bool:
+    """Whether a scenario name is a lifelong floor (``warehouse-N``).
+
+    Raises
+    ------
+    ValueError
+        For an unknown scenario.
+    """
+    import sim
+
+    return bool(getattr(sim.get_scenario(scenario), "lifelong", False))
+
+
+def build_learner(algo: str, obs_dim: int, state_dim: int, num_agents: int,
+                  config: Any = None, lifelong: bool = False) -> ActorCritic:
+    """:func:`learners.algorithms.make_learner`, and for ``lifelong`` an entity learner whose
+    networks read lifelong observations (:class:`learners.entity.EntityLearner`).
+
+    Raises
+    ------
+    ValueError
+        For ``lifelong`` with an algorithm that is not an entity learner (only those read a
+        lifelong floor), or what ``make_learner`` refuses.
+    """
+    if not lifelong:
+        return make_learner(algo, obs_dim, state_dim, num_agents, config)
+    check_algo(algo)
+    if algo not in ENTITY_ALGORITHMS:
+        raise ValueError(f"only the entity learners {list(ENTITY_ALGORITHMS)} run on lifelong "
+                         f"floors (warehouse-N); got {algo!r}")
+    cls, cfg_cls = ALGORITHMS[algo]
+    if config is None or isinstance(config, dict):
+        config = make_config(algo, config)
+    elif not isinstance(config, cfg_cls):
+        raise ValueError(f"{algo} needs a {cfg_cls.__name__}, got {type(config).__name__}")
+    return cls(obs_dim, state_dim, num_agents, config, lifelong=True)
 
 
 class LearnedPolicy:
@@ -47,13 +85,15 @@ class LearnedPolicy:
         self.any_n: bool = self.algo in ENTITY_ALGORITHMS
 
     def reset(self, env: Any) -> None:
-        """Called once per batch of episodes by :func:`sim.evaluate`: an entity policy takes
-        the env's observation layout (its K slots); the others need nothing.
+        """Called once per batch of episodes by :func:`sim.evaluate` (and of runs by
+        :func:`sim.evaluate_lifelong`): an entity policy takes the env's observation layout
+        (its K slots; lifelong: and the floor's waypoints); the others need nothing.
 
         Raises
         ------
         ValueError
-            For an entity policy on an env whose observations it cannot read (lifelong).
+            For an entity policy on an env of the other mode (episodic weights on a lifelong
+            floor or the reverse).
         """
         if self.any_n:
             self.learner.reset(env)
@@ -84,8 +124,9 @@ class LearnedPolicy:
             check_algo(algo)
         tensors, meta = load_checkpoint(p, algo=algo, reward=reward, scenario=scenario,
                                         obs_dim=obs_dim)
-        learner = make_learner(meta["algo"], int(meta["obs_dim"]), int(meta["state_dim"]),
-                               int(meta["num_agents"]), dict(meta["config"]))
+        learner = build_learner(meta["algo"], int(meta["obs_dim"]), int(meta["state_dim"]),
+                                int(meta["num_agents"]), dict(meta["config"]),
+                                lifelong=is_lifelong(meta["scenario"]))
         try:
             learner.load_policy_tensors({k: v for k, v in tensors.items()
                                          if k.startswith("actor.")})

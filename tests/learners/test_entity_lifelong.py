@@ -1,0 +1,149 @@
+"""Entity policies on lifelong floors: waypoints, obstacle points, lifelong tokens (issue 17)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import sim
+from learners.algorithms import make_learner
+from learners.entity import MADDPGE, lifelong_tokens
+from learners.floor import OBSTACLE_SLOTS, FloorWaypoints, obstacle_points
+from learners.policy import build_learner
+
+
+@pytest.fixture(scope="module")
+def floor() -> FloorWaypoints:
+    return FloorWaypoints(sim.get_scenario("warehouse-20").world)
+
+
+def _clear(world: sim.World, a: np.ndarray, b: np.ndarray, clearance: float) -> bool:
+    ts = np.linspace(0.0, 1.0, 200)[:, None]
+    return bool(world.is_free(a + ts * (b - a), clearance=clearance).all())
+
+
+def test_waypoints_go_round_the_shelves(floor):
+    world = floor.world
+    # a station on the left, pickups in the aisles between shelf rows: straight lines cut shelves
+    starts = torch.tensor([[0.4, 1.2], [0.4, 5.2], [6.9, 0.6], [3.0, 1.0]])
+    goals = torch.tensor([[3.1, 3.2], [4.3, 2.8], [1.9, 4.6], [3.1, 3.2]])
+    wp, length = floor.query(starts, goals)
+    for a, b, w, L in zip(starts.numpy(), goals.numpy(), wp.numpy(), length.numpy(),
+                          strict=True):
+        assert not _clear(world, a, b, 0.0)  # the straight line runs through a shelf
+        assert _clear(world, a, w, 0.0)  # the line to the waypoint does not
+        assert not np.allclose(w, b)
+        assert L > np.linalg.norm(b - a) + 0.1
+    # in the same aisle and close: the target itself, the straight distance
+    wp, length = floor.query(torch.tensor([[3.0, 3.0]]), torch.tensor([[3.1, 3.2]]))
+    assert torch.equal(wp, torch.tensor([[3.1, 3.2]]))
+    assert abs(float(length[0]) - float(np.hypot(0.1, 0.2))) < 0.12
+    # fields are kept per target cell
+    n = floor.cached_targets
+    floor.query(starts, goals)
+    assert floor.cached_targets == n
+
+
+def test_waypoint_walk_reaches_the_target(floor):
+    """Stepping to the waypoint again and again reaches a target behind two shelf rows."""
+    p, goal = torch.tensor([[0.4, 0.4]]), torch.tensor([[4.9, 4.2]])
+    for _ in range(60):
+        wp, _ = floor.query(p, goal)
+        step = wp - p
+        p = p + step * min(1.0, 0.3 / max(float(step.norm()), 1e-9))
+        assert _clear(floor.world, p.numpy()[0], p.numpy()[0], 0.1)  # no corner cut
+        if float((p - goal).norm()) < 0.05:
+            break
+    assert float((p - goal).norm()) < 0.05
+
+
+def test_floor_bad_inputs(floor):
+    with pytest.raises(ValueError, match="sim.World"):
+        FloorWaypoints("warehouse-20")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="resolution"):
+        FloorWaypoints(floor.world, resolution=0.0)
+    with pytest.raises(ValueError, match="resolution"):
+        FloorWaypoints(floor.world, resolution=1e-4)
+    with pytest.raises(ValueError, match="lookahead"):
+        FloorWaypoints(floor.world, lookahead=0)
+    with pytest.raises(ValueError, match="same shape"):
+        floor.query(torch.zeros(3, 2), torch.zeros(2, 2))
+
+
+def test_obstacle_points(floor):
+    world = floor.world  # shelves [1.6, 2.0, 6.4, 2.6], ...; bounds (0, 0, 7.2, 6.2)
+    rel, mask = obstacle_points(world, torch.tensor([[3.0, 1.8], [0.5, 0.3], [3.6, 3.0]]))
+    assert rel.shape == (3, OBSTACLE_SLOTS, 2) and mask.shape == (3, OBSTACLE_SLOTS)
+    assert torch.allclose(rel[0, 0], torch.tensor([0.0, 0.2]))  # the shelf face above
+    assert mask[0].sum() == 1  # the floor's bottom wall is 1.8 away
+    assert torch.allclose(rel[1, :2], torch.tensor([[0.0, -0.3], [-0.5, 0.0]]))
+    assert torch.allclose(rel[2, :2].abs(), torch.tensor([[0.0, 0.4], [0.0, 0.4]]))
+    assert torch.equal(rel[~mask], torch.zeros(int((~mask).sum()), 2))
+
+
+def _lifelong(algo: str, env: sim.LifelongEnv):
+    learner = build_learner(algo, env.obs_dim, env.global_state().shape[-1], env.num_agents,
+                            {"hidden": 16}, lifelong=True)
+    learner.reset(env)
+    return learner
+
+
+def _permute_slots(obs: torch.Tensor, start: int, k: int, width: int,
+                   perm: list[int]) -> torch.Tensor:
+    out = obs.clone()
+    block = obs[..., start:start + k * width].reshape(*obs.shape[:-1], k, width)
+    out[..., start:start + k * width] = block[..., perm, :].reshape(*obs.shape[:-1], k * width)
+    return out
+
+
+@pytest.mark.parametrize("algo", ["maddpg-e", "bicnet-e"])
+def test_lifelong_policy_reads_the_floor_and_ignores_slot_order(algo):
+    env = sim.make_env("warehouse-20", num_envs=2, reward="ipf", seed=3)
+    torch.manual_seed(0)
+    learner = _lifelong(algo, env)
+    for _ in range(30):
+        obs, *_ = env.step(learner.act(env.observe()))
+    layout = env.obs_layout
+    a = learner.act(obs)
+    assert a.shape == (2, 20, 2) and bool(torch.isfinite(a).all())
+    # the order of the pickup slots and of the AGV slots does not matter
+    perm = [2, 0, 3, 1]
+    p = _permute_slots(obs, layout.pickups.start, layout.k_pickups, 3, perm)
+    p = _permute_slots(p, layout.agents.start, layout.k_agents, 5, perm)
+    assert torch.allclose(learner.act(p), a, atol=1e-6)
+    # a masked slot's content does not reach the output
+    tok = lifelong_tokens(obs, layout, learner.floor)
+    assert tok.target is not None and tok.obstacle is not None
+    assert tok.target.shape == (2, 20, 1, 6) and tok.obstacle.shape == (2, 20, OBSTACLE_SLOTS, 3)
+    s = layout.pickups.start + 3 * (layout.k_pickups - 1)
+    h0, h7 = obs.clone(), obs.clone()
+    h0[0, 0, s:s + 3] = torch.tensor([0.0, 0.0, 0.0])
+    h7[0, 0, s:s + 3] = torch.tensor([7.0, -7.0, 0.0])
+    assert torch.equal(learner.act(h0), learner.act(h7))
+    assert not torch.equal(learner.act(h0)[0, 0], a[0, 0])
+    # a broken AGV's or one in service's action is zero
+    still = obs.clone()
+    still[0, 0, layout.status] = torch.tensor([0.0, 0.0, 0.0, 1.0])
+    still[0, 1, layout.service] = 1.0
+    act = learner.act(still)
+    assert torch.equal(act[0, :2], torch.zeros(2, 2)) and bool(act[0, 2:].abs().sum() > 0)
+
+
+def test_modes_do_not_mix():
+    life = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    epi = sim.make_env("6v6", num_envs=1, seed=0)
+    lifelong = build_learner("maddpg-e", life.obs_dim, 1, 20, lifelong=True)
+    with pytest.raises(ValueError, match="reset\\(env\\)"):
+        lifelong.act(life.observe())  # no layout or floor yet
+    with pytest.raises(ValueError, match="read lifelong observations"):
+        lifelong.reset(epi)
+    with pytest.raises(ValueError, match="FloorWaypoints"):
+        lifelong.set_layout(life.obs_layout)
+    episodic = make_learner("maddpg-e", epi.obs_dim, epi.state_dim, 6)
+    with pytest.raises(ValueError, match="read episodic observations"):
+        episodic.reset(life)
+    with pytest.raises(ValueError, match="lifelong"):
+        MADDPGE(life.obs_dim, 1, 20, lifelong="yes")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="only the entity learners"):
+        build_learner("maddpg", life.obs_dim, 1, 20, lifelong=True)
