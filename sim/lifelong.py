@@ -390,6 +390,51 @@ class LifelongEnv:
         """Whether this environment steps with the fused CPU kernels (see :mod:`sim.native`)."""
         return self._native is not None
 
+    _SCALARS = ("agent_pos", "agent_vel", "steps", "released", "delivered", "next_id",
+                "reassignments", "keys", "done")
+    _TABLES = (("orders", Orders), ("fleet", Fleet), ("events", Events))
+
+    def state_tensors(self) -> dict[str, Tensor]:
+        """Everything a run needs to continue exactly as it would have: the fleet, the order
+        table, the counters, the stream keys, the last events and the generator, as named
+        tensors (copies), for training checkpoints (:meth:`load_state_tensors`)."""
+        out = {name: getattr(self, "_" + name).clone() for name in self._SCALARS}
+        for table, _ in self._TABLES:
+            value = getattr(self, "_" + table)
+            for f in fields(value):
+                out[f"{table}.{f.name}"] = getattr(value, f.name).clone()
+        out["generator"] = self.generator.get_state()
+        return out
+
+    def load_state_tensors(self, tensors: dict[str, Tensor]) -> None:
+        """Put every run back as :meth:`state_tensors` saved it (same B and N).
+
+        Raises
+        ------
+        ValueError
+            For a missing tensor or one whose leading sizes are not this env's (B, N).
+        """
+        names = [*self._SCALARS, "generator"] + [f"{t}.{f.name}" for t, cls in self._TABLES
+                                                 for f in fields(cls)]
+        missing = [n for n in names if n not in tensors]
+        if missing:
+            raise ValueError(f"lifelong state lacks {missing}")
+        B, N = self.num_envs, self.num_agents
+        for name in ("agent_pos", "fleet.order", "orders.status", "steps"):
+            t = tensors[name]
+            want = (B, N) if name in ("agent_pos", "fleet.order") else (B,)
+            if tuple(t.shape[:len(want)]) != want:
+                raise ValueError(f"lifelong state {name!r} has shape {tuple(t.shape)}; this "
+                                 f"env has B={B}, N={N}")
+        for name in self._SCALARS:
+            setattr(self, "_" + name, tensors[name].clone().to(self.device))
+        for table, cls in self._TABLES:
+            setattr(self, "_" + table, cls(**{f.name: tensors[f"{table}.{f.name}"].clone()
+                                              .to(self.device) for f in fields(cls)}))
+        self.generator.set_state(tensors["generator"])
+        self._pair = None
+        self._update_status()
+
     def order_balance(self) -> Tensor:
         """released - (delivered + open + assigned + loaded), (B,): always 0."""
         return rules.order_balance(self._orders, self._released, self._delivered)
