@@ -386,6 +386,19 @@ class LifelongEnv:
                              self._steps, self._done)
 
     @property
+    def state_dim(self) -> int:
+        """Length of :meth:`global_state`'s rows, 11 N (for code that records an env's sizes,
+        such as learner checkpoints)."""
+        return 11 * self.num_agents
+
+    @property
+    def num_tasks(self) -> int:
+        """The floor's pickup points P: the task points of a lifelong floor (orders come and
+        go; this is the fixed count that code recording an env's sizes, such as learner
+        checkpoints, reads)."""
+        return len(self.scenario.pickups)
+
+    @property
     def native(self) -> bool:
         """Whether this environment steps with the fused CPU kernels (see :mod:`sim.native`)."""
         return self._native is not None

@@ -52,3 +52,9 @@ def test_bad_state_is_a_clear_error():
     small = sim.make_env("warehouse-20", num_envs=1, seed=0)
     with pytest.raises(ValueError, match="B=1"):
         small.load_state_tensors(saved)
+
+
+def test_sizes_for_checkpoints():
+    env = sim.make_env("warehouse-20", num_envs=2, seed=0)
+    assert env.state_dim == env.global_state().shape[-1] == 220
+    assert env.num_tasks == len(env.scenario.pickups) == 48
