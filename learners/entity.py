@@ -46,7 +46,7 @@ __all__ = [
     "EntityActor", "PooledCritic", "SortedBiRNN", "Tokens", "tokens", "infer_layout",
     "agent_order", "SELF_FEATURES", "TASK_TOKEN_FEATURES", "AGENT_TOKEN_FEATURES",
     "MARGIN_CLIP", "lifelong_tokens", "LIFELONG_SELF_FEATURES", "PICKUP_TOKEN_FEATURES",
-    "TARGET_TOKEN_FEATURES", "OBSTACLE_TOKEN_FEATURES", "PATH_CLIP",
+    "TARGET_TOKEN_FEATURES", "OBSTACLE_TOKEN_FEATURES", "PATH_CLIP", "sizes_look_lifelong",
 ]
 
 SELF_FEATURES = 3
@@ -99,6 +99,18 @@ def infer_layout(num_agents: int, obs_dim: int) -> ObsLayout:
                          f"an NvM layout (5 + 3 k_tasks + 5 min(N - 1, 5)); give the layout "
                          f"with set_layout(env.obs_layout) or reset(env)")
     return ObsLayout(rest // len(TASK_FEATURES), k_agents)
+
+
+def sizes_look_lifelong(obs_dim: int, state_dim: int, num_agents: int) -> bool:
+    """Whether (O, S, N) are a lifelong floor's sizes rather than an episodic scene's: S = 11 N
+    (:meth:`sim.LifelongEnv.global_state`) and O no episodic layout for N AGVs."""
+    if int(state_dim) != 11 * int(num_agents):
+        return False
+    try:
+        infer_layout(num_agents, obs_dim)
+    except ValueError:
+        return True
+    return False
 
 
 @dataclass
@@ -449,17 +461,23 @@ class EntityLearner(ActorCritic):
         layout of the observations is inferred from N and O, see :func:`infer_layout`, until
         :meth:`reset` or :meth:`set_layout` gives it).
     config : EntityConfig
-    lifelong : bool
+    lifelong : bool, optional
         Networks that read lifelong observations (:func:`lifelong_tokens`), for a lifelong
         floor; their input layers differ from the episodic ones, so one set of weights serves
         one mode. :func:`learners.train.train` and :class:`learners.policy.LearnedPolicy` set
         it from the scenario (it is not a hyperparameter: checkpoints say it through their
-        scenario).
+        scenario). None (what ``learners.algorithms.make_learner`` passes) infers it from the
+        sizes: lifelong when the global state has a lifelong floor's 11 N features and the
+        observation size is no episodic layout's for N AGVs (:func:`infer_layout`); an episodic
+        scene's sizes always are (its state has 5 N + 3 M features and its observations an
+        episodic layout).
     """
 
     def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
-                 config: EntityConfig, lifelong: bool = False) -> None:
+                 config: EntityConfig, lifelong: bool | None = None) -> None:
         super().__init__(obs_dim, state_dim, num_agents, config)
+        if lifelong is None:
+            lifelong = sizes_look_lifelong(obs_dim, state_dim, num_agents)
         self.lifelong = check_bool("lifelong", lifelong)
         self.layout: ObsLayout | LifelongObsLayout | None = None
         self.floor: FloorWaypoints | None = None
@@ -590,7 +608,7 @@ class MADDPGE(EntityLearner):
     name = "maddpg-e"
 
     def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
-                 config: MADDPGEConfig | None = None, lifelong: bool = False) -> None:
+                 config: MADDPGEConfig | None = None, lifelong: bool | None = None) -> None:
         config = config or MADDPGEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
         self.actor = EntityActor(config.hidden, self.lifelong)
@@ -639,7 +657,7 @@ class BiCNetE(EntityLearner):
     name = "bicnet-e"
 
     def __init__(self, obs_dim: int, state_dim: int, num_agents: int,
-                 config: BiCNetEConfig | None = None, lifelong: bool = False) -> None:
+                 config: BiCNetEConfig | None = None, lifelong: bool | None = None) -> None:
         config = config or BiCNetEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
         self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong)

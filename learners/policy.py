@@ -40,9 +40,9 @@ def build_learner(algo: str, obs_dim: int, state_dim: int, num_agents: int,
         For ``lifelong`` with an algorithm that is not an entity learner (only those read a
         lifelong floor), or what ``make_learner`` refuses.
     """
-    if not lifelong:
-        return make_learner(algo, obs_dim, state_dim, num_agents, config)
     check_algo(algo)
+    if algo not in ENTITY_ALGORITHMS and not lifelong:
+        return make_learner(algo, obs_dim, state_dim, num_agents, config)
     if algo not in ENTITY_ALGORITHMS:
         raise ValueError(f"only the entity learners {list(ENTITY_ALGORITHMS)} run on lifelong "
                          f"floors (warehouse-N); got {algo!r}")
@@ -51,7 +51,7 @@ def build_learner(algo: str, obs_dim: int, state_dim: int, num_agents: int,
         config = make_config(algo, config)
     elif not isinstance(config, cfg_cls):
         raise ValueError(f"{algo} needs a {cfg_cls.__name__}, got {type(config).__name__}")
-    return cls(obs_dim, state_dim, num_agents, config, lifelong=True)
+    return cls(obs_dim, state_dim, num_agents, config, lifelong=bool(lifelong))
 
 
 class LearnedPolicy:

@@ -14,6 +14,14 @@ Episodes end when every task is claimed (a true terminal: no bootstrap) or at th
 time-limit truncation: the observations hold no clock, so the state is not terminal and the
 target bootstraps from the next state).
 
+**Lifelong floors** (``warehouse-N``, entity learners only): a training "episode" is a
+fixed-length window of ``TrainConfig.window`` steps of a lifelong run in each of the B
+environments; the run goes on across windows (no transition is terminal: every target
+bootstraps), and the floor restarts from the depot with a new order stream at the scenario's
+``max_steps``. The running score is the windows' throughput (deliveries per 1000 steps); an
+evaluation is one ``sim.evaluate_lifelong`` run of ``TrainConfig.eval_steps`` steps on
+``eval_seed``, and ``best.safetensors`` keeps the policy of the highest evaluated throughput.
+
 At episode milestones it writes a CSV row (``progress.csv``: the curves of the paper's Fig. 9;
 mirrored to TensorBoard when it is installed),
 evaluates the greedy policy with the paper's metrics (``sim.evaluate``), and writes checkpoints:
@@ -46,7 +54,13 @@ import torch
 from torch import Tensor
 
 import sim
-from learners.algorithms import ALGORITHMS, REWARD_NAMES, check_algo, make_config, make_learner
+from learners.algorithms import (
+    ALGORITHMS,
+    ENTITY_ALGORITHMS,
+    REWARD_NAMES,
+    check_algo,
+    make_config,
+)
 from learners.buffer import Batch, ReplayBuffer
 from learners.checkpoint import (
     code_version,
@@ -57,9 +71,11 @@ from learners.checkpoint import (
     write_sidecar,
 )
 from learners.common import ActorCritic, check_bool, check_int, check_real
+from learners.policy import build_learner, is_lifelong
 from sim.io import atomic_write_bytes, atomic_write_text, clean_stale_temporaries
 
-__all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS"]
+__all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS",
+           "LIFELONG_CSV_COLUMNS"]
 
 CSV_COLUMNS = [
     "episode", "env_steps", "updates", "seconds", "noise_std",
@@ -68,6 +84,13 @@ CSV_COLUMNS = [
     "eval_finished_rate",
 ]
 """Columns of ``progress.csv``; per-term reward columns ``train_term_<name>`` follow."""
+LIFELONG_CSV_COLUMNS = [
+    "episode", "env_steps", "updates", "seconds", "noise_std",
+    "train_throughput", "train_return", "critic_loss", "actor_loss", "q",
+    "eval_throughput", "eval_throughput_bound", "eval_wait_mean", "eval_collisions_per_1000",
+    "eval_utilization",
+]
+"""Columns of a lifelong run's ``progress.csv`` (throughput in deliveries per 1000 steps)."""
 
 _ENV_FIELDS = ("agent_pos", "agent_vel", "task_pos", "task_claimed", "agent_task", "steps", "done")
 _RECENT = 100  # finished training episodes in the running response rate
@@ -109,6 +132,15 @@ class TrainConfig:
     tensorboard: bool = True
     """Also write the CSV's curves as TensorBoard scalars (``RUN_DIR/tb``) when the
     ``tensorboard`` package is installed (silently skipped otherwise)."""
+    window: int = 100
+    """Lifelong floors only: steps per training episode (a window of a lifelong run)."""
+    eval_steps: int = 500
+    """Lifelong floors only: steps of each evaluation run (``sim.evaluate_lifelong``)."""
+
+    @property
+    def lifelong(self) -> bool:
+        """Whether ``scenario`` is a lifelong floor (``warehouse-N``)."""
+        return is_lifelong(self.scenario)
 
     def resolved_run_dir(self) -> Path:
         """``run_dir`` or its default."""
@@ -133,11 +165,13 @@ class TrainConfig:
         if not isinstance(self.scenario, str):
             raise ValueError(f"scenario must be a scenario name (a string), got "
                              f"{self.scenario!r}")
-        if getattr(sim.get_scenario(self.scenario), "lifelong", False):
-            raise ValueError(f"scenario {self.scenario!r} is lifelong; the learners train on "
+        if is_lifelong(self.scenario) and self.algo not in ENTITY_ALGORITHMS:
+            raise ValueError(f"scenario {self.scenario!r} is lifelong; {self.algo!r} trains on "
                              "the paper's episodic scenarios ('3v3', '6v6', 'NvM', "
-                             "'warehouse') for now")
-        for name in ("episodes", "eval_episodes", "log_every", "checkpoint_every", "threads"):
+                             f"'warehouse'); the entity learners {list(ENTITY_ALGORITHMS)} "
+                             "train on lifelong floors too")
+        for name in ("episodes", "eval_episodes", "log_every", "checkpoint_every", "threads",
+                     "window", "eval_steps"):
             setattr(self, name, check_int(name, getattr(self, name), 1))
         self.eval_every = check_int("eval_every", self.eval_every, 0)
         # the noise and sampling generators are seeded with seed + 1 and seed + 2
@@ -175,6 +209,8 @@ class TrainResult:
     """Best evaluated task response rate."""
     interrupted: bool = False
     """True if a signal stopped the run before its episode budget."""
+    best_throughput: float = -1.0
+    """Lifelong runs: best evaluated throughput (deliveries per 1000 steps); -1 otherwise."""
 
 
 def default_run_dir(algo: str, reward: str, scenario: str, seed: int) -> str:
@@ -250,14 +286,21 @@ class _CsvLog:
             self.tb.flush()
 
 
-def _env_tensors(env: sim.AGVEnv) -> dict[str, Tensor]:
+def _env_tensors(env: Any) -> dict[str, Tensor]:
+    if getattr(env, "lifelong", False):
+        return {f"env.lifelong.{k}": v for k, v in env.state_tensors().items()}
     out = {f"env.{k}": getattr(env, k).clone() for k in _ENV_FIELDS}
     out["rng.env"] = env.generator.get_state()
     return out
 
 
-def _load_env(env: sim.AGVEnv, tensors: dict[str, Tensor]) -> None:
+def _load_env(env: Any, tensors: dict[str, Tensor]) -> None:
     """Put B environments back mid-episode exactly as saved."""
+    if getattr(env, "lifelong", False):
+        prefix = "env.lifelong."
+        env.load_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
+                                if k.startswith(prefix)})
+        return
     env.set_state(tensors["env.agent_pos"], tensors["env.task_pos"], tensors["env.agent_vel"])
     for k in ("task_claimed", "agent_task", "steps", "done"):
         setattr(env, k, tensors[f"env.{k}"].clone())
@@ -270,7 +313,7 @@ def _term_names(scenario: str, reward: str) -> list[str]:
     return sorted(info["reward_terms"])
 
 
-def _metadata(config: TrainConfig, learner: ActorCritic, env: sim.AGVEnv, kind: str,
+def _metadata(config: TrainConfig, learner: ActorCritic, env: Any, kind: str,
               counters: dict[str, Any]) -> dict[str, Any]:
     return {
         "kind": kind,
@@ -382,7 +425,11 @@ def train(
     torch.manual_seed(config.seed)
     env = sim.make_env(config.scenario, num_envs=cfg.num_envs, reward=config.reward,
                        seed=config.seed)
-    learner = make_learner(config.algo, env.obs_dim, env.state_dim, env.num_agents, cfg)
+    lifelong = bool(getattr(env, "lifelong", False))
+    learner = build_learner(config.algo, env.obs_dim, env.state_dim, env.num_agents, cfg,
+                            lifelong=lifelong)
+    if lifelong:
+        learner.reset(env)  # the observation layout and the floor's waypoints
     buffer = ReplayBuffer(cfg.buffer_size, env.num_agents, env.obs_dim, env.state_dim)
     noise_gen = torch.Generator().manual_seed(config.seed + 1)
     sample_gen = torch.Generator().manual_seed(config.seed + 2)
@@ -390,6 +437,10 @@ def train(
     B = env.num_envs
     counters: dict[str, Any] = {"episodes": 0, "env_steps": 0, "updates": 0, "seconds": 0.0,
                                 "best_response_rate": -1.0, "last_eval": {}}
+    # lifelong: deliveries and steps at the start of the current window, per environment
+    window_delivered = torch.zeros(B, dtype=torch.int64)
+    window_steps = torch.zeros(B, dtype=torch.int64)
+    best_throughput = -1.0
     recent: deque[float] = deque(maxlen=_RECENT)  # response rate of recent training episodes
     recent_return: deque[float] = deque(maxlen=_RECENT)
     ep_return = torch.zeros(B)  # running episode return (mean over agents), per environment
@@ -409,6 +460,10 @@ def train(
         for t in terms:
             recent_terms[t].extend(saved[f"stats.recent_term.{t}"].tolist())
         counters.update({k: meta[k] for k in counters})
+        if lifelong:
+            window_delivered = saved["stats.window_delivered"].clone()
+            window_steps = saved["stats.window_steps"].clone()
+            best_throughput = float(counters["last_eval"].get("best_throughput", -1.0))
     elif init is not None:
         learner.load_training_tensors(init)
     shield = None
@@ -430,7 +485,8 @@ def train(
             {"train": dataclasses.asdict(config), config.algo: dataclasses.asdict(cfg)},
             indent=2) + "\n")
     log = _CsvLog(run_dir / "progress.csv",
-                  CSV_COLUMNS + [f"train_term_{t}" for t in terms],
+                  (LIFELONG_CSV_COLUMNS if lifelong else CSV_COLUMNS)
+                  + [f"train_term_{t}" for t in terms],
                   counters["episodes"] if resume else None)
     if config.tensorboard:
         log.enable_tensorboard(run_dir / "tb")
@@ -438,6 +494,8 @@ def train(
     losses: dict[str, float] = {}
 
     def evaluate() -> dict[str, float]:
+        if lifelong:
+            return evaluate_lifelong()
         m = sim.evaluate(learner, config.scenario, episodes=config.eval_episodes,
                          seed=config.eval_seed)
         counters["last_eval"] = m.as_dict()
@@ -447,12 +505,31 @@ def train(
                             _metadata(config, learner, env, "policy", counters))
         return m.as_dict()
 
+    def evaluate_lifelong() -> dict[str, float]:
+        nonlocal best_throughput
+        m = sim.evaluate_lifelong(learner, config.scenario, steps=config.eval_steps,
+                                  seed=config.eval_seed)
+        learner.reset(env)  # back to the training floor's layout (the same floor)
+        out = {f.name: float(getattr(m, f.name)) for f in dataclasses.fields(m)
+               if isinstance(getattr(m, f.name), (int, float))
+               and not isinstance(getattr(m, f.name), bool)}
+        if m.throughput > best_throughput:
+            best_throughput = float(m.throughput)
+            counters["last_eval"] = {**out, "best_throughput": best_throughput}
+            save_checkpoint(run_dir / "best.safetensors", learner.policy_tensors(),
+                            _metadata(config, learner, env, "policy", counters))
+        counters["last_eval"] = {**out, "best_throughput": best_throughput}
+        return out
+
     def write_checkpoint() -> None:
         tensors = {**learner.training_tensors(), **buffer.state_dict(), **_env_tensors(env),
                    "rng.noise": noise_gen.get_state(), "rng.sample": sample_gen.get_state(),
                    "rng.torch": torch.get_rng_state(),
                    "stats.ep_return": ep_return, "stats.recent": torch.tensor(list(recent)),
                    "stats.recent_return": torch.tensor(list(recent_return))}
+        if lifelong:
+            tensors["stats.window_delivered"] = window_delivered
+            tensors["stats.window_steps"] = window_steps
         for t in terms:
             tensors[f"stats.ep_term.{t}"] = ep_terms[t]
             tensors[f"stats.recent_term.{t}"] = torch.tensor(list(recent_terms[t]))
@@ -478,8 +555,10 @@ def train(
                 action = shield.filter(action)
             next_obs, reward, done, info = env.step(action)
             next_state = env.global_state()
-            # every task claimed: terminal; step limit only: truncated, so bootstrap
-            terminal = env.task_claimed.all(dim=1)
+            # every task claimed: terminal; step limit only: truncated, so bootstrap;
+            # lifelong operation has no terminal state
+            terminal = torch.zeros(B, dtype=torch.bool) if lifelong \
+                else env.task_claimed.all(dim=1)
 
             # 2. store the B transitions, then reset the finished environments
             buffer.add(Batch(obs, state, action, reward * cfg.reward_scale, next_obs,
@@ -488,7 +567,28 @@ def train(
             ep_return += reward.mean(dim=1)
             for t in terms:
                 ep_terms[t] += info["reward_terms"][t].mean(dim=1)
-            if bool(done.any()):
+            if lifelong:  # a window ends (all B floors step together) or the runs restart
+                ended = ((env.steps - window_steps) >= config.window) | done
+            if lifelong and bool(ended.any()):
+                ids = ended.nonzero().flatten()
+                span = (env.steps - window_steps)[ids].clamp_min(1).double()
+                recent.extend(((env.delivered - window_delivered)[ids].double() * 1000.0
+                               / span).tolist())
+                window_delivered = torch.where(ended, env.delivered, window_delivered)
+                window_steps = torch.where(ended, env.steps, window_steps)
+                recent_return.extend(ep_return[ids].tolist())
+                ep_return[ids] = 0.0
+                for t in terms:
+                    recent_terms[t].extend(ep_terms[t][ids].tolist())
+                    ep_terms[t][ids] = 0.0
+                counters["episodes"] += len(ids)
+                if bool(done.any()):
+                    obs, state = env.reset(env_ids=done), env.global_state()
+                    window_delivered = torch.where(done, 0, window_delivered)
+                    window_steps = torch.where(done, 0, window_steps)
+                else:
+                    obs, state = next_obs, next_state
+            elif not lifelong and bool(done.any()):
                 ids = done.nonzero().flatten()
                 recent.extend(env.task_claimed[ids].float().mean(dim=1).tolist())
                 recent_return.extend(ep_return[ids].tolist())
@@ -516,7 +616,8 @@ def train(
             if _crossed(episodes_before, now, config.log_every) or finished:
                 row = {"episode": now, "env_steps": counters["env_steps"],
                        "updates": counters["updates"], "seconds": counters["seconds"],
-                       "noise_std": noise_std, "train_response_rate": running,
+                       "noise_std": noise_std,
+                       ("train_throughput" if lifelong else "train_response_rate"): running,
                        "train_return": (sum(recent_return) / len(recent_return)
                                         if recent_return else float("nan")),
                        **{k: losses.get(k, float("nan"))
@@ -528,16 +629,21 @@ def train(
                 row = row or {"episode": now, "env_steps": counters["env_steps"],
                               "updates": counters["updates"], "seconds": counters["seconds"]}
                 row.update({f"eval_{k}": v for k, v in metrics.items() if k != "episodes"})
-                bar.set_postfix_str(f"resp {running:.2f} eval {metrics['response_rate']:.3f}")
-                if (config.stop_response is not None
+                if lifelong:
+                    bar.set_postfix_str(f"thr {running:.1f} eval {metrics['throughput']:.1f}")
+                else:
+                    bar.set_postfix_str(f"resp {running:.2f} eval "
+                                        f"{metrics['response_rate']:.3f}")
+                if (config.stop_response is not None and not lifelong
                         and metrics["response_rate"] >= config.stop_response):
                     finished = True
             if row is not None:
                 log.write(row)
             bar.update(min(now, config.episodes) - min(episodes_before, config.episodes))
             if _crossed(episodes_before, now, 10 * B):
-                bar.set_postfix_str(f"resp {running:.2f} eval "
-                                    f"{counters['last_eval'].get('response_rate', math.nan):.3f}")
+                key, name = ("throughput", "thr") if lifelong else ("response_rate", "resp")
+                bar.set_postfix_str(f"{name} {running:.2f} eval "
+                                    f"{counters['last_eval'].get(key, math.nan):.3f}")
             if stop.requested:
                 interrupted = not finished
                 finished = True
@@ -553,7 +659,7 @@ def train(
               f"agv train --resume {run_dir}")
     return TrainResult(run_dir, learner, counters["episodes"], counters["env_steps"],
                        counters["updates"], counters["seconds"], counters["last_eval"],
-                       counters["best_response_rate"], interrupted)
+                       counters["best_response_rate"], interrupted, best_throughput)
 
 
 class _Still:
@@ -587,6 +693,11 @@ def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg
         raise ValueError(f"init_from needs an algorithm whose weights do not depend on N "
                          f"({list(ENTITY_ALGORITHMS)}), got {config.algo!r}")
     tensors, meta = load_checkpoint(path, kind="training")
+    if is_lifelong(meta["scenario"]) != config.lifelong:
+        modes = {True: "a lifelong floor", False: "episodic scenes"}
+        raise ValueError(f"init_from {path} was trained on {modes[is_lifelong(meta['scenario'])]}"
+                         f" ({meta['scenario']!r}), this run on {modes[config.lifelong]} "
+                         f"({config.scenario!r}); their networks differ")
     for key in ("algo", "reward"):
         if meta[key] != getattr(config, key):
             raise ValueError(f"init_from {path} was trained with {key}={meta[key]!r}, this run "

@@ -147,3 +147,14 @@ def test_modes_do_not_mix():
         MADDPGE(life.obs_dim, 1, 20, lifelong="yes")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="only the entity learners"):
         build_learner("maddpg", life.obs_dim, 1, 20, lifelong=True)
+
+
+def test_make_learner_infers_the_mode_from_the_sizes():
+    """learners.algorithms.make_learner (what checkpoint checks build) passes no mode: the
+    sizes say it (11 N state features and no episodic layout: a lifelong floor)."""
+    life = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    assert make_learner("bicnet-e", life.obs_dim, life.state_dim, 20).lifelong
+    for name in ("3v3", "6v6", "20v20", "4v8"):
+        epi = sim.make_env(name, num_envs=1, seed=0)
+        assert not make_learner("maddpg-e", epi.obs_dim, epi.state_dim,
+                                epi.num_agents).lifelong
