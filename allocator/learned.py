@@ -16,6 +16,18 @@ have been shipped. ``allocator.make("maddpg-ipf", scenario="50v50", weights="aut
 scenario's own weights where they exist (``3v3``, ``6v6``: the paper's table) and the any-N
 weights for every other ``NvM`` scenario; ``weights="any"`` asks for the any-N weights on every
 scenario; ``weights="scenario"`` (the default, as before) for the scenario's own only.
+
+**Lifelong floors.** An entity learner trained on a lifelong floor (``agv train --algo
+maddpg-e --scenario warehouse-20 ...``, :mod:`learners.train`) drives any ``warehouse-N``
+floor: ``allocator.make("maddpg-greedy", scenario="warehouse-20", weights=RUN_DIR,
+shield=True)`` and then ``sim.evaluate_lifelong(solver, "warehouse-20", ...)``. ``weights``
+also takes a policy file or run folder (the same as ``checkpoint=``); the shipped lifelong
+weights, when there are any, are ``allocator/weights/<warehouse-N>/<algo>-<reward>`` (the
+floor's own) and ``allocator/weights/lifelong/<algo>-<reward>`` (any floor, for
+``weights="auto"`` / ``"any"``). Episodic and lifelong weights do not mix (their observations
+differ): each refuses the other mode's scenario. There is no one-shot plan on a lifelong floor
+(:meth:`LearnedAllocator.assign` is for episodic scenes); the AGVs pick up the open orders
+they reach (the simulator's rule for an idle AGV), as decentralized as the episodes' claims.
 """
 
 from __future__ import annotations
@@ -45,6 +57,8 @@ REWARDS = ("minidist", "greedy", "ipf")
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 ANY_N = "any"
 """The folder of ``allocator/weights`` with the any-N (entity-token) weights."""
+LIFELONG = "lifelong"
+"""The folder of ``allocator/weights`` with the any-N weights for lifelong floors."""
 WEIGHT_CHOICES = ("scenario", "auto", "any")
 """``weights=``: only the scenario's own (the default); the scenario's own if shipped, else the
 any-N ones (``auto``); only the any-N ones."""
@@ -60,10 +74,11 @@ def weights_path(algo: str, reward: str, scenario: str) -> Path:
     return WEIGHTS_DIR / scenario / f"{algo}-{reward}.safetensors"
 
 
-def any_n_weights_path(algo: str, reward: str) -> Path:
+def any_n_weights_path(algo: str, reward: str, lifelong: bool = False) -> Path:
     """Where the package keeps the any-N weights of ``<algo>-<reward>`` (the entity learner
-    ``<algo>-e``'s, trained over a curriculum of fleet sizes)."""
-    return WEIGHTS_DIR / ANY_N / f"{algo}-{reward}.safetensors"
+    ``<algo>-e``'s, trained over a curriculum of fleet sizes; ``lifelong``: trained on a
+    lifelong floor, for every ``warehouse-N``)."""
+    return WEIGHTS_DIR / (LIFELONG if lifelong else ANY_N) / f"{algo}-{reward}.safetensors"
 
 
 class LearnedAllocator:
@@ -83,11 +98,13 @@ class LearnedAllocator:
         Pass the policy's actions through :class:`allocator.shield.SafetyShield` (the ORCA QP,
         then the braking filter) when it drives an env (default False: the policy as
         trained). :attr:`safety` then holds the shield and its intervention counts.
-    weights : {"scenario", "auto", "any"}
+    weights : {"scenario", "auto", "any"} or path-like
         Which shipped weights (when no ``checkpoint`` is given): only the scenario's own
         (``"scenario"``, the default); the scenario's own if they exist, else the any-N ones
         (``"auto"``); only the any-N ones (``allocator/weights/any``, ``"any"``), which serve
-        every ``NvM`` scenario.
+        every ``NvM`` scenario (on a lifelong floor: ``allocator/weights/lifelong``). A path
+        (a policy file or an ``agv train`` run folder that exists) is the same as
+        ``checkpoint=``.
 
     Raises
     ------
@@ -127,9 +144,18 @@ class LearnedAllocator:
                              f"None for the shipped weights), got {checkpoint!r}")
         if not isinstance(shield, (bool, np.bool_)):
             raise ValueError(f"shield must be True or False, got {shield!r}")
+        if isinstance(weights, (str, os.PathLike)) and weights not in WEIGHT_CHOICES \
+                and Path(weights).exists():
+            if checkpoint is not None:
+                raise ValueError("give the weights once: weights=<path> or checkpoint=<path>")
+            checkpoint, weights = weights, "scenario"
         if not isinstance(weights, str) or weights not in WEIGHT_CHOICES:
-            raise ValueError(f"weights must be one of {list(WEIGHT_CHOICES)}, got {weights!r}")
+            raise ValueError(f"weights must be one of {list(WEIGHT_CHOICES)} or the path of a "
+                             f"policy file or run folder, got {weights!r}")
         self.scenario = get_scenario(scenario)
+        self.lifelong = bool(getattr(self.scenario, "lifelong", False))
+        """Whether the scenario is a lifelong floor (the policy then drives it through
+        ``sim.evaluate_lifelong``)."""
         if checkpoint is None:
             checkpoint = self._shipped(weights)
         self.checkpoint = Path(checkpoint)
@@ -144,12 +170,23 @@ class LearnedAllocator:
         self.any_n = found in ENTITY_ALGORITHMS
         """Whether the weights are an entity learner's (one set for any N)."""
         if self.any_n:
-            if getattr(self.scenario, "lifelong", False):
-                raise ValueError(f"the any-N weights of {self.name!r} serve the episodic "
-                                 f"scenarios (NvM); {self.scenario.name!r} is a lifelong floor, "
-                                 "whose observations they were not trained on")
             self.policy: LearnedPolicy = LearnedPolicy.load(
                 checkpoint, algo=entity_algo, reward=self.reward)
+            trained_lifelong = bool(getattr(self.policy.learner, "lifelong", False))
+            if self.lifelong and not trained_lifelong:
+                raise ValueError(f"the any-N weights {self.checkpoint} of {self.name!r} serve "
+                                 f"the episodic scenarios (NvM); {self.scenario.name!r} is a "
+                                 "lifelong floor, whose observations they were not trained on "
+                                 "(train lifelong weights with `agv train --algo "
+                                 f"{entity_algo} --scenario {self.scenario.name}`)")
+            if trained_lifelong and not self.lifelong:
+                raise ValueError(f"the weights {self.checkpoint} of {self.name!r} were trained "
+                                 f"on the lifelong floor {self.policy.scenario!r}; they drive "
+                                 f"lifelong floors (warehouse-N), not {self.scenario.name!r}")
+        elif self.lifelong:
+            raise ValueError(f"{self.checkpoint} holds {found or 'no'} weights: only the entity "
+                             f"learner {entity_algo!r} drives a lifelong floor such as "
+                             f"{self.scenario.name!r}")
         else:
             self.policy = LearnedPolicy.load(
                 checkpoint, algo=self.algo, reward=self.reward, scenario=self.scenario.name)
@@ -171,7 +208,8 @@ class LearnedAllocator:
     def _shipped(self, weights: str) -> Path:
         """The shipped weights file for ``weights`` (see the class docstring)."""
         own = weights_path(self.algo, self.reward, self.scenario.name)
-        anyn = any_n_weights_path(self.algo, self.reward)
+        anyn = any_n_weights_path(self.algo, self.reward,
+                                  bool(getattr(self.scenario, "lifelong", False)))
         candidates = {"auto": [own, anyn], "scenario": [own], "any": [anyn]}[weights]
         for path in candidates:
             if path.is_file():
@@ -184,9 +222,13 @@ class LearnedAllocator:
                 "'auto'), or checkpoint=<a policy .safetensors file>")
         hints = []
         if own in candidates:
-            hints.append(f"`agv train --algo {self.algo} --reward {self.reward} --scenario "
+            algo = f"{self.algo}-e" if getattr(self.scenario, "lifelong", False) else self.algo
+            hints.append(f"`agv train --algo {algo} --reward {self.reward} --scenario "
                          f"{self.scenario.name} --export {own}`")
-        if anyn in candidates:
+        if anyn in candidates and getattr(self.scenario, "lifelong", False):
+            hints.append(f"`agv train --algo {self.algo}-e --reward {self.reward} --scenario "
+                         f"{self.scenario.name} --export {anyn}` (any floor)")
+        elif anyn in candidates:
             hints.append(f"`agv train --algo {self.algo}-e --reward {self.reward} --curriculum "
                          f"6v6:2000,10v10:1000,20v20:500 --export {anyn}` (any N)")
         raise MissingWeightsError(
@@ -209,15 +251,21 @@ class LearnedAllocator:
         Raises
         ------
         ValueError
-            For a lifelong env: the shipped policies were trained on the paper's episodes
-            (their observations differ); policies for lifelong floors come with lifelong
-            training.
+            For an env of the other mode than the weights': episodic weights on a lifelong
+            floor (their observations differ; lifelong weights come from lifelong training) or
+            lifelong weights on an episodic scene.
         """
-        if getattr(env, "lifelong", False):
+        trained_lifelong = self.any_n and bool(getattr(self.policy.learner, "lifelong", False))
+        if getattr(env, "lifelong", False) and not trained_lifelong:
             raise ValueError(f"{self.name!r} was trained on the episodic scenario "
                              f"{self.scenario.name!r}; it cannot drive a lifelong floor (its "
                              "observations differ). Lifelong floors are dispatched by "
-                             "'hungarian' and 'greedy'")
+                             "'hungarian' and 'greedy', or driven by weights trained on one "
+                             f"(`agv train --algo {self.algo}-e --scenario warehouse-20`)")
+        if trained_lifelong and not getattr(env, "lifelong", False):
+            raise ValueError(f"{self.name!r} holds lifelong weights ({self.checkpoint}); they "
+                             "drive lifelong floors (sim.evaluate_lifelong), not episodic "
+                             "scenes")
         if self.any_n:  # read the env's observations with its layout (its K slots)
             self.policy.learner.reset(env)
         if self.safety is not None:
@@ -283,6 +331,10 @@ class LearnedAllocator:
 
         from sim.env import AGVEnv
 
+        if self.lifelong:
+            raise ValueError(f"{self.name!r} on the lifelong floor {self.scenario.name!r} has "
+                             "no one-shot plan: run it with sim.evaluate_lifelong(solver, "
+                             f"{self.scenario.name!r}, ...) (assign() is for episodic scenes)")
         agents, tasks = check_inputs(agents, tasks, world)
         n, m = len(agents), len(tasks)
         scenario = self._scene_scenario(agents, tasks, world)
