@@ -4,6 +4,7 @@
         [--floors warehouse-20 warehouse-50 warehouse-100] [--lifelong-steps 1000]
         [--seed 0] [--quick] [--out benchmarks/results/scale]
         [--methods hungarian maddpg-ipf ...] [--any-n] [--entity POLICY.safetensors ...]
+        [--lifelong-weights RUN_DIR_OR_FILE ...] [--dispatchers hungarian fifo ...]
 
 Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
 ``fifo`` and ``auction`` (its radio range equal to the scenario's sensing range, so that the
@@ -25,9 +26,15 @@ always run: the time column is relative to it).
 Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
 ``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) with their default
 path follower, and ``hungarian`` with :class:`allocator.SafeDriver`, through
-:func:`sim.evaluate_lifelong`, with the overlapping pairs counted at every step. The shipped
-learned policies have no lifelong rows: they were trained on the paper's episodes, whose
-observations differ (``LearnedAllocator.reset`` refuses a lifelong floor).
+:func:`sim.evaluate_lifelong`, with the overlapping pairs counted at every step;
+``--dispatchers`` names the rows instead, ``nearest`` among them
+(:class:`sim.controllers.NearestTaskController`: every AGV heads straight for the nearest open
+pickup, then its drop-off; no dispatcher). **Learned
+lifelong rows** (issue 17): the entity learners trained on a lifelong floor
+(``agv train --algo maddpg-e --scenario warehouse-20 ...``), plain and shielded, on every
+floor: the shipped lifelong weights where they exist (``allocator/weights/<floor>/`` or
+``allocator/weights/lifelong/``) and every ``--lifelong-weights`` run folder or policy file.
+The paper's (episodic) weights have no lifelong rows: their observations differ.
 
 Writes ``scale.md``, ``scale.json`` and ``scale.png`` (response and time over Hungarian's
 against N) to ``--out``, with the command, seed and machine.
@@ -59,6 +66,11 @@ LEARNED = ("maddpg-ipf", "bicnet-ipf")
 DISPATCHERS = ("hungarian", "fifo", "greedy", "auction", "hungarian+safe")
 """Lifelong rows; ``hungarian+safe`` drives with :class:`allocator.SafeDriver` (no AGV ever
 overlaps another) instead of the default path follower."""
+BASELINES = (*DISPATCHERS, "nearest")
+"""What ``--dispatchers`` may name: the default rows and ``nearest``
+(:class:`sim.controllers.NearestTaskController`, no dispatcher)."""
+ALL_LEARNED = tuple(f"{a}-{r}" for a in ("maddpg", "bicnet")
+                    for r in ("minidist", "greedy", "ipf"))
 LIFELONG_COMM_RANGE = 3.0
 
 
@@ -148,24 +160,70 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
     return rows
 
 
-def lifelong_rows(floors: list[str], steps: int, seed: int) -> list[dict]:
+def policy_file(path: str | Path) -> Path:
+    """A policy file, or a run folder's ``best.safetensors`` (else its ``policy.safetensors``)."""
+    p = Path(path)
+    if p.is_dir():
+        best = p / "best.safetensors"
+        return best if best.is_file() else p / "policy.safetensors"
+    return p
+
+
+def lifelong_learned(floor: str, weights: list[str]) -> list[tuple[str, dict]]:
+    """(row name, ``allocator.make`` keywords) of the learned rows on a floor: shipped
+    lifelong weights where they exist, then every ``--lifelong-weights`` entry."""
+    from allocator.learned import any_n_weights_path, weights_path
+    from learners.checkpoint import read_metadata
+
+    out = []
+    for name in ALL_LEARNED:
+        algo, reward = name.split("-")
+        if weights_path(algo, reward, floor).is_file() or \
+                any_n_weights_path(algo, reward, lifelong=True).is_file():
+            out.append((f"{name} (shipped)", dict(name=name, weights="auto")))
+    for w in weights:
+        path = policy_file(w)
+        meta = read_metadata(path)
+        name = f"{meta['algo'].removesuffix('-e')}-{meta['reward']}"
+        out.append((f"{name} ({w})", dict(name=name, checkpoint=str(path))))
+    return out
+
+
+def lifelong_rows(floors: list[str], steps: int, seed: int, weights: list[str] | None = None,
+                  dispatchers: list[str] | None = None) -> list[dict]:
     rows = []
     for floor in floors:
-        for name in DISPATCHERS:
+        variants: list[tuple[str, bool, Any]] = []
+        for name in dispatchers or DISPATCHERS:
             if name == "auction":
                 inner = allocator.make("auction", comm_range=LIFELONG_COMM_RANGE)
             elif name == "hungarian+safe":
                 inner = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
+            elif name == "nearest":
+                from sim.controllers import NearestTaskController
+
+                inner = NearestTaskController()
             else:
                 inner = allocator.make(name)
+            variants.append((name, False, inner))
+        for label, kw in lifelong_learned(floor, weights or []):
+            kw = dict(kw)
+            name = kw.pop("name")
+            for shield in (False, True):
+                variants.append((label, shield, allocator.make(name, scenario=floor,
+                                                               shield=shield, **kw)))
+        for name, shield, inner in variants:
             ctl = OverlapCounter(inner)
             t = time.perf_counter()
             m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed)
             seconds = time.perf_counter() - t
+            safety = getattr(inner, "safety", None)
             row = dict(kind="lifelong", scenario=floor, n=int(floor.split("-")[1]),
-                       method=name, shield=False, steps=steps, throughput=m.throughput,
+                       method=name, shield=shield, steps=steps, throughput=m.throughput,
                        throughput_bound=m.throughput_bound, wait_p95=m.wait_p95,
                        lost=m.lost, overlaps_per_1000_steps=1000.0 * ctl.pairs / steps,
+                       interventions=(safety.intervention_rate() if safety is not None
+                                      else None),
                        seconds=seconds)
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -191,13 +249,16 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
         "(`allocator/weights/any`), `entity:FILE` rows: an entity learner's policy file, "
         "both run zero-shot at every N. Auction: radio range = the scenario's sensing "
         "range (episodic), 3.0 (lifelong).",
-        "",
-        "## Episodic (`NvN`)",
-        "",
-        "| scenario | method | shield | episodes | response | avg time | time / Hungarian | "
-        "overlapping pairs per episode | interventions per AGV-step | s |",
-        "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    if any(r["kind"] == "episodic" for r in rows):
+        lines += [
+            "",
+            "## Episodic (`NvN`)",
+            "",
+            "| scenario | method | shield | episodes | response | avg time | time / Hungarian | "
+            "overlapping pairs per episode | interventions per AGV-step | s |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
     for r in (r for r in rows if r["kind"] == "episodic"):
         lines.append(
             f"| {r['scenario']} | {r['method']} | {'yes' if r['shield'] else 'no'} | "
@@ -207,15 +268,18 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
     life = [r for r in rows if r["kind"] == "lifelong"]
     if life:
         lines += ["", "## Lifelong (`warehouse-N`, backlog of 1.5 N orders)", "",
-                  "| floor | dispatcher | steps | deliveries / 1000 steps | bound | "
-                  "p95 wait | lost | overlapping pairs / 1000 steps | s |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "| floor | method | shield | steps | deliveries / 1000 steps | bound | "
+                  "p95 wait | lost | overlapping pairs / 1000 steps | "
+                  "interventions per AGV-step | s |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in life:
             lines.append(
-                f"| {r['scenario']} | {r['method']} | {r['steps']} | "
+                f"| {r['scenario']} | {r['method']} | {'yes' if r['shield'] else 'no'} | "
+                f"{r['steps']} | "
                 f"{_fmt(r['throughput'], '.1f')} | {_fmt(r['throughput_bound'], '.0f')} | "
                 f"{_fmt(r['wait_p95'], '.0f')} | {r['lost']} | "
-                f"{_fmt(r['overlaps_per_1000_steps'], '.1f')} | {r['seconds']:.0f} |")
+                f"{_fmt(r['overlaps_per_1000_steps'], '.1f')} | "
+                f"{_fmt(r.get('interventions'))} | {r['seconds']:.0f} |")
     atomic_write_text(out / "scale.md", "\n".join(lines) + "\n")
     meta = dict(command=command, seed=seed, date=stamp, rows=rows)
     atomic_write_text(out / "scale.json", json.dumps(meta, indent=1) + "\n")
@@ -257,7 +321,8 @@ def plot(rows: list[dict], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sizes", type=int, nargs="+", default=[3, 6, 10, 20, 50, 100])
+    p.add_argument("--sizes", type=int, nargs="*", default=[3, 6, 10, 20, 50, 100],
+                   help="episodic fleet sizes (none: lifelong rows only)")
     p.add_argument("--episodes", type=int, nargs="+", default=None,
                    help="episodes per size (default 100 100 50 20 10 5)")
     p.add_argument("--floors", nargs="*", default=["warehouse-20", "warehouse-50",
@@ -272,6 +337,10 @@ def main(argv: list[str] | None = None) -> None:
                    help="add the learned rows with the shipped any-N weights")
     p.add_argument("--entity", nargs="+", default=[], metavar="FILE",
                    help="add rows for these entity-learner policy files")
+    p.add_argument("--lifelong-weights", nargs="+", default=[], metavar="RUN_OR_FILE",
+                   help="add lifelong rows for these lifelong entity runs or policy files")
+    p.add_argument("--dispatchers", nargs="+", default=None, choices=BASELINES,
+                   help=f"lifelong baseline rows to run (default {' '.join(DISPATCHERS)})")
     args = p.parse_args(argv)
     if args.quick:
         args.sizes, args.episodes = [3, 6, 20], [20, 20, 4]
@@ -289,7 +358,11 @@ def main(argv: list[str] | None = None) -> None:
     np.seterr(all="ignore")
     rows = episodic_rows(args.sizes, episodes, args.seed, args.methods, args.any_n,
                          args.entity)
-    rows += lifelong_rows(args.floors, args.lifelong_steps, args.seed)
+    for w in args.lifelong_weights:
+        if not policy_file(w).is_file():
+            p.error(f"--lifelong-weights {w}: no policy file there")
+    rows += lifelong_rows(args.floors, args.lifelong_steps, args.seed, args.lifelong_weights,
+                          args.dispatchers)
     given = sys.argv[1:] if argv is None else argv
     write(rows, args.out, " ".join(["python benchmarks/scale_table.py", *given]), args.seed)
 
