@@ -60,6 +60,8 @@ TRAIN = {
     "threads": ([0, -1, 1.5], ">= 1"),
     "progress": (["no", None], "True or False"),
     "tensorboard": (["no", 0], "True or False"),
+    "window": ([0, -1, 1.5, "100"], ">= 1"),
+    "eval_steps": ([0, -2, 2.5, None], ">= 1"),
 }
 
 
