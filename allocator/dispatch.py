@@ -17,8 +17,10 @@ shield that keeps AGVs apart and the deadlock rules, ``docs/safety.md``).
   incrementally from the previous re-plan by :class:`allocator.lap.IncrementalLAP`), in
   estimated steps to the pickup,
   with priorities, deadlines (a discount for an order that misses its deadline unless served in
-  this plan, a penalty per step an AGV would be late) and a switching cost that keeps a plan
-  unless another is better by more than it.
+  this plan, a penalty per step an AGV would be late), a switching cost that keeps a plan
+  unless another is better by more than it, and orders that have waited ``max_wait`` steps
+  (default :data:`HUNGARIAN_MAX_WAIT`, 150) matched first, oldest first, so that none
+  starves.
 - :class:`MatchingDispatcher` with another matching rule: ``"greedy"``'s dispatcher.
 - :class:`AuctionDispatcher`: the same costs, matched by the decentralized epsilon-auction of
   :mod:`allocator.auction` over the AGVs' communication graph, with the messages counted.
@@ -45,7 +47,8 @@ from allocator.auction import check_comm_range, component_auction
 from allocator.distances import FloorDistances
 from allocator.lap import IncrementalLAP, _lookup, _sub
 
-__all__ = ["AuctionDispatcher", "FifoDispatcher", "HungarianDispatcher", "LifelongDispatcher",
+__all__ = ["AuctionDispatcher", "FifoDispatcher", "HUNGARIAN_MAX_WAIT",
+           "HUNGARIAN_OVERDUE_WEIGHT", "HungarianDispatcher", "LifelongDispatcher",
            "MatchingDispatcher", "WaypointDriver", "at_risk", "lateness", "next_empty"]
 
 _OPEN, _ASSIGNED = 1, 2
@@ -57,6 +60,33 @@ bookkeeping (measured: at 100 x 150 the solve is 0.5 ms, the bookkeeping about 1
 _RETURNED_BONUS = 1e5
 """World units taken off an order a breakdown returned, for the AGVs free now: more than any
 travel on a floor, so the next plan reassigns it while an AGV is free."""
+HUNGARIAN_MAX_WAIT = 150.0
+"""The default ``max_wait`` of :class:`HungarianDispatcher` (steps): an order that has waited
+this long is matched before all others (with :data:`HUNGARIAN_OVERDUE_WEIGHT`, the older
+overdue orders first), so that no order starves. Measured at saturation
+(``benchmarks/load_curve.py --probe``, 1500 steps; deliveries per 1000 steps / the age of the
+oldest order still open at the end; *w* = ``overdue_weight``):
+
+==============  ====  ============  ===========  ============  ============  ============
+floor           seed  inf           150          150, w 1      300           300, w 1
+==============  ====  ============  ===========  ============  ============  ============
+warehouse-50    0     392.7 / 1500  391.3 / 547  394.7 / 436   392.7 / 464   395.3 / 621
+warehouse-50    1     390.0 / 1500  386.7 / 329  385.3 / 317   391.3 / 731   391.3 / 691
+kiva-small      0     166.7 / 1500  165.3 / 331  164.0 / 320   165.3 / 515   165.3 / 511
+kiva-small      1     172.0 / 1500  169.3 / 357  166.0 / 318   172.0 / 437   169.3 / 428
+==============  ====  ============  ===========  ============  ============  ============
+
+150 with w 1 keeps the oldest open order at 317-436 steps (FIFO's: 245-301) for 1.5% of the
+throughput on average (+0.5% to -3.5%, the spread of single runs); 300 lets orders wait up to
+731 steps: many orders are overdue at once, and with w 0 the min-sum plan prefers the near
+ones among them again."""
+HUNGARIAN_OVERDUE_WEIGHT = 1.0
+"""The default ``overdue_weight`` of :class:`HungarianDispatcher` (world units per step
+overdue, about 8 steps of travel): two overdue orders a few steps apart in age are matched
+oldest first, whatever their travel."""
+_OVERDUE_CAP = 4e4
+"""The most world units an overdue order's age adds to its credit (``overdue_weight``): below
+:data:`_RETURNED_BONUS` less :data:`_OVERDUE_BONUS`."""
 _OVERDUE_BONUS = 1e3
 """World units taken off an order that has waited ``max_wait`` steps: more than any travel on
 the built-in floors, less than :data:`_RETURNED_BONUS`, so overdue orders are matched first,
@@ -404,9 +434,10 @@ class MatchingDispatcher(LifelongDispatcher):
         + switching_cost * (j is not i's current or held order)
         + trip_weight * travel(pickup_j, dropoff_j)         # the loaded trip
         + next_weight * next_empty[j]                       # the empty trip j leaves behind
-        - 1e3 * (j has waited max_wait steps or more since its release)
+        - (1e3 + overdue_weight * (age[j] - max_wait))  # if age[j] >= max_wait
 
-    with ``eta[i, j] = lag[i] + travel(ready_i, pickup_j) / speed``; ``lag`` is 0 for an AGV
+    with ``age[j] = now - release[j]``, ``eta[i, j] = lag[i] + travel(ready_i, pickup_j) /
+    speed``; ``lag`` is 0 for an AGV
     that is free (plus service steps still to stand), and for a loaded AGV the remaining
     travel to its drop-off over ``speed`` plus the service steps there; ``latest[j]`` is the
     latest pickup step (from now) that meets j's deadline (its deadline minus the loaded
@@ -451,12 +482,16 @@ class MatchingDispatcher(LifelongDispatcher):
         Nearest other pickups :func:`next_empty` averages (default 1).
     max_wait : float
         Steps since its release after which an order not yet picked up is matched before
-        all others (default ``inf``: never). A min-sum plan at saturation can leave an order
-        that is far from every AGV unserved for good: under Hungarian on warehouse-50 the
-        oldest open order after 1500 steps was released at step 0 (``load_curve.py``, oldest
-        open at end; FIFO's 245-301 steps). On warehouse-20 at saturation (1500 steps, seed
-        0) 150 cost no throughput (227.3 against 226.7 deliveries per 1000 steps); it stays
-        off by default until the load curves are re-run with it (docs/classical.md).
+        all others (default here ``inf``: never; :class:`HungarianDispatcher`'s default is
+        :data:`HUNGARIAN_MAX_WAIT`). A min-sum plan at saturation can leave an order that is
+        far from every AGV unserved for good: without it, under Hungarian on warehouse-50 and
+        on the Kiva floor the oldest open order after 1500 steps was released at step 0
+        (``load_curve.py``, oldest open at end; FIFO's 245-301 steps).
+    overdue_weight : float
+        World units taken off an overdue order's column per step it has waited beyond
+        ``max_wait`` (default 0 here, :data:`HUNGARIAN_OVERDUE_WEIGHT` for
+        :class:`HungarianDispatcher`; at most 40,000): > 0 serves the overdue orders oldest
+        first, where 0 lets the min-sum plan prefer the near ones among them.
     driver : WaypointDriver, optional
     """
 
@@ -466,7 +501,7 @@ class MatchingDispatcher(LifelongDispatcher):
                  deadline_horizon: float = 100.0, plan_ahead: bool = True,
                  trip_weight: float = 0.0, ahead_steps: float = math.inf,
                  next_weight: float = 0.0, next_k: int = 1,
-                 max_wait: float = math.inf) -> None:
+                 max_wait: float = math.inf, overdue_weight: float = 0.0) -> None:
         super().__init__(driver)
         if not callable(matching):
             raise ValueError(f"matching must be a callable cost -> (rows, cols), got "
@@ -497,6 +532,7 @@ class MatchingDispatcher(LifelongDispatcher):
         self.next_weight = float(next_weight)
         self.next_k = int(next_k)
         self.max_wait = _check_nonneg("max_wait", max_wait, True)
+        self.overdue_weight = _check_nonneg("overdue_weight", overdue_weight)
         self.last_cost: np.ndarray | None = None
         self._travel_cache: dict[int, tuple | None] = {}
 
@@ -594,7 +630,10 @@ class MatchingDispatcher(LifelongDispatcher):
         if self.priority_weight:
             column -= self.priority_weight * priority[orders]
         if math.isfinite(self.max_wait) and release is not None:
-            column[now - release[orders] >= self.max_wait] -= _OVERDUE_BONUS
+            age = now - release[orders]
+            over = age >= self.max_wait
+            column[over] -= _OVERDUE_BONUS + np.minimum(
+                self.overdue_weight * (age[over] - self.max_wait), _OVERDUE_CAP)
         late = None
         if deadline is not None and (deadline[orders] >= 0).any():
             due = np.flatnonzero(deadline[orders] >= 0)
@@ -652,6 +691,10 @@ class HungarianDispatcher(MatchingDispatcher):
     ----------
     switching_cost, priority_weight, driver
         As :class:`MatchingDispatcher`.
+    max_wait, overdue_weight : float
+        As :class:`MatchingDispatcher`, but on by default: :data:`HUNGARIAN_MAX_WAIT` (150
+        steps) and :data:`HUNGARIAN_OVERDUE_WEIGHT` (1.0); ``max_wait=math.inf`` gives the
+        plain min-sum plan, which can starve orders at saturation.
     incremental : bool
         Warm-start each re-plan from the previous one (default True; used from 40,000 cost
         entries, e.g. 200 x 200: below, scipy from scratch is faster); False solves every
@@ -667,9 +710,10 @@ class HungarianDispatcher(MatchingDispatcher):
 
     def __init__(self, switching_cost: float = 0.5, priority_weight: float = 2.0,
                  driver: WaypointDriver | None = None, *, incremental: bool = True,
-                 **options: Any) -> None:
+                 max_wait: float = HUNGARIAN_MAX_WAIT,
+                 overdue_weight: float = HUNGARIAN_OVERDUE_WEIGHT, **options: Any) -> None:
         super().__init__(linear_sum_assignment, switching_cost, priority_weight, driver,
-                         **options)
+                         max_wait=max_wait, overdue_weight=overdue_weight, **options)
         if not isinstance(incremental, (bool, np.bool_)):
             raise ValueError(f"incremental must be True or False, got {incremental!r}")
         self.incremental = bool(incremental)

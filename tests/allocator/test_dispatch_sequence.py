@@ -3,13 +3,21 @@ trip an order leaves behind, on a tiny built floor and against brute force."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import allocator
 import sim
-from allocator.dispatch import HungarianDispatcher, next_empty
+from allocator.dispatch import (
+    HUNGARIAN_MAX_WAIT,
+    HUNGARIAN_OVERDUE_WEIGHT,
+    HungarianDispatcher,
+    MatchingDispatcher,
+    next_empty,
+)
 from allocator.distances import FloorDistances
 
 IDLE, OPEN = 0, 1
@@ -98,13 +106,40 @@ def test_bad_sequence_options() -> None:
     for bad in (0, -5.0, float("nan"), "150", None, True):
         with pytest.raises(ValueError, match="max_wait"):
             HungarianDispatcher(max_wait=bad)
+    for bad in (-1.0, float("nan"), "1", None, True):
+        with pytest.raises(ValueError, match="overdue_weight"):
+            HungarianDispatcher(overdue_weight=bad)
     assert HungarianDispatcher(max_wait=1e18).max_wait == 1e18  # huge: never overdue
+
+
+def test_max_wait_is_on_by_default_for_hungarian_only() -> None:
+    assert HungarianDispatcher().max_wait == HUNGARIAN_MAX_WAIT == 150.0
+    assert HungarianDispatcher().overdue_weight == HUNGARIAN_OVERDUE_WEIGHT == 1.0
+    assert HungarianDispatcher(max_wait=math.inf).max_wait == math.inf  # the plain plan
+    assert allocator.make("hungarian").lifelong_dispatcher().max_wait == HUNGARIAN_MAX_WAIT
+    assert MatchingDispatcher().max_wait == math.inf  # greedy's and the auction's: unchanged
+    assert MatchingDispatcher().overdue_weight == 0.0
+
+
+def test_overdue_weight_serves_the_older_overdue_order_first(room) -> None:
+    # Both overdue (max_wait 150, now 200): X (nearer, 2 units) by 45 steps, Y (3 units) by 50.
+    state = {**_one_agv_two_orders(), "release": np.array([5, 0]), "now": 200}
+    d = _bound(room, overdue_weight=0.0)
+    assert d.plan(**state).tolist() == [0]  # the same credit: the nearer one
+    d = _bound(room)  # the default weight 1.0: Y's 5 steps more are worth 5 units
+    assert d.plan(**state).tolist() == [1]
+    travel = d.distances.distance(state["pos"], state["pickup"])[0]
+    np.testing.assert_allclose(d.last_cost[0],
+                               travel + d.switching_cost - 1e3 - np.array([45.0, 50.0]))
 
 
 def test_max_wait_serves_an_overdue_order_first(room) -> None:
     # Y (farther) was released at step 0, X at step 90; now is step 100.
     state = {**_one_agv_two_orders(), "release": np.array([90, 0]), "now": 100}
-    assert _bound(room).plan(**state).tolist() == [0]                # default: never overdue
+    assert _bound(room, max_wait=math.inf).plan(**state).tolist() == [0]  # never overdue
+    assert _bound(room).plan(**state).tolist() == [0]  # the default 150: Y waited 100 < 150
+    later = {**state, "release": np.array([140, 0]), "now": 150}
+    assert _bound(room).plan(**later).tolist() == [1]  # Y waited 150: overdue
     assert _bound(room, max_wait=200).plan(**state).tolist() == [0]  # Y waited 100 < 200
     d = _bound(room, max_wait=100)                                   # Y waited 100 >= 100
     assert d.plan(**state).tolist() == [1]
@@ -112,12 +147,13 @@ def test_max_wait_serves_an_overdue_order_first(room) -> None:
     np.testing.assert_allclose(d.last_cost[0], travel + d.switching_cost - np.array([0, 1e3]))
 
 
-def test_an_order_is_never_starved_under_max_wait() -> None:
-    """Warehouse-20 at saturation: with max_wait every order still open at the end has
-    waited less than max_wait plus the time to drive to it and pick it up."""
-    steps, max_wait = 600, 150
+def test_an_order_is_never_starved_under_the_default() -> None:
+    """Warehouse-20 at saturation: with the default max_wait every order still open at the
+    end has waited less than max_wait plus the time to drive to it and pick it up (600
+    steps without it)."""
+    steps, max_wait = 600, HUNGARIAN_MAX_WAIT
     env = sim.make_env("warehouse-20", num_envs=1, seed=0, arrivals=sim.Backlog(30))
-    d = HungarianDispatcher(max_wait=max_wait)
+    d = HungarianDispatcher()
     d.reset(env)
     for _ in range(steps):
         env.step(d.act(env))
