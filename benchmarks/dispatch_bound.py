@@ -26,7 +26,7 @@ For each floor this script prints and writes, in steps at the driver's top speed
   over a cycle whose empty trip is the transport bound (with no extra steps, and with
   Hungarian's measured extra steps) and whose loaded trip is FIFO's measured one.
 
-Writes ``benchmarks/results/dispatch/dispatch_bound.{md,json}``::
+Writes ``benchmarks/results/dispatch/dispatch_bound.{md,json}`` (``--name``: another stem)::
 
     OMP_NUM_THREADS=1 python benchmarks/dispatch_bound.py                 # both floors
     OMP_NUM_THREADS=1 python benchmarks/dispatch_bound.py --floor kiva-small --steps 800
@@ -187,7 +187,7 @@ def ratios(model: dict, runs: dict) -> dict:
                 empty_for_target=fifo_cycle / TARGET - f["loaded_steps"])
 
 
-def report(rows: list[dict], command: str, out: Path) -> str:
+def report(rows: list[dict], command: str, out: Path, name: str = "dispatch_bound") -> str:
     lines = ["# What the empty trip can give: dispatch bounds at saturation", "",
              f"`{command}` (commit {load_curve._commit()}, "
              f"{datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}). Distances on the "
@@ -211,9 +211,9 @@ def report(rows: list[dict], command: str, out: Path) -> str:
               "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         per = r["model"]["per_step"]
-        for name, x in r["runs"].items():
+        for who, x in r["runs"].items():
             lines.append(
-                f"| {r['model']['floor']} | {name} | {x['throughput']:.1f} | "
+                f"| {r['model']['floor']} | {who} | {x['throughput']:.1f} | "
                 f"{x['oldest_open_at_end']} | {x['empty_path'] / per:.1f} | "
                 f"{x['empty_steps']:.1f} ({x['empty_extra_steps']:.1f}) | "
                 f"{x['loaded_path'] / per:.1f} | {x['loaded_steps']:.1f} "
@@ -233,9 +233,8 @@ def report(rows: list[dict], command: str, out: Path) -> str:
                      f"{q['empty_for_target']:.1f} |")
     text = "\n".join(lines) + "\n"
     out.mkdir(parents=True, exist_ok=True)
-    (out / "dispatch_bound.md").write_text(text)
-    (out / "dispatch_bound.json").write_text(json.dumps(dict(command=command, rows=rows),
-                                                        indent=2))
+    (out / f"{name}.md").write_text(text)
+    (out / f"{name}.json").write_text(json.dumps(dict(command=command, rows=rows), indent=2))
     return text
 
 
@@ -249,6 +248,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--samples", type=int, default=3000,
                         help="orders of the cycle cover")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--name", default="dispatch_bound",
+                        help="file stem of the table and the JSON (default dispatch_bound)")
     args = parser.parse_args(argv)
     if args.steps < 101:
         parser.error(f"--steps must be > 100 (cycles count AGVs free after step 100), got "
@@ -263,7 +264,7 @@ def main(argv: list[str] | None = None) -> None:
         runs = measure(floor, args.steps, args.seed)
         rows.append(dict(model=model, runs=runs, ratios=ratios(model, runs), steps=args.steps,
                          seed=args.seed))
-    print(report(rows, command.strip(), args.out))
+    print(report(rows, command.strip(), args.out, args.name))
 
 
 if __name__ == "__main__":

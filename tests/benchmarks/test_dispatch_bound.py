@@ -47,8 +47,9 @@ def test_cycle_cover_refuses_bad_samples(bad) -> None:
 
 def test_tiny_run_writes_table_and_json(tmp_path: Path) -> None:
     bench.main(["--floor", "warehouse-20", "--steps", "300", "--samples", "200",
-                "--out", str(tmp_path)])
-    data = json.loads((tmp_path / "dispatch_bound.json").read_text())
+                "--out", str(tmp_path), "--name", "tiny"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.json", "tiny.md"]
+    data = json.loads((tmp_path / "tiny.json").read_text())
     assert "--floor warehouse-20" in data["command"]
     (row,) = data["rows"]
     m, q = row["model"], row["ratios"]
@@ -59,7 +60,7 @@ def test_tiny_run_writes_table_and_json(tmp_path: Path) -> None:
     assert all(r["empty_steps"] > 0 and r["loaded_steps"] > 0 for r in row["runs"].values())
     # No extra steps on the empty trip can only raise the highest ratio.
     assert q["no_extra"] >= q["with_extra"]
-    md = (tmp_path / "dispatch_bound.md").read_text()
+    md = (tmp_path / "tiny.md").read_text()
     assert md.count("| warehouse-20 |") == 1 + 2 + 1
 
 
