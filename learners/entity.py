@@ -24,7 +24,12 @@ Two learners are registered (``learners.algorithms.ALGORITHMS``):
     index), then shared output layers. Actor and critic have that shape; the actor update is
     BiCNet's (every AGV's action credited with its effect on every Q).
 
-``docs/learners.md`` ("Entity policies") lists every change to the papers' designs.
+On a lifelong floor (``lifelong=True``, :func:`lifelong_tokens`) the tokens are the AGV's own
+state, its target (with the next waypoint round the shelves, :mod:`learners.floor`), the K
+nearest open pickups, the K nearest AGVs and the nearest obstacle points.
+
+``docs/learners.md`` ("Entity policies", "Lifelong operation") lists every change to the
+papers' designs.
 """
 
 from __future__ import annotations
@@ -489,7 +494,7 @@ class EntityLearner(ActorCritic):
         Raises
         ------
         ValueError
-            For a layout of the other mode than the networks' (``config.lifelong``), or a
+            For a layout of the other mode than the networks' (``self.lifelong``), or a
             lifelong layout without a floor.
         """
         want = LifelongObsLayout if self.lifelong else ObsLayout
