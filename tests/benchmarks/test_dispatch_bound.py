@@ -23,6 +23,23 @@ def test_transport_bound_of_small_costs() -> None:
     assert bench.transport_bound(cost) == pytest.approx(1 / 6 + 2 / 6)
 
 
+def test_transport_bound_with_column_weights() -> None:
+    cost = np.array([[0.0, 1.0, 5.0], [5.0, 2.0, 0.0]])
+    # Uniform weights are the default.
+    assert bench.transport_bound(cost, np.ones(3)) == pytest.approx(bench.transport_bound(cost))
+    # All the mass on pickup 1: half from each station.
+    assert bench.transport_bound(cost, np.array([0, 7, 0])) == pytest.approx(1.5)
+    # And all the row mass on station 1 as well: every pickup-1 unit from it.
+    assert bench.transport_bound(cost, np.array([0, 7, 0]), np.array([0, 2])) \
+        == pytest.approx(2.0)
+    for bad in (np.ones(2), np.array([1.0, -1.0, 1.0]), np.zeros(3),
+                np.array([1.0, np.nan, 1.0])):
+        with pytest.raises(ValueError, match="weights"):
+            bench.transport_bound(cost, bad)
+    with pytest.raises(ValueError, match="row_weights"):
+        bench.transport_bound(cost, None, np.ones(3))
+
+
 def test_bounds_are_ordered_on_random_costs() -> None:
     rng = np.random.default_rng(3)
     cost = rng.uniform(1.0, 10.0, size=(4, 9))
@@ -57,7 +74,12 @@ def test_tiny_run_writes_table_and_json(tmp_path: Path) -> None:
     assert m["nearest_station_empty_steps"] <= m["transport_empty_steps"] + 1e-9
     assert m["transport_empty_steps"] <= m["random_empty_steps"] + 1e-9
     assert set(row["runs"]) == {"fifo", "hungarian"}
-    assert all(r["empty_steps"] > 0 and r["loaded_steps"] > 0 for r in row["runs"].values())
+    for r in row["runs"].values():
+        assert r["empty_steps"] > 0 and r["loaded_steps"] > 0
+        # The run's own pairing of drop-off stations and next pickups is one transport plan
+        # between them: its mean is never below the optimum.
+        assert r["empty_path"] >= r["served_transport_empty_path"] - 1e-9
+        assert r["served_transport_empty_path"] >= r["served_nearest_station_path"] - 1e-9
     # No extra steps on the empty trip can only raise the highest ratio.
     assert q["no_extra"] >= q["with_extra"]
     md = (tmp_path / "tiny.md").read_text()
