@@ -20,7 +20,9 @@ def uid(prefix: str) -> str:
     return f"{prefix}-{time.time_ns()}-{next(_ids)}"
 
 
-def wait_for(pred, timeout: float = 10.0, every: float = 0.05):
+def wait_for(pred, timeout: float = 60.0, every: float = 0.05):
+    # A generous bound: it returns as soon as the condition holds, and the server's planning
+    # loop can be slow on a loaded 2-core machine (10 s was not always enough).
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = pred()
