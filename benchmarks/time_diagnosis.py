@@ -92,7 +92,7 @@ def diagnose(controller: object, scenario: str, episodes: int, seed: int) -> dic
     path = (speed * dt * moving_idle).sum(axis=0)       # (E, N)
     start = pos[0]
     ratios = []
-    for e, n in zip(*np.nonzero(final >= 0)):
+    for e, n in zip(*np.nonzero(final >= 0), strict=True):
         straight = np.linalg.norm(task_pos[e, final[e, n]] - start[e, n])
         if straight > 1e-6:
             ratios.append(path[e, n] / straight)
