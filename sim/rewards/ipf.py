@@ -60,6 +60,8 @@ class IPFReward:
         passed as ``make_env(..., reward=IPFReward(resolution=...))``.
     task_value, agent_value : float
         The fixed potentials (+5, -3 in the paper).
+    goal_weight : float
+        The factor of the ``"goal"`` term, > 0 (default 1: the paper's reward).
     time_cost : float
         The per-step team cost of the ``"time"`` term while any task is unclaimed, >= 0
         (default 0: the paper's reward, without the term).
@@ -68,7 +70,8 @@ class IPFReward:
     ------
     ValueError
         For a resolution that is not a positive finite cell size, potentials that are not
-        finite numbers or a time cost that is not a finite number >= 0; :meth:`setup` for a
+        finite numbers, a goal weight that is not a finite number > 0 or a time cost that is
+        not a finite number >= 0; :meth:`setup` for a
         floor the resolution does not fit.
     """
 
@@ -79,6 +82,7 @@ class IPFReward:
         resolution: float = DEFAULT_RESOLUTION,
         task_value: float = TASK_VALUE,
         agent_value: float = AGENT_VALUE,
+        goal_weight: float = 1.0,
         time_cost: float = 0.0,
     ) -> None:
         self.resolution = check_resolution(resolution)
@@ -92,6 +96,10 @@ class IPFReward:
                 or not math.isfinite(time_cost) or time_cost < 0:
             raise ValueError(f"time_cost must be a finite number >= 0, got {time_cost!r}")
         self.time_cost = float(time_cost)
+        if isinstance(goal_weight, bool) or not isinstance(goal_weight, numbers.Real) \
+                or not math.isfinite(goal_weight) or goal_weight <= 0:
+            raise ValueError(f"goal_weight must be a finite number > 0, got {goal_weight!r}")
+        self.goal_weight = float(goal_weight)
         self._cache = TaskBlockCache()
         self._grid: IPFGrid | None = None
         self._kernels: Any = None
@@ -128,6 +136,8 @@ class IPFReward:
                              "(sim.make_env does it)")
         # ctx's collision counts and team terms are already 0 where the env was not running.
         goal = ctx.team_distance
+        if self.goal_weight != 1.0:
+            goal = goal * self.goal_weight
         collision = -ctx.collisions_per_agent.clamp_max(1.0)
         potential = self._grid.reward_potentials(
             state.agent_pos, state.task_pos, state.task_claimed, state.agent_task, ctx.active,

@@ -106,3 +106,23 @@ def test_the_variant_has_no_lifelong_form_and_unknown_names_list_it() -> None:
 def test_a_bad_time_cost_is_refused(bad) -> None:
     with pytest.raises(ValueError, match=r"time_cost must be a finite number >= 0"):
         IPFReward(time_cost=bad)
+
+
+def test_goal_weight_scales_the_goal_term_only() -> None:
+    actions = torch.rand(3, 4, 3, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    plain = sim.make_env("3v3", num_envs=4, reward="ipf", seed=2)
+    heavy = sim.make_env("3v3", num_envs=4, reward=IPFReward(goal_weight=2.5), seed=2)
+    for a in actions:
+        _, _, _, i0 = plain.step(a)
+        _, _, _, i1 = heavy.step(a)
+        assert set(i1["reward_terms"]) == {"ipf", "goal", "collision"}
+        torch.testing.assert_close(i1["reward_terms"]["goal"], 2.5 * i0["reward_terms"]["goal"])
+        torch.testing.assert_close(i1["reward_terms"]["ipf"], i0["reward_terms"]["ipf"])
+    assert IPFReward().goal_weight == 1.0
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, math.nan, math.inf, False, "2", None],
+                         ids=["zero", "negative", "nan", "inf", "bool", "str", "None"])
+def test_a_bad_goal_weight_is_refused(bad) -> None:
+    with pytest.raises(ValueError, match=r"goal_weight must be a finite number > 0"):
+        IPFReward(goal_weight=bad)
