@@ -28,8 +28,8 @@ ENTITY_ALGORITHMS = ("maddpg-e", "bicnet-e")
 
 REWARD_NAMES = ("minidist", "greedy", "ipf", "ipf-time")
 """The rewards the learners train with, as named in ``sim.make_env``: the paper's three and
-the variant ``ipf-time`` (``sim.rewards.REWARD_VARIANTS``: IPF plus a per-step team cost while
-any task is unclaimed, issue 16)."""
+the variant ``ipf-time`` (``sim.rewards.REWARD_VARIANTS``: IPF with a heavier goal term and a
+per-step team cost while any task is unclaimed, issue 16)."""
 
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {

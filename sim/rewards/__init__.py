@@ -18,9 +18,10 @@ in ``info["reward_terms"]`` so that shaping can be audited.
 One variant (:data:`REWARD_VARIANTS`, not one of the paper's rewards, and not in
 :data:`REWARDS`) is made by name too:
 
-- ``ipf-time``: the IPF reward plus a ``time`` term, ``-TIME_COST`` (:data:`TIME_COST`) for
-  every AGV after each step that leaves a task unclaimed, which pays for finishing early
-  (issue 16; ``IPFReward(time_cost=...)`` sets another cost). Episodic scenarios only.
+- ``ipf-time``: the IPF reward with its goal term weighted by :data:`GOAL_WEIGHT` and a
+  ``time`` term, ``-TIME_COST`` (:data:`TIME_COST`) for every AGV after each step that leaves
+  a task unclaimed, which pays for finishing early (issue 16;
+  ``IPFReward(goal_weight=..., time_cost=...)`` sets other values). Episodic scenarios only.
 
 Every term is a (B, N) tensor and is zero in environments that were already done before the
 step (the environment zeroes their summed reward too, so the reported terms add up to it).
@@ -39,7 +40,7 @@ from sim.rewards.minidist import MiniDist
 
 __all__ = ["RewardFn", "MiniDist", "Greedy", "IPFReward", "REWARDS", "LIFELONG_REWARDS",
            "LifelongMiniDist", "LifelongGreedy", "LifelongIPF", "make_reward", "REWARD_VARIANTS",
-           "TIME_COST"]
+           "TIME_COST", "GOAL_WEIGHT"]
 
 REWARDS: dict[str, Callable[[], RewardFn]] = {
     "minidist": MiniDist,
@@ -55,12 +56,15 @@ LIFELONG_REWARDS: dict[str, Callable[[], RewardFn]] = {
 }
 """The same names in lifelong mode (:mod:`sim.rewards.lifelong`)."""
 
-TIME_COST = 1.0
+TIME_COST = 3.0
 """The per-step team cost of ``ipf-time`` while any task is unclaimed (chosen on the
 validation seed 12345 for issue 16, see ``docs/learners.md``)."""
 
+GOAL_WEIGHT = 3.0
+"""The factor of ``ipf-time``'s goal term (chosen with :data:`TIME_COST`)."""
+
 REWARD_VARIANTS: dict[str, Callable[[], RewardFn]] = {
-    "ipf-time": lambda: IPFReward(time_cost=TIME_COST),
+    "ipf-time": lambda: IPFReward(goal_weight=GOAL_WEIGHT, time_cost=TIME_COST),
 }
 """Registered variants of the paper's rewards by name (episodic scenarios only)."""
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import sim
-from sim.rewards import REWARD_VARIANTS, REWARDS, TIME_COST, IPFReward, make_reward
+from sim.rewards import GOAL_WEIGHT, REWARD_VARIANTS, REWARDS, TIME_COST, IPFReward, make_reward
 
 
 def _env(n: int, m: int, reward, **options) -> sim.AGVEnv:
@@ -87,6 +87,7 @@ def test_finished_environments_get_a_zero_time_term() -> None:
 def test_the_ipf_time_variant_by_name() -> None:
     reward = make_reward("ipf-time")
     assert isinstance(reward, IPFReward) and reward.time_cost == TIME_COST > 0
+    assert reward.goal_weight == GOAL_WEIGHT > 0
     assert set(REWARD_VARIANTS) == {"ipf-time"}
     env = sim.make_env("3v3", num_envs=2, reward="ipf-time", seed=0)
     _, _, _, info = env.step(torch.zeros(2, 3, 2))
