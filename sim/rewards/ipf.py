@@ -71,8 +71,7 @@ class IPFReward:
     ValueError
         For a resolution that is not a positive finite cell size, potentials that are not
         finite numbers, a goal weight that is not a finite number > 0 or a time cost that is
-        not a finite number >= 0; :meth:`setup` for a
-        floor the resolution does not fit.
+        not a finite number >= 0; :meth:`setup` for a floor the resolution does not fit.
     """
 
     zeroes_inactive = True
