@@ -156,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", required=True)
     parser.add_argument("--algo", required=True, choices=["maddpg", "bicnet"])
-    parser.add_argument("--reward", required=True, choices=["minidist", "greedy", "ipf"])
+    parser.add_argument("--reward", required=True,
+                        choices=["minidist", "greedy", "ipf", "ipf-time"])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--episodes", type=int, required=True)
     parser.add_argument("--jobs", type=int, default=1, help="seeds trained at the same time")

@@ -26,8 +26,10 @@ any fleet size)."""
 ENTITY_ALGORITHMS = ("maddpg-e", "bicnet-e")
 """The algorithms whose weights serve any N (:mod:`learners.entity`)."""
 
-REWARD_NAMES = ("minidist", "greedy", "ipf")
-"""The paper's rewards, as named in ``sim.make_env``."""
+REWARD_NAMES = ("minidist", "greedy", "ipf", "ipf-time")
+"""The rewards the learners train with, as named in ``sim.make_env``: the paper's three and
+the variant ``ipf-time`` (``sim.rewards.REWARD_VARIANTS``: IPF with a heavier goal term and a
+per-step team cost while any task is unclaimed, issue 16)."""
 
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {

@@ -223,6 +223,15 @@ def _noise_std(cfg: Any, episodes: int) -> float:
     return cfg.noise_start + frac * (cfg.noise_end - cfg.noise_start)
 
 
+def _best_time(path: Path) -> float:
+    """The validation time of the best policy so far (inf if none): of two evaluations with
+    the same task response, ``best.safetensors`` keeps the faster (issue 16), as
+    ``benchmarks/train_policies.py`` ranks them."""
+    if not path.is_file():
+        return math.inf
+    return float(read_metadata(path).get("last_eval", {}).get("avg_time", math.inf))
+
+
 def _crossed(before: int, now: int, every: int) -> bool:
     return every > 0 and now // every > before // every
 
@@ -499,7 +508,9 @@ def train(
         m = sim.evaluate(learner, config.scenario, episodes=config.eval_episodes,
                          seed=config.eval_seed)
         counters["last_eval"] = m.as_dict()
-        if m.response_rate > counters["best_response_rate"]:
+        if m.response_rate > counters["best_response_rate"] or (
+                m.response_rate == counters["best_response_rate"]
+                and m.avg_time < _best_time(run_dir / "best.safetensors")):
             counters["best_response_rate"] = m.response_rate
             save_checkpoint(run_dir / "best.safetensors", learner.policy_tensors(),
                             _metadata(config, learner, env, "policy", counters))

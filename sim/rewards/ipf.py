@@ -41,6 +41,14 @@ class IPFReward:
       task rather than crowding one.
     - ``"collision"``: ``r_c = -1`` if AGV i's disc overlaps any other AGV's (centres closer
       than two radii, the environment's collision rule; the paper writes ``<=``), else 0.
+    - ``"time"`` (only with ``time_cost > 0``; not part of the paper's reward): ``-time_cost``
+      for every AGV after each step that leaves any task unclaimed, 0 after the step that
+      claims the last one. Summed over an episode it is ``-time_cost * (T - 1)`` for an
+      episode whose last task is claimed at step T (the paper's time metric) and
+      ``-time_cost * limit`` for an unfinished one, so the team pays for finishing late
+      (issue 16; the variant ``"ipf-time"`` of :data:`sim.rewards.REWARD_VARIANTS`). It is 0
+      at the final step so that the learners' absorbing terminal value (``r / (1 - gamma)``,
+      :class:`learners.common.OffPolicyConfig`) does not charge it forever.
 
     Parameters
     ----------
@@ -52,12 +60,18 @@ class IPFReward:
         passed as ``make_env(..., reward=IPFReward(resolution=...))``.
     task_value, agent_value : float
         The fixed potentials (+5, -3 in the paper).
+    goal_weight : float
+        The factor of the ``"goal"`` term, > 0 (default 1: the paper's reward).
+    time_cost : float
+        The per-step team cost of the ``"time"`` term while any task is unclaimed, >= 0
+        (default 0: the paper's reward, without the term).
 
     Raises
     ------
     ValueError
-        For a resolution that is not a positive finite cell size, or potentials that are not
-        finite numbers; :meth:`setup` for a floor the resolution does not fit.
+        For a resolution that is not a positive finite cell size, potentials that are not
+        finite numbers, a goal weight that is not a finite number > 0 or a time cost that is
+        not a finite number >= 0; :meth:`setup` for a floor the resolution does not fit.
     """
 
     zeroes_inactive = True
@@ -67,6 +81,8 @@ class IPFReward:
         resolution: float = DEFAULT_RESOLUTION,
         task_value: float = TASK_VALUE,
         agent_value: float = AGENT_VALUE,
+        goal_weight: float = 1.0,
+        time_cost: float = 0.0,
     ) -> None:
         self.resolution = check_resolution(resolution)
         for name, value in (("task_value", task_value), ("agent_value", agent_value)):
@@ -75,6 +91,14 @@ class IPFReward:
                 raise ValueError(f"{name} must be a finite number, got {value!r}")
         self.task_value = float(task_value)
         self.agent_value = float(agent_value)
+        if isinstance(time_cost, bool) or not isinstance(time_cost, numbers.Real) \
+                or not math.isfinite(time_cost) or time_cost < 0:
+            raise ValueError(f"time_cost must be a finite number >= 0, got {time_cost!r}")
+        self.time_cost = float(time_cost)
+        if isinstance(goal_weight, bool) or not isinstance(goal_weight, numbers.Real) \
+                or not math.isfinite(goal_weight) or goal_weight <= 0:
+            raise ValueError(f"goal_weight must be a finite number > 0, got {goal_weight!r}")
+        self.goal_weight = float(goal_weight)
         self._cache = TaskBlockCache()
         self._grid: IPFGrid | None = None
         self._kernels: Any = None
@@ -111,10 +135,17 @@ class IPFReward:
                              "(sim.make_env does it)")
         # ctx's collision counts and team terms are already 0 where the env was not running.
         goal = ctx.team_distance
+        if self.goal_weight != 1.0:
+            goal = goal * self.goal_weight
         collision = -ctx.collisions_per_agent.clamp_max(1.0)
         potential = self._grid.reward_potentials(
             state.agent_pos, state.task_pos, state.task_claimed, state.agent_task, ctx.active,
             kernels=self._kernels, task_value=self.task_value, agent_value=self.agent_value,
             cache=self._cache, dtype=goal.dtype,
         )
-        return {"ipf": potential, "goal": goal, "collision": collision}
+        terms = {"ipf": potential, "goal": goal, "collision": collision}
+        if self.time_cost > 0:
+            waiting = (~state.task_claimed).any(dim=1) & ctx.active  # (B,)
+            terms["time"] = (-self.time_cost * waiting.to(goal.dtype)).unsqueeze(1).expand_as(
+                goal).contiguous()
+        return terms

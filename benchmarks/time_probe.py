@@ -1,0 +1,55 @@
+"""One probe run of issue 16's search: BiCNet on 3v3 with the IPF reward's time options.
+
+    python benchmarks/time_probe.py NAME --time-cost 3 --goal-weight 3 --gamma 0.9 \
+        [--episodes 30000] [--seed 0]
+
+Trains ``bicnet`` with the fast preset's settings chosen for ``bicnet-ipf`` in
+``benchmarks/results/training/reward_search.json`` (``--gamma`` replaces its 0.95) and the
+reward ``IPFReward(time_cost=..., goal_weight=...)`` (the plain ``ipf`` reward when both are at
+their defaults 0 and 1) into ``runs/probes/NAME`` (continuing a run that is there, up to
+``--episodes``), evaluating on the validation seed 12345 every 1000 episodes
+(``progress.csv``). The chosen values are the defaults of the ``ipf-time`` variant, which
+``agv train --reward ipf-time`` and ``benchmarks/train_policies.py`` use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import sim.rewards
+from learners.train import TrainConfig, train
+from sim.rewards import IPFReward
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("name")
+    parser.add_argument("--time-cost", type=float, default=0.0)
+    parser.add_argument("--goal-weight", type=float, default=1.0)
+    parser.add_argument("--gamma", type=float, default=0.95)
+    parser.add_argument("--episodes", type=int, default=30000)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    record = json.loads((ROOT / "benchmarks/results/training/reward_search.json").read_text())
+    settings = dict(record["methods"]["bicnet-ipf"]["settings"], gamma=args.gamma)
+    reward = "ipf"
+    if (args.time_cost, args.goal_weight) != (0.0, 1.0):
+        # the variant's name, made with this probe's values (TrainConfig takes reward names)
+        cost, weight = args.time_cost, args.goal_weight
+        sim.rewards.REWARD_VARIANTS["ipf-time"] = lambda: IPFReward(time_cost=cost,
+                                                                    goal_weight=weight)
+        reward = "ipf-time"
+    run_dir = ROOT / "runs" / "probes" / args.name
+    config = TrainConfig(algo="bicnet", reward=reward, scenario="3v3", episodes=args.episodes,
+                         seed=args.seed, run_dir=str(run_dir), eval_every=1000,
+                         progress=False, tensorboard=False)
+    result = train(config, settings, resume=(run_dir / "checkpoint.safetensors").is_file())
+    print(args.name, result.last_eval)
+
+
+if __name__ == "__main__":
+    main()
