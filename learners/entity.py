@@ -142,6 +142,25 @@ class Tokens:
     """Lifelong only: (B, N, OBSTACLE_SLOTS) bool"""
 
 
+def _slots(obs: Tensor, tasks: slice, agents: slice, kt: int,
+           ka: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The task (or pickup) and AGV slots of observations (B, N, O), zeroed where masked.
+
+    Returns
+    -------
+    t_rel (B, N, kt, 2), t_mask (B, N, kt), t_dist (B, N, kt), a_rel (B, N, ka, 2),
+    a_mask (B, N, ka), a_vel (B, N, ka, 2)
+    """
+    B, N, _ = obs.shape
+    t = obs[..., tasks].reshape(B, N, kt, len(TASK_FEATURES))
+    a = obs[..., agents].reshape(B, N, ka, len(AGENT_FEATURES))
+    t_mask, a_mask = t[..., 2] > 0.5, a[..., 4] > 0.5
+    t_rel = t[..., :2] * t_mask.unsqueeze(-1)
+    a_rel = a[..., :2] * a_mask.unsqueeze(-1)
+    a_vel = a[..., 2:4] * a_mask.unsqueeze(-1)
+    return t_rel, t_mask, torch.linalg.vector_norm(t_rel, dim=-1), a_rel, a_mask, a_vel
+
+
 def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
     """Split observations into masked tokens and derive the token features.
 
@@ -154,16 +173,10 @@ def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
     -------
     Tokens
     """
-    B, N, _ = obs.shape
     kt, ka = layout.k_tasks, layout.k_agents
     own = torch.cat([obs[..., layout.vel], obs[..., layout.holding]], dim=-1)
-    t = obs[..., layout.tasks].reshape(B, N, kt, len(TASK_FEATURES))
-    a = obs[..., layout.agents].reshape(B, N, ka, len(AGENT_FEATURES))
-    t_mask, a_mask = t[..., 2] > 0.5, a[..., 4] > 0.5
-    t_rel = t[..., :2] * t_mask.unsqueeze(-1)
-    a_rel = a[..., :2] * a_mask.unsqueeze(-1)
-    a_vel = a[..., 2:4] * a_mask.unsqueeze(-1)
-    t_dist = torch.linalg.vector_norm(t_rel, dim=-1)
+    t_rel, t_mask, t_dist, a_rel, a_mask, a_vel = _slots(obs, layout.tasks, layout.agents,
+                                                          kt, ka)
     # margin: distance of the nearest visible other AGV to each task slot minus this AGV's
     margin, seen = _margin(t_rel, t_dist, a_rel, a_mask)
     task = torch.stack([t_rel[..., 0], t_rel[..., 1], t_dist, margin, seen], dim=-1)
@@ -217,13 +230,8 @@ def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoint
     target = torch.cat([g_wp_rel, torch.linalg.vector_norm(g_wp_rel, dim=-1, keepdim=True),
                         g_len.clamp_max(PATH_CLIP).unsqueeze(-1) * g_mask, g_rel], dim=-1)
     # the open pickups
-    t = obs[..., layout.pickups].reshape(B, N, kt, len(TASK_FEATURES))
-    a = obs[..., layout.agents].reshape(B, N, ka, len(AGENT_FEATURES))
-    t_mask, a_mask = t[..., 2] > 0.5, a[..., 4] > 0.5
-    t_rel = t[..., :2] * t_mask.unsqueeze(-1)
-    a_rel = a[..., :2] * a_mask.unsqueeze(-1)
-    a_vel = a[..., 2:4] * a_mask.unsqueeze(-1)
-    t_dist = torch.linalg.vector_norm(t_rel, dim=-1)
+    t_rel, t_mask, t_dist, a_rel, a_mask, a_vel = _slots(obs, layout.pickups, layout.agents,
+                                                          kt, ka)
     at = pos.unsqueeze(2).expand(B, N, kt, 2)
     p_wp, p_len = floor.query(at, at + t_rel)
     p_wp_rel = p_wp - at
