@@ -502,6 +502,18 @@ def train(
     obs, state = env.observe(), env.global_state()
     losses: dict[str, float] = {}
 
+    def close_episodes(ids: Tensor, scores: list[float]) -> None:
+        """Record the episodes (lifelong: windows) of environments ``ids`` that just ended,
+        with their scores (response rate, or deliveries per 1000 steps), and zero their
+        running returns."""
+        recent.extend(scores)
+        recent_return.extend(ep_return[ids].tolist())
+        ep_return[ids] = 0.0
+        for t in terms:
+            recent_terms[t].extend(ep_terms[t][ids].tolist())
+            ep_terms[t][ids] = 0.0
+        counters["episodes"] += len(ids)
+
     def evaluate() -> dict[str, float]:
         if lifelong:
             return evaluate_lifelong()
@@ -583,16 +595,10 @@ def train(
             if lifelong and bool(ended.any()):
                 ids = ended.nonzero().flatten()
                 span = (env.steps - window_steps)[ids].clamp_min(1).double()
-                recent.extend(((env.delivered - window_delivered)[ids].double() * 1000.0
-                               / span).tolist())
+                close_episodes(ids, ((env.delivered - window_delivered)[ids].double() * 1000.0
+                                     / span).tolist())
                 window_delivered = torch.where(ended, env.delivered, window_delivered)
                 window_steps = torch.where(ended, env.steps, window_steps)
-                recent_return.extend(ep_return[ids].tolist())
-                ep_return[ids] = 0.0
-                for t in terms:
-                    recent_terms[t].extend(ep_terms[t][ids].tolist())
-                    ep_terms[t][ids] = 0.0
-                counters["episodes"] += len(ids)
                 if bool(done.any()):
                     obs, state = env.reset(env_ids=done), env.global_state()
                     window_delivered = torch.where(done, 0, window_delivered)
@@ -601,13 +607,7 @@ def train(
                     obs, state = next_obs, next_state
             elif not lifelong and bool(done.any()):
                 ids = done.nonzero().flatten()
-                recent.extend(env.task_claimed[ids].float().mean(dim=1).tolist())
-                recent_return.extend(ep_return[ids].tolist())
-                ep_return[ids] = 0.0
-                for t in terms:
-                    recent_terms[t].extend(ep_terms[t][ids].tolist())
-                    ep_terms[t][ids] = 0.0
-                counters["episodes"] += len(ids)
+                close_episodes(ids, env.task_claimed[ids].float().mean(dim=1).tolist())
                 obs, state = env.reset(env_ids=done), env.global_state()
             else:
                 obs, state = next_obs, next_state
