@@ -48,8 +48,8 @@ from sim.observations import AGENT_FEATURES, TASK_FEATURES, LifelongObsLayout, O
 
 __all__ = [
     "EntityConfig", "MADDPGEConfig", "BiCNetEConfig", "MADDPGE", "BiCNetE", "EntityEncoder",
-    "EntityActor", "PooledCritic", "SortedBiRNN", "Tokens", "tokens", "infer_layout",
-    "agent_order", "SELF_FEATURES", "TASK_TOKEN_FEATURES", "AGENT_TOKEN_FEATURES",
+    "EntityActor", "WaypointHead", "PooledCritic", "SortedBiRNN", "Tokens", "tokens",
+    "infer_layout", "agent_order", "SELF_FEATURES", "TASK_TOKEN_FEATURES", "AGENT_TOKEN_FEATURES",
     "MARGIN_CLIP", "lifelong_tokens", "LIFELONG_SELF_FEATURES", "PICKUP_TOKEN_FEATURES",
     "TARGET_TOKEN_FEATURES", "OBSTACLE_TOKEN_FEATURES", "PATH_CLIP", "sizes_look_lifelong",
 ]
@@ -82,6 +82,12 @@ OBSTACLE_TOKEN_FEATURES = 3
 (the OBSTACLE_SLOTS nearest within learners.floor.OBSTACLE_RANGE)."""
 PATH_CLIP = 10.0
 """Clip of the shortest-path lengths in lifelong tokens (world units)."""
+HEAD_GAIN = 2.0
+"""Initial gain of :class:`WaypointHead` (pre-tanh action per unit heading: tanh(2) = 0.96)."""
+HEAD_TARGET_BIAS = 4.0
+"""Initial score bonus of the AGV's own target in :class:`WaypointHead`."""
+HEAD_PATH_WEIGHT = 1.0
+"""Initial score penalty per unit of path length to an open pickup in :class:`WaypointHead`."""
 
 
 # ---------------------------------------------------------------------- tokens
@@ -225,7 +231,7 @@ def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoint
     # the target: waypoint, path length, straight offset
     g_mask = obs[..., layout.target_mask] > 0.5  # (B, N, 1)
     g_rel = obs[..., layout.target_rel] * g_mask
-    g_wp, g_len = floor.query(pos, pos + g_rel)
+    g_wp, g_len = floor.query(pos, pos + g_rel, g_mask.squeeze(-1))
     g_wp_rel = (g_wp - pos) * g_mask
     target = torch.cat([g_wp_rel, torch.linalg.vector_norm(g_wp_rel, dim=-1, keepdim=True),
                         g_len.clamp_max(PATH_CLIP).unsqueeze(-1) * g_mask, g_rel], dim=-1)
@@ -233,7 +239,7 @@ def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoint
     t_rel, t_mask, t_dist, a_rel, a_mask, a_vel = _slots(obs, layout.pickups, layout.agents,
                                                           kt, ka)
     at = pos.unsqueeze(2).expand(B, N, kt, 2)
-    p_wp, p_len = floor.query(at, at + t_rel)
+    p_wp, p_len = floor.query(at, at + t_rel, t_mask)
     p_wp_rel = p_wp - at
     margin, seen = _margin(t_rel, t_dist, a_rel, a_mask)
     task = torch.cat([t_rel, t_dist.unsqueeze(-1), p_wp_rel,
@@ -333,31 +339,95 @@ class EntityEncoder(nn.Module):
 
     def forward(self, tok: Tokens) -> Tensor:
         """Tokens -> (B, N, H)."""
+        return self.encode(tok)[0]
+
+    def encode(self, tok: Tokens) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Tokens -> the embedding (B, N, H), the task (lifelong: pickup) token embeddings
+        (B, N, Kt, H) and, lifelong, the target token's (B, N, 1, H) (else None)."""
         own = self.own(tok.own)
-        task = self.task_pool(own, self.task(tok.task), tok.task_mask)
+        task_emb = self.task(tok.task)
+        task = self.task_pool(own, task_emb, tok.task_mask)
         agent = self.agent_pool(own, self.agent(tok.agent), tok.agent_mask)
         parts = [own, task, agent]
+        target_emb = None
         if self.lifelong:
             if tok.target is None or tok.obstacle is None:
                 raise ValueError("a lifelong entity network reads lifelong tokens "
                                  "(lifelong_tokens), got episodic ones")
-            parts.append(self.target_pool(own, self.target(tok.target), tok.target_mask))
+            target_emb = self.target(tok.target)
+            parts.append(self.target_pool(own, target_emb, tok.target_mask))
             parts.append(self.obstacle_pool(own, self.obstacle(tok.obstacle),
                                             tok.obstacle_mask))
-        return self.out(torch.cat(parts, dim=-1))
+        return self.out(torch.cat(parts, dim=-1)), task_emb, target_emb
+
+
+class WaypointHead(nn.Module):
+    """The lifelong actors' head: steer along the waypoint of a chosen target.
+
+    pre-tanh action = ``gain`` x sum_k w_k u_k + residual(h), where k runs over the AGV's own
+    target and its K nearest open pickups, u_k is the unit vector to k's next waypoint round
+    the shelves (from the tokens), w = softmax over the visible candidates of
+    ``score([h, e_k]) + prior_k`` (e_k: the candidate's token embedding, h: the AGV's), and
+    the prior is ``target_bias`` for the own target and ``-path_weight`` x path length for a
+    pickup. ``gain``, ``target_bias`` and ``path_weight`` are trained with the rest; they
+    start at :data:`HEAD_GAIN`, :data:`HEAD_TARGET_BIAS` and :data:`HEAD_PATH_WEIGHT`, and the
+    residual's last layer starts at a tenth of its usual scale, so that the untrained policy
+    drives to its target, or when idle toward the nearest open pickup by path, and training
+    changes which candidate, how fast, and how to pass the others (``docs/learners.md``,
+    "Lifelong operation"). The gradient reaches every parameter through the softmax weights.
+    """
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.score = _mlp([2 * hidden, hidden, 1], last_relu=False)
+        self.residual = _mlp([hidden, hidden, 2], last_relu=False)
+        with torch.no_grad():
+            self.residual[-1].weight.mul_(0.1)
+            self.residual[-1].bias.zero_()
+        self.gain = nn.Parameter(torch.tensor(HEAD_GAIN))
+        self.target_bias = nn.Parameter(torch.tensor(HEAD_TARGET_BIAS))
+        self.path_weight = nn.Parameter(torch.tensor(HEAD_PATH_WEIGHT))
+
+    def forward(self, h: Tensor, task_emb: Tensor, target_emb: Tensor, tok: Tokens) -> Tensor:
+        """(B, N, H), (B, N, Kt, H), (B, N, 1, H), lifelong tokens -> (B, N, 2) pre-tanh."""
+        assert tok.target is not None and tok.target_mask is not None
+        emb = torch.cat([target_emb, task_emb], dim=-2)  # (B, N, 1 + Kt, H)
+        mask = torch.cat([tok.target_mask, tok.task_mask], dim=-1)
+        wp = torch.cat([tok.target[..., 0:2], tok.task[..., 3:5]], dim=-2)
+        length = torch.cat([tok.target[..., 3], tok.task[..., 5]], dim=-1)
+        kind = torch.zeros_like(length)
+        kind[..., 0] = 1.0
+        prior = self.target_bias * kind - self.path_weight * length * (1.0 - kind)
+        logits = self.score(torch.cat([h.unsqueeze(-2).expand_as(emb), emb], dim=-1))
+        logits = (logits.squeeze(-1) + prior).masked_fill(~mask, -1e9)
+        w = torch.exp(logits - logits.amax(-1, keepdim=True).detach()) * mask
+        w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
+        unit = wp / torch.linalg.vector_norm(wp, dim=-1, keepdim=True).clamp_min(1e-6)
+        return self.gain * (w.unsqueeze(-1) * unit).sum(-2) + self.residual(h)
 
 
 class EntityActor(nn.Module):
-    """Decentralized actor: AGV i's tokens -> its pre-tanh action, (B, N, 2)."""
+    """Decentralized actor: AGV i's tokens -> its pre-tanh action, (B, N, 2).
+
+    Episodic: an MLP head on the encoder's embedding. Lifelong: :class:`WaypointHead`.
+    """
 
     def __init__(self, hidden: int, lifelong: bool = False) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong)
-        self.head = _mlp([hidden, hidden, 2], last_relu=False)
+        self.lifelong = lifelong
+        if lifelong:
+            self.steer = WaypointHead(hidden)
+        else:
+            self.head = _mlp([hidden, hidden, 2], last_relu=False)
 
     def forward(self, tok: Tokens, order: Tensor | None = None) -> Tensor:
         """Tokens -> (B, N, 2) (``order`` unused: no communication)."""
-        return self.head(self.encoder(tok))
+        if not self.lifelong:
+            return self.head(self.encoder(tok))
+        h, task_emb, target_emb = self.encoder.encode(tok)
+        assert target_emb is not None
+        return self.steer(h, task_emb, target_emb, tok)
 
 
 class PooledCritic(nn.Module):

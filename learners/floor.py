@@ -3,22 +3,12 @@
 A lifelong observation (:class:`sim.observations.LifelongObsLayout`) gives straight-line
 offsets to the AGV's target and to the nearest open pickups. On a floor with shelves the
 straight line usually runs through a shelf, so the entity learners read, for each such point,
-**the next waypoint toward it along a shortest path around the shelves** and the path's length,
-and the **nearest obstacle points** (shelf faces and walls). Both depend only on the floor (a
+**the next waypoint toward it along a shortest path around the shelves** and the path's length
+(:class:`sim.floor_paths.FloorWaypoints`, re-exported here), and the **nearest obstacle
+points** (shelf faces and walls, :func:`obstacle_points`). Both depend only on the floor (a
 :class:`sim.World`), which is static, so they are computed from the observation (which holds
 the AGV's absolute position) at any time, in training updates too: nothing extra is stored in
 the replay buffer.
-
-:class:`FloorWaypoints` is a small grid planner of its own, in the spirit of
-``allocator.distances.FloorDistances`` (``learners`` must not import ``allocator``, and ``sim``
-exposes no path data): square cells of side ``resolution``, a cell free where an AGV disc
-centred on it clears every shelf and wall (:meth:`sim.World.is_free`), 8-neighbour moves (a
-diagonal only when both side cells are free), one Dijkstra field per target cell, computed the
-first time that cell is a target and kept (a floor's generated orders use its fixed pickups and
-stations only, so the table stops growing quickly). The waypoint is the cell centre
-``lookahead`` path cells ahead (the target itself once the rest of the path is shorter), so a
-policy heads round a shelf's corner rather than into it. It does not string-pull paths; the
-waypoint is a heading, not a plan.
 """
 
 from __future__ import annotations
@@ -26,12 +16,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.sparse as sp
 import torch
-from scipy import ndimage
-from scipy.sparse import csgraph
 from torch import Tensor
 
+from sim.floor_paths import FloorWaypoints
 from sim.world import World
 
 __all__ = ["FloorWaypoints", "obstacle_points", "OBSTACLE_SLOTS", "OBSTACLE_RANGE"]
@@ -40,153 +28,6 @@ OBSTACLE_SLOTS = 4
 """Obstacle tokens per AGV: the nearest points of the nearest shelves and walls."""
 OBSTACLE_RANGE = 1.0
 """Obstacle points farther than this (world units, from the AGV's centre) are masked out."""
-_MAX_CELLS = 4_000_000
-
-
-class FloorWaypoints:
-    """Shortest-path waypoints and lengths on one floor, batched, in torch.
-
-    Parameters
-    ----------
-    world : sim.World
-        The floor (shelves as ``world.obstacles``).
-    resolution : float, optional
-        Cell side, world units (default half the AGV radius, at most 0.1).
-    lookahead : int
-        Path cells between an AGV's cell and its waypoint (default 6).
-
-    Raises
-    ------
-    ValueError
-        For a world that is not a ``sim.World``, a resolution that is not positive and finite
-        or gives more than four million cells, or a lookahead below 1.
-    """
-
-    def __init__(self, world: World, resolution: float | None = None,
-                 lookahead: int = 6) -> None:
-        if not isinstance(world, World):
-            raise ValueError(f"world must be a sim.World, got {type(world).__name__}")
-        res = min(world.agent_radius / 2, 0.1) if resolution is None else resolution
-        if isinstance(res, bool) or not isinstance(res, (int, float)) or not \
-                (math.isfinite(res) and res > 0):
-            raise ValueError(f"resolution must be a positive finite number, got {resolution!r}")
-        if isinstance(lookahead, bool) or not isinstance(lookahead, int) or lookahead < 1:
-            raise ValueError(f"lookahead must be an integer >= 1, got {lookahead!r}")
-        self.world, self.resolution, self.lookahead = world, float(res), lookahead
-        xmin, ymin, xmax, ymax = world.bounds
-        self.origin = (float(xmin), float(ymin))
-        self.width = max(1, math.ceil((xmax - xmin) / res))
-        self.height = max(1, math.ceil((ymax - ymin) / res))
-        cells = self.width * self.height
-        if cells > _MAX_CELLS:
-            raise ValueError(f"resolution {res} gives {cells} cells on this floor (at most "
-                             f"{_MAX_CELLS}); choose a coarser one")
-        ix, iy = np.meshgrid(np.arange(self.width), np.arange(self.height))
-        self._centres = np.stack([xmin + (ix.ravel() + 0.5) * res,
-                                  ymin + (iy.ravel() + 0.5) * res], axis=1)
-        free = world.is_free(self._centres).reshape(self.height, self.width)
-        if not free.any():
-            raise ValueError("no cell of this floor holds an AGV")
-        # every cell's nearest free cell (points inside a shelf's margin snap out of it)
-        _, (ny, nx) = ndimage.distance_transform_edt(~free, return_indices=True)
-        self._snap = torch.as_tensor((ny * self.width + nx).ravel(), dtype=torch.int64)
-        self._graph = _grid_graph(free, res)
-        self._centres_t = torch.as_tensor(self._centres, dtype=torch.float32)
-        self._row_of_cell = torch.full((cells,), -1, dtype=torch.int64)
-        self._wp_cell = torch.zeros(0, cells, dtype=torch.int64)
-        self._dist = torch.zeros(0, cells, dtype=torch.float32)
-
-    @property
-    def cached_targets(self) -> int:
-        """Target cells whose fields are kept."""
-        return int(self._wp_cell.shape[0])
-
-    def cell_of(self, points: Tensor) -> Tensor:
-        """The free cell each point snaps to, (...,) int64 for points (..., 2)."""
-        x = ((points[..., 0] - self.origin[0]) / self.resolution).floor().long()
-        y = ((points[..., 1] - self.origin[1]) / self.resolution).floor().long()
-        raw = y.clamp(0, self.height - 1) * self.width + x.clamp(0, self.width - 1)
-        return self._snap[raw]
-
-    def _add_targets(self, cells: Tensor) -> None:
-        new = torch.unique(cells[self._row_of_cell[cells] < 0])
-        if not new.numel():
-            return
-        dist, pred = csgraph.dijkstra(self._graph, directed=False, indices=new.numpy(),
-                                      return_predecessors=True)
-        pred = np.where(pred < 0, np.arange(pred.shape[1])[None, :], pred)  # target: itself
-        wp = np.broadcast_to(np.arange(pred.shape[1]), pred.shape).copy()
-        rows = np.arange(len(new))[:, None]
-        for _ in range(self.lookahead):
-            wp = pred[rows, wp]
-        start = self._wp_cell.shape[0]
-        self._wp_cell = torch.cat([self._wp_cell, torch.as_tensor(wp, dtype=torch.int64)])
-        self._dist = torch.cat([self._dist, torch.as_tensor(dist, dtype=torch.float32)])
-        self._row_of_cell[new] = torch.arange(start, start + len(new))
-
-    def query(self, points: Tensor, targets: Tensor) -> tuple[Tensor, Tensor]:
-        """The waypoint from each point toward its target and the path length.
-
-        Parameters
-        ----------
-        points, targets : Tensor, shape (..., 2)
-            World units; the same shape.
-
-        Returns
-        -------
-        waypoint : Tensor, shape (..., 2)
-            A cell centre ``lookahead`` cells along the shortest grid path, or the target
-            itself when the rest of the path is shorter than that (or when the target cannot
-            be reached: then the straight line is all there is).
-        length : Tensor, shape (...)
-            Path length (grid distance between the two cells plus the straight connectors
-            from the point and to the target); the straight-line distance where unreachable.
-
-        Raises
-        ------
-        ValueError
-            If the shapes differ or do not end in 2.
-        """
-        if points.shape != targets.shape or points.shape[-1:] != (2,):
-            raise ValueError(f"points and targets must have the same shape (..., 2), got "
-                             f"{tuple(points.shape)} and {tuple(targets.shape)}")
-        shape = points.shape[:-1]
-        p = points.reshape(-1, 2).float()
-        t = targets.reshape(-1, 2).float()
-        pc, tc = self.cell_of(p), self.cell_of(t)
-        self._add_targets(tc)
-        row = self._row_of_cell[tc]
-        grid = self._dist[row, pc]
-        wp_cell = self._wp_cell[row, pc]
-        cen = self._centres_t
-        length = grid + torch.linalg.vector_norm(p - cen[pc], dim=-1) \
-            + torch.linalg.vector_norm(t - cen[tc], dim=-1)
-        straight = torch.linalg.vector_norm(t - p, dim=-1)
-        reach = torch.isfinite(grid)
-        near = ~reach | (grid <= self.lookahead * self.resolution * 1.5) | (wp_cell == tc)
-        wp = torch.where(near.unsqueeze(-1), t, cen[wp_cell])
-        length = torch.where(reach, torch.maximum(length, straight), straight)
-        return wp.reshape(*shape, 2), length.reshape(shape)
-
-
-def _grid_graph(free: np.ndarray, res: float) -> sp.csr_matrix:
-    """8-neighbour graph of the free cells (a diagonal only if both side cells are free)."""
-    H, W = free.shape
-    idx = np.arange(H * W).reshape(H, W)
-    rows, cols, vals = [], [], []
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        y0, y1 = 0, H - dy
-        x0, x1 = max(0, -dx), W - max(0, dx)
-        a = free[y0:y1, x0:x1] & free[y0 + dy:y1 + dy, x0 + dx:x1 + dx]
-        if dy and dx:
-            a &= free[y0 + dy:y1 + dy, x0:x1] & free[y0:y1, x0 + dx:x1 + dx]
-        src = idx[y0:y1, x0:x1][a]
-        dst = idx[y0 + dy:y1 + dy, x0 + dx:x1 + dx][a]
-        rows.append(src)
-        cols.append(dst)
-        vals.append(np.full(len(src), res * (math.sqrt(2) if dy and dx else 1.0)))
-    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-    return sp.csr_matrix((v, (r, c)), shape=(H * W, H * W))
 
 
 def obstacle_points(world: World, points: Tensor, slots: int = OBSTACLE_SLOTS,

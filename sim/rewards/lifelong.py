@@ -6,9 +6,10 @@ environments that were not running.
 
 - :class:`LifelongMiniDist` (global): every AGV gets the lifelong R_t = -(remaining work of
   every order, :func:`sim.tasks.remaining_work`) - (overlapping pairs).
-- :class:`LifelongGreedy` (individual): the distance each working AGV closed during the step to
-  its own target of before the step (a loaded AGV's drop-off, an assigned AGV's pickup, an
-  idle AGV's nearest open pickup), minus the AGVs it overlaps.
+- :class:`LifelongGreedy` (individual): the path length each working AGV closed during the
+  step to its own target of before the step (a loaded AGV's drop-off, an assigned AGV's
+  pickup, an idle AGV's nearest open pickup), along the floor's shortest paths round the
+  shelves, minus the AGVs it overlaps.
 - :class:`LifelongIPF`: r_IPF + r_g + r_c, where r_IPF is the AGV's own field at its own
   cell: for an AGV with a target (loaded: its drop-off; assigned: its pickup) that target
   alone at +5, otherwise every open pickup at +5; the other AGVs at -3 (broken ones too: they
@@ -42,37 +43,82 @@ class LifelongMiniDist:
         return {"distance": ctx.team_distance, "collision": ctx.team_collision}
 
 
-def targets_before(ctx: LifelongContext) -> tuple[Tensor, Tensor]:
-    """Each AGV's target before the step and whether it had one, (B, N, 2) and (B, N) bool:
-    a loaded AGV's drop-off, an assigned AGV's pickup, an idle AGV's nearest open pickup;
-    none for a broken AGV or an idle one with no open order."""
-    from sim.orders import CARRYING, TO_PICKUP
-
-    o, f = ctx.prev_orders, ctx.prev_fleet
-    B, N = f.order.shape
-    slot = f.order.clamp_min(0).unsqueeze(-1).expand(B, N, 2)
-    own = torch.where((f.status == CARRYING).unsqueeze(-1), o.dropoff.gather(1, slot),
-                      o.pickup.gather(1, slot))
-    d = torch.cdist(ctx.prev_agent_pos, o.pickup, compute_mode="donot_use_mm_for_euclid_dist")
-    d = d.masked_fill((o.status != OPEN).unsqueeze(1), float("inf"))
-    nearest_d, nearest_q = d.min(dim=2) if d.shape[2] else (d.sum(2), d.sum(2).long())
-    nearest = o.pickup.gather(1, nearest_q.unsqueeze(-1).expand(B, N, 2))
-    has_own = (f.status == CARRYING) | (f.status == TO_PICKUP)
-    idle = (f.status != BROKEN) & ~has_own & torch.isfinite(nearest_d)
-    return torch.where(has_own.unsqueeze(-1), own, nearest), has_own | idle
-
-
 class LifelongGreedy:
     """Progress towards the AGV's own target of before the step. Terms ``progress``,
-    ``collision``."""
+    ``collision``.
+
+    Progress is measured along the floor's shortest paths round the shelves
+    (:class:`sim.floor_paths.FloorWaypoints`), so that driving round a shelf toward a target
+    behind it pays and pressing against the shelf does not: the decrease of the path length
+    to the AGV's own target (loaded: its drop-off; assigned: its pickup), or, for an idle AGV,
+    of the path length to the nearest open pickup (the paper's Greedy: the nearest task), the
+    same open pickups before and after the step. On a floor without shelves (or with
+    ``path=False``) the lengths are straight lines.
+
+    Parameters
+    ----------
+    path : bool
+        Measure along shortest paths (default True) or straight lines.
+
+    Raises
+    ------
+    ValueError
+        For a ``path`` that is not a bool.
+    """
 
     zeroes_inactive = True
 
+    def __init__(self, path: bool = True) -> None:
+        if not isinstance(path, bool):
+            raise ValueError(f"path must be True or False, got {path!r}")
+        self.path = path
+        self._paths: Any = None
+        self._ready = False
+
+    def setup(self, world: World, kernels: Any = None) -> None:
+        """Build the floor's path table (:class:`sim.floor_paths.FloorWaypoints`) when the
+        floor has shelves and ``path`` is on (the env calls it)."""
+        from sim.floor_paths import FloorWaypoints
+
+        self._paths = FloorWaypoints(world) if self.path and world.has_obstacles else None
+        self._ready = True
+
+    def _length(self, points: Tensor, targets: Tensor, mask: Tensor) -> Tensor:
+        if self._paths is None:
+            return torch.linalg.vector_norm(points - targets, dim=-1)
+        return self._paths.query(points, targets, mask)[1].to(points.dtype)
+
     def __call__(self, state: LifelongState, ctx: LifelongContext) -> dict[str, Tensor]:
-        target, has = targets_before(ctx)
-        before = torch.linalg.vector_norm(ctx.prev_agent_pos - target, dim=-1)
-        after = torch.linalg.vector_norm(state.agent_pos - target, dim=-1)
-        progress = torch.where(has, before - after, torch.zeros_like(before))
+        if self.path and not self._ready:
+            raise ValueError("LifelongGreedy.setup(world) must be called before the reward "
+                             "(LifelongEnv does it), or use LifelongGreedy(path=False)")
+        from sim.orders import CARRYING, TO_PICKUP
+
+        o, f = ctx.prev_orders, ctx.prev_fleet
+        B, N = f.order.shape
+        slot = f.order.clamp_min(0).unsqueeze(-1).expand(B, N, 2)
+        carrying = f.status == CARRYING
+        own = torch.where(carrying.unsqueeze(-1), o.dropoff.gather(1, slot),
+                          o.pickup.gather(1, slot))
+        has_own = carrying | (f.status == TO_PICKUP)
+        progress = self._length(ctx.prev_agent_pos, own, has_own) \
+            - self._length(state.agent_pos, own, has_own)
+        progress = torch.where(has_own, progress, torch.zeros_like(progress))
+        # idle AGVs: the nearest open pickup of before the step, before and after
+        open_ = o.status == OPEN  # (B, Q)
+        idle = (f.status != BROKEN) & ~has_own
+        if bool((idle.any(1) & open_.any(1)).any()):
+            Q = o.pickup.shape[1]
+            pick = o.pickup.unsqueeze(1).expand(B, N, Q, 2)
+            far = torch.full((B, N, Q), math.inf, dtype=progress.dtype, device=progress.device)
+            keep = (idle.unsqueeze(2) & open_.unsqueeze(1))
+            before = torch.where(keep, self._length(
+                ctx.prev_agent_pos.unsqueeze(2).expand(B, N, Q, 2), pick, keep), far).amin(2)
+            after = torch.where(keep, self._length(
+                state.agent_pos.unsqueeze(2).expand(B, N, Q, 2), pick, keep), far).amin(2)
+            gain = torch.where(torch.isfinite(before), before - after,
+                               torch.zeros_like(before))
+            progress = torch.where(idle, gain, progress)
         return zero_inactive({"progress": progress, "collision": -ctx.collisions_per_agent},
                              ctx.active)
 

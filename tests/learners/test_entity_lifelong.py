@@ -158,3 +158,46 @@ def test_make_learner_infers_the_mode_from_the_sizes():
         epi = sim.make_env(name, num_envs=1, seed=0)
         assert not make_learner("maddpg-e", epi.obs_dim, epi.state_dim,
                                 epi.num_agents).lifelong
+
+
+def test_masked_pairs_are_not_planned(floor):
+    """A masked slot's zero offset (target = the AGV's own point) adds no field to the table,
+    and a masked pair answers the target and the straight line."""
+    pts = torch.rand(50, 2, generator=torch.Generator().manual_seed(0)) * 6.0 + 0.5
+    n = floor.cached_targets
+    wp, length = floor.query(pts, pts + 0.3, torch.zeros(50, dtype=torch.bool))
+    assert floor.cached_targets == n
+    assert torch.equal(wp, pts + 0.3)
+    assert torch.allclose(length, torch.full((50,), 0.3 * 2 ** 0.5))
+    with pytest.raises(ValueError, match="mask must have shape"):
+        floor.query(pts, pts, torch.ones(49, dtype=torch.bool))
+
+
+def test_untrained_lifelong_actor_steers_to_its_waypoint():
+    """The WaypointHead starts as a follower: an AGV with a target heads for the target's
+    waypoint, an idle one for an open pickup's (cosine > 0.8 for every AGV that has one)."""
+    env = sim.make_env("warehouse-20", num_envs=2, seed=3)
+    obs = env.observe()
+    for seed in range(3):
+        torch.manual_seed(seed)
+        learner = make_learner("maddpg-e", env.obs_dim, env.state_dim, env.num_agents)
+        learner.reset(env)
+        for _ in range(40):  # some AGVs get orders
+            obs, *_ = env.step(learner.policy(obs))
+        tok, _ = learner._read(obs)
+        with torch.no_grad():
+            action = learner.policy(obs)
+        has = tok.target_mask[..., 0]
+        # idle: the open pickup of the shortest path (the head's prior)
+        length = tok.task[..., 5].masked_fill(~tok.task_mask, float("inf"))
+        best = length.argmin(-1, keepdim=True)
+        pick = tok.task[..., 3:5].gather(2, best.unsqueeze(-1).expand(-1, -1, 1, 2))[..., 0, :]
+        aim = torch.where(has.unsqueeze(-1), tok.target[..., 0, 0:2], pick)
+        moving = learner._movable(obs)[..., 0] > 0.5
+        idle = ~has & tok.task_mask.any(-1)
+        cos = torch.nn.functional.cosine_similarity(action, aim, dim=-1)
+        assert bool((has & moving).any()) and bool((idle & moving).any())
+        assert float(cos[has & moving].min()) > 0.8
+        assert float(cos[idle & moving].median()) > 0.8
+    # the floor table holds the floor's pickups and stations, not every AGV position
+    assert learner.floor.cached_targets < 80

@@ -507,6 +507,40 @@ def test_greedy_rewards_progress_to_the_own_target() -> None:
     assert set(info["reward_terms"]) == {"progress", "collision"}
 
 
+def test_greedy_progress_is_measured_along_the_paths_round_the_shelves() -> None:
+    """On a floor with shelves the progress is the decrease of the shortest-path length to
+    the own target (an independent path table agrees), not of the straight line."""
+    from sim.floor_paths import FloorWaypoints
+    from sim.orders import CARRYING, TO_PICKUP
+    from sim.rewards import LifelongGreedy
+
+    env = sim.make_env("warehouse-20", num_envs=2, seed=1, reward="greedy")
+    paths = FloorWaypoints(env.world)
+    ctl = NearestTaskController()
+    ctl.reset(env)
+    obs = env.observe()
+    checked = differs = 0
+    for _ in range(60):
+        f, o = env.fleet, env.orders
+        has = (f.status == CARRYING) | (f.status == TO_PICKUP)
+        slot = f.order.clamp_min(0).unsqueeze(-1).expand(-1, -1, 2)
+        own = torch.where((f.status == CARRYING).unsqueeze(-1), o.dropoff.gather(1, slot),
+                          o.pickup.gather(1, slot))
+        before = env.agent_pos.clone()
+        obs, _, _, info = env.step(ctl.act(obs))
+        want = paths.query(before, own)[1] - paths.query(env.agent_pos, own)[1]
+        straight = (before - own).norm(dim=-1) - (env.agent_pos - own).norm(dim=-1)
+        got = info["reward_terms"]["progress"]
+        assert torch.allclose(got[has], want[has], atol=1e-4)
+        checked += int(has.sum())
+        differs += int(((got - straight).abs() > 1e-3)[has].sum())
+    assert checked > 100 and differs > 0
+    with pytest.raises(ValueError, match="setup"):
+        LifelongGreedy()(env.state, None)
+    with pytest.raises(ValueError, match="path must be True or False"):
+        LifelongGreedy(path=1)
+
+
 def test_user_reward_output_is_checked() -> None:
     env = LifelongEnv(scenario(1), num_envs=1, reward=lambda s, c: {"x": torch.zeros(3)})
     with pytest.raises(ValueError, match="reward term 'x' must have shape"):
