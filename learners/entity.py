@@ -468,7 +468,8 @@ class PooledCritic(nn.Module):
 
 class SortedBiRNN(nn.Module):
     """BiCNet-E's network: entity embeddings -> bidirectional GRU along the AGVs taken in a
-    fixed order (:func:`agent_order`) -> shared output layers.
+    fixed order (:func:`agent_order`) -> shared output layers (the lifelong actor: a
+    :class:`WaypointHead` on them).
 
     Parameters
     ----------
@@ -488,11 +489,15 @@ class SortedBiRNN(nn.Module):
         self.action_input = action_input
         self.inp = _mlp([hidden + (2 if action_input else 0), hidden])
         self.rnn = nn.GRU(hidden, hidden, batch_first=True, bidirectional=True)
-        self.head = _mlp([2 * hidden, hidden, out_features], last_relu=False)
+        # the lifelong actor steers with a WaypointHead on the recurrence's output
+        self.steer = WaypointHead(hidden) if lifelong and not action_input \
+            and out_features == 2 else None
+        self.head = _mlp([2 * hidden, hidden] if self.steer is not None
+                         else [2 * hidden, hidden, out_features], last_relu=False)
 
     def forward(self, tok: Tokens, order: Tensor, action: Tensor | None = None) -> Tensor:
         """(B, N, out): the AGVs' outputs in their own (index) order."""
-        h = self.encoder(tok)
+        h, task_emb, target_emb = self.encoder.encode(tok)
         if self.action_input:
             if action is None:
                 raise ValueError("the BiCNet-E critic needs the actions")
@@ -501,7 +506,11 @@ class SortedBiRNN(nn.Module):
         at = order.unsqueeze(-1).expand_as(h)
         h, _ = self.rnn(h.gather(1, at))
         out = self.head(h)
-        return torch.empty_like(out).scatter_(1, order.unsqueeze(-1).expand_as(out), out)
+        out = torch.empty_like(out).scatter_(1, order.unsqueeze(-1).expand_as(out), out)
+        if self.steer is None:
+            return out
+        assert target_emb is not None
+        return self.steer(torch.relu(out), task_emb, target_emb, tok)
 
 
 # ---------------------------------------------------------------------- learners

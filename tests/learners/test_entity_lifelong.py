@@ -178,9 +178,9 @@ def test_untrained_lifelong_actor_steers_to_its_waypoint():
     waypoint, an idle one for an open pickup's (cosine > 0.8 for every AGV that has one)."""
     env = sim.make_env("warehouse-20", num_envs=2, seed=3)
     obs = env.observe()
-    for seed in range(3):
+    for algo, seed in (("maddpg-e", 0), ("maddpg-e", 1), ("bicnet-e", 0), ("bicnet-e", 1)):
         torch.manual_seed(seed)
-        learner = make_learner("maddpg-e", env.obs_dim, env.state_dim, env.num_agents)
+        learner = make_learner(algo, env.obs_dim, env.state_dim, env.num_agents)
         learner.reset(env)
         for _ in range(40):  # some AGVs get orders
             obs, *_ = env.step(learner.policy(obs))
