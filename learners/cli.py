@@ -165,6 +165,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-seed", type=seed, default=None,
                         help="seed of the evaluation scenes, the same at every evaluation "
                              "(default 12345)")
+    parser.add_argument("--window", type=positive_int, default=None,
+                        help="lifelong floors (warehouse-N): steps per training episode, a "
+                             "window of the continuing run (default 100)")
+    parser.add_argument("--eval-steps", type=positive_int, default=None,
+                        help="lifelong floors: steps of each evaluation run (default 500)")
     parser.add_argument("--checkpoint-every", type=positive_int, default=None,
                         help="write a resumable checkpoint every this many episodes "
                              "(default 1000)")
@@ -262,17 +267,23 @@ def run_train(args: argparse.Namespace) -> int:
         print(f"agv train: error: {err}", file=sys.stderr)
         return 2
     ev = result.last_eval
+    if config.lifelong:
+        score = (f"throughput {ev.get('throughput', float('nan')):.1f} deliveries / 1000 steps "
+                 f"(best {result.best_throughput:.1f})")
+    else:
+        score = (f"task response {ev.get('response_rate', float('nan')):.3f} (best "
+                 f"{result.best_response_rate:.3f})")
     print(f"{config.algo}-{config.reward} on {config.scenario}: {result.episodes} episodes, "
-          f"{result.updates} updates, {result.seconds:.0f} s; task response "
-          f"{ev.get('response_rate', float('nan')):.3f} (best "
-          f"{result.best_response_rate:.3f}); checkpoints in {result.run_dir}")
+          f"{result.updates} updates, {result.seconds:.0f} s; {score}; checkpoints in "
+          f"{result.run_dir}")
     return 130 if result.interrupted else 0
 
 
 def _set_run_flags(config: Any, args: argparse.Namespace, with_episodes: bool) -> None:
     """Copy the run flags given on the command line into the ``TrainConfig``."""
     keys = ("episodes",) * with_episodes + ("eval_every", "eval_episodes", "eval_seed",
-                                            "checkpoint_every", "stop_response", "threads")
+                                            "checkpoint_every", "stop_response", "threads",
+                                            "window", "eval_steps")
     for key in keys:
         if getattr(args, key) is not None:
             setattr(config, key, getattr(args, key))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 import pytest
 import torch
@@ -94,3 +95,15 @@ def test_agv_train_cli_on_a_lifelong_floor(tmp_path, capsys):
     # the default window is 100 steps: 2 episodes = 1 window in each of 2 floors
     assert int(rows[-1]["episode"]) == 2 and int(rows[-1]["env_steps"]) == 2 * 100
     assert rows[-1]["eval_throughput"] != ""
+    out = capsys.readouterr().out
+    assert "throughput" in out and "deliveries / 1000 steps" in out and "nan" not in out
+    # --window and --eval-steps reach the run
+    run_dir = tmp_path / "cli-window"
+    args[args.index("--run-dir") + 1] = str(run_dir)
+    assert run_train(parser.parse_args([*args, "--window", "30", "--eval-steps", "40"])) == 0
+    rows = _rows(run_dir / "progress.csv")
+    assert int(rows[-1]["env_steps"]) == 2 * 30
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["train"]["window"] == 30 and config["train"]["eval_steps"] == 40
+    with pytest.raises(SystemExit):
+        parser.parse_args([*args, "--window", "0"])
