@@ -1,7 +1,7 @@
 """The safety shield on a lifelong floor, with and without its liveness rules.
 
     nice python benchmarks/shield_lifelong.py [--floor warehouse-20] [--steps 1000] [--seed 0]
-        [--weights runs/lifelong/maddpg-e-greedy-warehouse-20-s0] [--out FILE]
+        [--weights RUN_DIR_OR_FILE ...] [--out FILE]
 
 Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floor and orders:
 
@@ -9,16 +9,19 @@ Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floor a
   protocol (each AGV heads for its target, or the nearest visible open pickup when it has
   none, along the floor's shortest path), behind :class:`allocator.SafetyShield` with
   ``liveness=False`` and ``liveness=True``;
-- the learned policy of ``--weights`` (a lifelong entity run folder or policy file),
-  ``allocator.make(..., shield=True)``, with the shield's liveness rules off and on (the run
-  folder as ``allocator.make`` takes it: its ``best.safetensors``, else its policy);
+- the learned policy of every ``--weights`` entry (a lifelong entity run folder or policy
+  file; default ``runs/lifelong/maddpg-e-greedy-warehouse-20-s0``),
+  ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY, shield=True)``, with the shield's
+  liveness rules off and on, and without the shield for reference (a run folder loads its
+  ``policy.safetensors``, the last policy; pass ``RUN/best.safetensors`` for the best);
 - for reference, the classical dispatchers ``hungarian`` and ``fifo`` driven by
   :class:`allocator.SafeDriver` (the same resolver, QP and braking filter, on planned paths).
 
 Columns: deliveries per 1000 steps, overlapping AGV pairs summed over the steps (the
 simulator's rule), the shield's interventions per movable AGV-step (``any``, and the share the
-liveness rules changed), the resolver's yields, wall-clock seconds. Writes a markdown table with
-the command, date, commit and seed to ``--out``.
+liveness rules changed), the resolver's yields, the mean of the actions the controller gave the
+shield (over all AGV-steps: a policy that pushes every AGV one way shows there), wall-clock
+seconds. Writes a markdown table with the command, date, commit and seed to ``--out``.
 """
 
 from __future__ import annotations
@@ -113,44 +116,66 @@ class PathFollower:
         return torch.as_tensor(np.clip(action, -1.0, 1.0), dtype=obs.dtype)
 
 
-def _learned(weights: str, floor: str, liveness: bool) -> Any:
-    """The learned policy of ``weights`` with ``shield=True``, its shield's liveness set."""
+def _learned(weights: str, floor: str, liveness: bool | None) -> Any:
+    """The learned policy of ``weights`` with ``shield=True``, its shield's liveness set
+    (``None``: no shield at all)."""
     from learners.checkpoint import read_metadata
 
-    path = Path(weights)
-    meta_file = path
-    if path.is_dir():
-        meta_file = path / "best.safetensors"
-        if not meta_file.is_file():
-            meta_file = path / "policy.safetensors"
-    meta = read_metadata(meta_file)
+    meta = read_metadata(weights)
     name = f"{meta['algo'].removesuffix('-e')}-{meta['reward']}"
-    ctl = allocator.make(name, scenario=floor, weights=weights, shield=True)
-    assert ctl.safety.liveness is None  # the default reaches the learned allocator's shield
-    ctl.safety.liveness = liveness
+    ctl = allocator.make(name, scenario=floor, weights=weights, shield=liveness is not None)
+    if liveness is not None:
+        assert ctl.safety.liveness is None  # the default reaches the learned allocator's shield
+        ctl.safety.liveness = liveness
     return ctl
 
 
-def rows(floor: str, steps: int, seed: int, weights: str | None) -> list[dict]:
+class _Recorder:
+    """Sums the controller's own actions: those a shield is given (its ``filter``), or those
+    an unshielded controller returns (its ``act``)."""
+
+    def __init__(self, owner: Any, method: str) -> None:
+        self.total = np.zeros(2)
+        self.count = 0
+        inner = getattr(owner, method)
+
+        def wrapped(arg: Any) -> Any:
+            out = inner(arg)
+            a = arg if method == "filter" else out
+            a = np.clip(np.asarray(torch.as_tensor(a).detach().cpu(), dtype=float), -1, 1)
+            self.total += a.reshape(-1, 2).sum(0)
+            self.count += a.reshape(-1, 2).shape[0]
+            return out
+
+        setattr(owner, method, wrapped)
+
+    def mean(self) -> np.ndarray:
+        return self.total / max(self.count, 1)
+
+
+def rows(floor: str, steps: int, seed: int, weights: list[str]) -> list[dict]:
     """Run every row; returns one dict per row (also printed as it finishes)."""
     variants: list[tuple[str, str, Any]] = []
     for live in (False, True):
         variants.append(("path follower", "on" if live else "off",
                          allocator.SafetyShield(PathFollower(), liveness=live)))
-    if weights:
-        for live in (False, True):
-            variants.append((f"learned ({weights})", "on" if live else "off",
-                             _learned(weights, floor, live)))
+    for entry in weights:
+        for live in (None, False, True):
+            variants.append((f"learned ({entry})",
+                             "no shield" if live is None else "on" if live else "off",
+                             _learned(entry, floor, live)))
     variants.append(("hungarian + SafeDriver", "SafeDriver's",
                      allocator.HungarianDispatcher(driver=allocator.SafeDriver())))
     variants.append(("fifo + SafeDriver", "SafeDriver's",
                      allocator.FifoDispatcher(driver=allocator.SafeDriver())))
     out = []
     for label, live, ctl in variants:
+        shield = ctl if isinstance(ctl, allocator.SafetyShield) else getattr(ctl, "safety", None)
+        recorder = _Recorder(shield, "filter") if shield is not None \
+            else _Recorder(ctl, "act") if live == "no shield" else None
         t = time.perf_counter()
         m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed, runs=1)
         seconds = time.perf_counter() - t
-        shield = ctl if isinstance(ctl, allocator.SafetyShield) else getattr(ctl, "safety", None)
         row = dict(method=label, liveness=live, throughput=m.throughput,
                    delivered=m.delivered, overlaps=m.collisions_per_1000 * steps / 1000.0,
                    interventions=None if shield is None else shield.intervention_rate(),
@@ -158,6 +183,7 @@ def rows(floor: str, steps: int, seed: int, weights: str | None) -> list[dict]:
                    else shield.interventions["liveness"] / max(shield.agent_steps, 1),
                    yields=None if shield is None or shield.resolver is None
                    else shield.resolver.yields,
+                   mean_action=None if recorder is None else recorder.mean().round(2).tolist(),
                    seconds=seconds)
         print(row, flush=True)
         out.append(row)
@@ -166,6 +192,10 @@ def rows(floor: str, steps: int, seed: int, weights: str | None) -> list[dict]:
 
 def _fmt(x: Any, spec: str) -> str:
     return "n/a" if x is None else format(x, spec)
+
+
+def _mean(xy: list[float] | None) -> str:
+    return "n/a" if xy is None else f"({xy[0]:+.2f}, {xy[1]:+.2f})"
 
 
 def _commit() -> str:
@@ -187,17 +217,19 @@ def write(table: list[dict], out: Path, command: str, floor: str, steps: int,
         f"{torch.__version__}, {date}, commit {_commit()}; seed {seed}, {steps} steps, one "
         "run (the same floor and orders for every row). Overlapping pairs: summed over the "
         "steps (the simulator's rule). Interventions: share of movable AGV-steps whose action "
-        "the shield changed (any stage); by liveness: the share the resolver changed.",
+        "the shield changed (any stage); by liveness: the share the resolver changed; mean "
+        "action: the controller's own actions (before the shield) averaged over all "
+        "AGV-steps.",
         "",
         "| controller | shield liveness | deliveries / 1000 steps | overlapping pairs | "
-        "interventions per AGV-step | by liveness | yields | s |",
-        "|---|---|---|---|---|---|---|---|",
+        "interventions per AGV-step | by liveness | yields | mean action (x, y) | s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in table:
         lines.append(f"| {r['method']} | {r['liveness']} | {r['throughput']:.1f} | "
                      f"{r['overlaps']:.0f} | {_fmt(r['interventions'], '.3f')} | "
                      f"{_fmt(r['by_liveness'], '.3f')} | {_fmt(r['yields'], 'd')} | "
-                     f"{r['seconds']:.0f} |")
+                     f"{_mean(r['mean_action'])} | {r['seconds']:.0f} |")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
 
@@ -207,19 +239,24 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--floor", default="warehouse-20", help="a lifelong floor (warehouse-N)")
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--weights", default=WEIGHTS,
-                   help="a lifelong entity run folder or policy file ('' for no learned rows)")
+    p.add_argument("--weights", nargs="*", default=[WEIGHTS], metavar="RUN_DIR_OR_FILE",
+                   help="lifelong entity run folders or policy files (none: no learned rows)")
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
     if args.steps < 1:
         p.error("--steps must be a positive integer")
     if args.seed < 0:
         p.error("--seed must be >= 0")
-    if not getattr(sim.get_scenario(args.floor), "lifelong", False):
+    try:
+        scenario = sim.get_scenario(args.floor)
+    except (KeyError, ValueError) as err:
+        p.error(f"--floor {args.floor}: {err}")
+    if not getattr(scenario, "lifelong", False):
         p.error(f"--floor {args.floor} is not a lifelong floor")
-    if args.weights and not Path(args.weights).exists():
-        p.error(f"--weights {args.weights}: no such file or folder")
-    table = rows(args.floor, args.steps, args.seed, args.weights or None)
+    for entry in args.weights:
+        if not Path(entry).exists():
+            p.error(f"--weights {entry}: no such file or folder")
+    table = rows(args.floor, args.steps, args.seed, args.weights)
     command = "python benchmarks/shield_lifelong.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
     write(table, args.out, command.strip(), args.floor, args.steps, args.seed)
