@@ -5,18 +5,24 @@ each AGV wants to go next: its action is an intended velocity, ``(1 - damping) v
 simulator's physics. :class:`SafetyShield` changes that intention as little as it can so that
 no two AGVs overlap:
 
-1. **ORCA QP** (optional, on by default): the intended velocities are the preferred ones of
+1. **Liveness** (on lifelong floors by default): the intended velocities go through
+   :class:`~allocator.avoidance.liveness.DeadlockResolver`, as in the lifelong
+   :class:`~allocator.traffic.SafeDriver`: symmetry-breaking perturbation, stall detection,
+   priority yielding, a right-turning roundabout, and idle AGVs pushed out of a stalled AGV's
+   way. Without it a crowd that the QP and the braking filter hold still stays still.
+2. **ORCA QP** (optional, on by default): the intended velocities are the preferred ones of
    :class:`~allocator.avoidance.VelocityAvoidance`, solved from where every AGV will be when
    the new velocity acts (``pos + v dt``), with parked, broken and serving AGVs as static
    obstacles. This is what keeps the policy moving smoothly past its neighbours.
-2. **Braking filter** (always): :class:`~allocator.avoidance.braking.BrakingShield` certifies
+3. **Braking filter** (always): :class:`~allocator.avoidance.braking.BrakingShield` certifies
    every AGV's next velocity: the QP's, else a blend of it with braking, else braking. That is
    the guarantee of ``docs/safety.md``: if no two AGVs' braking segments touch at the start,
    none ever overlap, whatever the policy does.
 
 An *intervention* is an AGV-step whose action the shield changed by more than ``tolerance``
 (in action units, per axis); :attr:`SafetyShield.interventions` counts them, split by which
-stage changed the action.
+stage changed the action. The liveness rules only change preferred velocities, which the
+braking filter certifies like any other: the safety guarantee does not depend on them.
 
 Examples
 --------
@@ -39,6 +45,7 @@ from torch import Tensor
 
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, braking_velocity
+from allocator.avoidance.liveness import DeadlockResolver
 
 __all__ = ["SafetyShield", "movable_agents"]
 
@@ -84,12 +91,28 @@ class SafetyShield:
         should change the policy as little as it can; the braking filter is what guarantees
         safety) and a ``max_speed`` whose polygon holds every velocity the physics can
         reach.
+    liveness : bool or None
+        Run the deadlock rules of :class:`~allocator.avoidance.liveness.DeadlockResolver` on
+        the intended velocities before the QP, as :class:`~allocator.traffic.SafeDriver`
+        does. ``None`` (default): on for lifelong envs (those with a ``fleet``), off for
+        episodic ones, whose results stay what they were. ``True`` / ``False`` force it.
+    seed : int
+        Seed of the resolver's priorities and perturbations (>= 0; default 0).
+    cruise_speed : float
+        The speed the liveness rules take as cruising (> 0; default 1.2, SafeDriver's): an
+        AGV wants to move when its intended speed exceeds 20 % of it, makes progress when
+        its speed exceeds 10 % of it, and yields or steps aside at half of it.
 
     Attributes
     ----------
     interventions : dict
-        ``{"any": n, "qp": n, "brake": n}``: AGV-steps changed at all, by the QP, and
-        certified only by braking (or a blend with it), since :meth:`reset`.
+        ``{"any": n, "qp": n, "brake": n, "liveness": n}``: AGV-steps changed at all, before
+        braking (by the liveness rules or the QP), certified only by braking (or a blend with
+        it), and changed by the liveness rules, since :meth:`reset`.
+    live : bool
+        Whether the liveness rules run on the env given to :meth:`reset`.
+    resolver : DeadlockResolver or None
+        The liveness rules' state (``resolver.yields`` counts the yields), when they run.
     agent_steps : int
         Movable AGV-steps seen since :meth:`reset` (the denominator of the rates).
     last_changed : np.ndarray of bool, shape (B, N)
@@ -98,12 +121,13 @@ class SafetyShield:
     Raises
     ------
     ValueError
-        For a controller without ``reset`` and ``act``, or a margin, tolerance or option
-        that is not valid (the message names it).
+        For a controller without ``reset`` and ``act``, or a margin, tolerance, liveness,
+        seed, cruise speed or option that is not valid (the message names it).
     """
 
     def __init__(self, controller: Any, qp: bool = True, margin: float = 0.01,
-                 tolerance: float = 1e-3, avoidance_options: dict[str, Any] | None = None
+                 tolerance: float = 1e-3, avoidance_options: dict[str, Any] | None = None,
+                 liveness: bool | None = None, seed: int = 0, cruise_speed: float = 1.2
                  ) -> None:
         if not (callable(getattr(controller, "reset", None))
                 and callable(getattr(controller, "act", None))):
@@ -116,6 +140,16 @@ class SafetyShield:
                     or not np.isfinite(value) or value < 0 or (value == 0 and not low_ok):
                 bound = ">= 0" if low_ok else "> 0"
                 raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
+        if liveness is not None and not isinstance(liveness, (bool, np.bool_)):
+            raise ValueError(f"liveness must be None (on for lifelong envs), True or False, "
+                             f"got {liveness!r}")
+        if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) \
+                or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        if isinstance(cruise_speed, (bool, np.bool_)) \
+                or not isinstance(cruise_speed, numbers.Real) \
+                or not np.isfinite(cruise_speed) or cruise_speed <= 0:
+            raise ValueError(f"cruise_speed must be a finite number > 0, got {cruise_speed!r}")
         if avoidance_options is not None and not isinstance(avoidance_options, dict):
             raise ValueError(f"avoidance_options must be a dict of AvoidanceConfig fields, "
                              f"got {type(avoidance_options).__name__}")
@@ -124,15 +158,20 @@ class SafetyShield:
         self.margin = float(margin)
         self.tolerance = float(tolerance)
         self.avoidance_options = dict(avoidance_options or {})
+        self.liveness = None if liveness is None else bool(liveness)
+        self.seed = int(seed)
+        self.cruise_speed = float(cruise_speed)
+        self.live = False
+        self.resolver: DeadlockResolver | None = None
         self.env: Any = None
         self._avoid: VelocityAvoidance | None = None
         self._brake: BrakingShield | None = None
-        self.interventions = {"any": 0, "qp": 0, "brake": 0}
+        self.interventions = {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
         self.agent_steps = 0
         self.last_changed = np.zeros((0, 0), dtype=bool)
 
     def __repr__(self) -> str:
-        return f"SafetyShield({self.controller!r}, qp={self.qp})"
+        return f"SafetyShield({self.controller!r}, qp={self.qp}, liveness={self.liveness})"
 
     @property
     def name(self) -> str:
@@ -140,7 +179,8 @@ class SafetyShield:
         return f"{getattr(self.controller, 'name', type(self.controller).__name__)}+shield"
 
     def reset(self, env: Any) -> None:
-        """Reset the wrapped controller and the counters; build the QP for ``env``'s world."""
+        """Reset the wrapped controller and the counters; build the QP for ``env``'s world
+        and, where the liveness rules run (see ``liveness``), a fresh resolver."""
         self.controller.reset(env)
         self.env = env
         world = env.world
@@ -160,7 +200,11 @@ class SafetyShield:
             raise ValueError(f"avoidance_options: {err}") from None
         self._avoid = VelocityAvoidance(world, config) if self.qp else None
         self._brake = BrakingShield.for_world(world, margin=self.margin)
-        self.interventions = {"any": 0, "qp": 0, "brake": 0}
+        self.live = self.liveness if self.liveness is not None \
+            else getattr(env, "fleet", None) is not None
+        self.resolver = DeadlockResolver(env.num_envs, env.num_agents, world.agent_radius,
+                                         seed=self.seed) if self.live else None
+        self.interventions = {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
         self.agent_steps = 0
         self.last_changed = np.zeros((env.num_envs, env.num_agents), dtype=bool)
 
@@ -172,6 +216,9 @@ class SafetyShield:
     @torch.no_grad()
     def filter(self, actions: Tensor | np.ndarray) -> Tensor:
         """Make actions of the environment given to :meth:`reset` safe.
+
+        The velocities the actions intend go through the liveness rules (where they run),
+        the QP (``qp=True``) and the braking filter, in that order.
 
         Parameters
         ----------
@@ -208,8 +255,26 @@ class SafetyShield:
         assert brake is not None
         intended = brake.realised(vel, a)
         planned = intended
+        ahead = pos + vel * env.world.physics.dt * movable[..., None]
+        by_rules = np.zeros_like(movable)
+        if self.resolver is not None:
+            # SafeDriver's liveness step on the intended velocities: what the policy wants
+            # is what the resolver takes as preferred, before the QP and the braking filter.
+            speed = self.cruise_speed
+            wanted = np.where(movable[..., None], intended, 0.0)
+            wants = movable & (np.linalg.norm(wanted, axis=-1) > 0.2 * speed)
+            progress = np.linalg.norm(vel, axis=-1) > 0.1 * speed
+            pushable = None
+            if callable(getattr(env, "targets", None)):
+                has = env.targets()[1].detach().cpu().numpy().astype(bool)
+                pushable = movable & ~has
+            preferred = self.resolver.apply(ahead, wanted, wants, progress, speed,
+                                            pushable=pushable)
+            planned = brake.realised(vel, brake.action_for(vel, preferred))
+            intended = np.where(movable[..., None], planned, intended)
+            by_rules = movable & (np.abs(brake.action_for(vel, planned) - a).max(-1)
+                                  > self.tolerance)
         if self._avoid is not None and movable.any():
-            ahead = pos + vel * env.world.physics.dt * movable[..., None]
             result = self._avoid.solve(ahead, np.where(movable[..., None], vel, 0.0),
                                        np.where(movable[..., None], intended, 0.0),
                                        static=~movable)
@@ -225,6 +290,7 @@ class SafetyShield:
         self.interventions["any"] += int(changed.sum())
         self.interventions["qp"] += int(by_qp.sum())
         self.interventions["brake"] += int(braked.sum())
+        self.interventions["liveness"] += int(by_rules.sum())
         self.agent_steps += int(movable.sum())
         self.last_changed = changed
         return torch.as_tensor(safe, dtype=env.dtype, device=env.device)

@@ -70,7 +70,7 @@ def test_a_lone_agv_far_from_everything_is_left_alone() -> None:
     action = torch.tensor([[[0.3, -0.2]]])
     out = shield.filter(action)
     assert torch.allclose(out, action, atol=1e-6)
-    assert shield.interventions == {"any": 0, "qp": 0, "brake": 0}
+    assert shield.interventions == {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
     assert shield.agent_steps == 1
 
 
@@ -112,6 +112,14 @@ def test_shielded_lifelong_floor_with_breakdowns_has_no_overlap() -> None:
     (dict(tolerance=float("nan")), "tolerance"),
     (dict(qp="yes"), "qp must be True or False"),
     (dict(avoidance_options=[1]), "avoidance_options must be a dict"),
+    (dict(liveness="yes"), "liveness must be None \\(on for lifelong envs\\), True or False"),
+    (dict(liveness=1), "liveness must be None"),
+    (dict(seed=-1), "seed must be a non-negative integer"),
+    (dict(seed=1.5), "seed must be a non-negative integer"),
+    (dict(seed=True), "seed must be a non-negative integer"),
+    (dict(cruise_speed=0.0), "cruise_speed must be a finite number > 0"),
+    (dict(cruise_speed=float("inf")), "cruise_speed"),
+    (dict(cruise_speed="fast"), "cruise_speed"),
 ])
 def test_bad_arguments(kwargs: dict, match: str) -> None:
     args = dict(controller=HeadOn())

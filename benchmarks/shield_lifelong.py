@@ -1,0 +1,267 @@
+"""The safety shield on a lifelong floor, with and without its liveness rules.
+
+    nice python benchmarks/shield_lifelong.py [--floor warehouse-20] [--steps 1000] [--seed 0]
+        [--weights RUN_DIR_OR_FILE ...] [--out FILE]
+
+Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floor and orders:
+
+- ``path follower``: :class:`PathFollower`, a scripted controller of the ``obs -> act``
+  protocol (each AGV heads for its target, or the nearest visible open pickup when it has
+  none, along the floor's shortest path), behind :class:`allocator.SafetyShield` with
+  ``liveness=False`` and ``liveness=True``;
+- the learned policy of every ``--weights`` entry (a lifelong entity run folder or policy
+  file; default ``runs/lifelong/maddpg-e-greedy-warehouse-20-s0``),
+  ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY, shield=True)``, with the shield's
+  liveness rules off and on, and without the shield for reference (a run folder loads its
+  ``policy.safetensors``, the last policy; pass ``RUN/best.safetensors`` for the best);
+- for reference, the classical dispatchers ``hungarian`` and ``fifo`` driven by
+  :class:`allocator.SafeDriver` (the same resolver, QP and braking filter, on planned paths).
+
+Columns: deliveries per 1000 steps, overlapping AGV pairs summed over the steps (the
+simulator's rule), the shield's interventions per movable AGV-step (``any``, and the share the
+liveness rules changed), the resolver's yields, the mean of the actions the controller gave the
+shield (over all AGV-steps: a policy that pushes every AGV one way shows there), wall-clock
+seconds. Writes a markdown table with the command, date, commit and seed to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import math
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+import allocator
+import sim
+from allocator.distances import FloorDistances
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "results" / "scale" / "lifelong" / "shield_liveness.md"
+WEIGHTS = "runs/lifelong/maddpg-e-greedy-warehouse-20-s0"
+
+
+class PathFollower:
+    """A scripted lifelong controller that reads only its observations.
+
+    Each AGV heads for its own target (a loaded AGV's drop-off, an assigned AGV's pickup), or
+    when it has none for the nearest visible open pickup (an idle AGV takes an open order it
+    reaches), towards the first corner of the floor's shortest path
+    (:meth:`allocator.distances.FloorDistances.next_waypoint`); an AGV with neither stands.
+    No coordination and no avoidance: that is the shield's part.
+
+    Parameters
+    ----------
+    gain : float
+        Desired velocity per unit distance to the corner (1/s; > 0).
+    max_speed : float
+        Cap on the commanded speed (> 0).
+    """
+
+    name = "path-follower"
+
+    def __init__(self, gain: float = 4.0, max_speed: float = 1.2) -> None:
+        for label, value in (("gain", gain), ("max_speed", max_speed)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+        self.gain = float(gain)
+        self.max_speed = float(max_speed)
+        self.distances: FloorDistances | None = None
+
+    def reset(self, env: Any) -> None:
+        """Read the env's observation layout, physics and floor (its distance table).
+
+        Raises
+        ------
+        ValueError
+            For an env without a lifelong observation layout.
+        """
+        from sim.observations import LifelongObsLayout
+
+        if not isinstance(getattr(env, "obs_layout", None), LifelongObsLayout):
+            raise ValueError("PathFollower drives lifelong floors (warehouse-N)")
+        self.layout = env.obs_layout
+        self.physics = env.world.physics
+        self.distances = FloorDistances(env.world)
+
+    def act(self, obs: Tensor) -> Tensor:
+        """Actions (B, N, 2) in [-1, 1] from lifelong observations (B, N, O)."""
+        if self.distances is None:
+            raise ValueError("PathFollower.reset(env) must be called before act")
+        lay, ph = self.layout, self.physics
+        o = obs.detach().cpu().double().numpy()
+        pos, vel = o[..., lay.pos], o[..., lay.vel]
+        rel = o[..., lay.target_rel]
+        go = o[..., lay.target_mask][..., 0] > 0
+        if lay.k_pickups:
+            seen = o[..., lay.pickup_mask(0)][..., 0] > 0
+            rel = np.where(go[..., None], rel, o[..., lay.pickup_rel(0)])
+            go = go | seen
+        corner = pos.copy()
+        if go.any():
+            corner[go] = self.distances.next_waypoint(pos[go], pos[go] + rel[go])
+        v_cmd = (corner - pos) * self.gain
+        speed = np.linalg.norm(v_cmd, axis=-1, keepdims=True)
+        v_cmd *= self.max_speed / np.maximum(speed, self.max_speed)
+        action = (v_cmd - (1.0 - ph.damping) * vel) / (ph.sensitivity * ph.dt / ph.mass)
+        return torch.as_tensor(np.clip(action, -1.0, 1.0), dtype=obs.dtype)
+
+
+def _learned(weights: str, floor: str, liveness: bool | None) -> Any:
+    """The learned policy of ``weights`` with ``shield=True``, its shield's liveness set
+    (``None``: no shield at all)."""
+    from learners.checkpoint import read_metadata
+
+    meta = read_metadata(weights)
+    name = f"{meta['algo'].removesuffix('-e')}-{meta['reward']}"
+    ctl = allocator.make(name, scenario=floor, weights=weights, shield=liveness is not None)
+    if liveness is not None:
+        assert ctl.safety.liveness is None  # the default reaches the learned allocator's shield
+        ctl.safety.liveness = liveness
+    return ctl
+
+
+class _Recorder:
+    """Sums the controller's own actions: those a shield is given (its ``filter``), or those
+    an unshielded controller returns (its ``act``)."""
+
+    def __init__(self, owner: Any, method: str) -> None:
+        self.total = np.zeros(2)
+        self.count = 0
+        inner = getattr(owner, method)
+
+        def wrapped(arg: Any) -> Any:
+            out = inner(arg)
+            a = arg if method == "filter" else out
+            a = np.clip(np.asarray(torch.as_tensor(a).detach().cpu(), dtype=float), -1, 1)
+            self.total += a.reshape(-1, 2).sum(0)
+            self.count += a.reshape(-1, 2).shape[0]
+            return out
+
+        setattr(owner, method, wrapped)
+
+    def mean(self) -> np.ndarray:
+        return self.total / max(self.count, 1)
+
+
+def rows(floor: str, steps: int, seed: int, weights: list[str]) -> list[dict]:
+    """Run every row; returns one dict per row (also printed as it finishes)."""
+    variants: list[tuple[str, str, Any]] = []
+    for live in (False, True):
+        variants.append(("path follower", "on" if live else "off",
+                         allocator.SafetyShield(PathFollower(), liveness=live)))
+    for entry in weights:
+        for live in (None, False, True):
+            variants.append((f"learned ({entry})",
+                             "no shield" if live is None else "on" if live else "off",
+                             _learned(entry, floor, live)))
+    variants.append(("hungarian + SafeDriver", "SafeDriver's",
+                     allocator.HungarianDispatcher(driver=allocator.SafeDriver())))
+    variants.append(("fifo + SafeDriver", "SafeDriver's",
+                     allocator.FifoDispatcher(driver=allocator.SafeDriver())))
+    out = []
+    for label, live, ctl in variants:
+        shield = ctl if isinstance(ctl, allocator.SafetyShield) else getattr(ctl, "safety", None)
+        recorder = _Recorder(shield, "filter") if shield is not None \
+            else _Recorder(ctl, "act") if live == "no shield" else None
+        t = time.perf_counter()
+        m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed, runs=1)
+        seconds = time.perf_counter() - t
+        row = dict(method=label, liveness=live, throughput=m.throughput,
+                   delivered=m.delivered, overlaps=m.collisions_per_1000 * steps / 1000.0,
+                   interventions=None if shield is None else shield.intervention_rate(),
+                   by_liveness=None if shield is None
+                   else shield.interventions["liveness"] / max(shield.agent_steps, 1),
+                   yields=None if shield is None or shield.resolver is None
+                   else shield.resolver.yields,
+                   mean_action=None if recorder is None else recorder.mean().round(2).tolist(),
+                   seconds=seconds)
+        print(row, flush=True)
+        out.append(row)
+    return out
+
+
+def _fmt(x: Any, spec: str) -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+def _mean(xy: list[float] | None) -> str:
+    return "n/a" if xy is None else f"({xy[0]:+.2f}, {xy[1]:+.2f})"
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, check=True,
+                              capture_output=True, text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def write(table: list[dict], out: Path, command: str, floor: str, steps: int,
+          seed: int) -> None:
+    """The markdown table of ``table`` with the command, date, commit and seed."""
+    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        f"# SafetyShield liveness on {floor}",
+        "",
+        f"`{command}` on {platform.machine()}, Python {platform.python_version()}, torch "
+        f"{torch.__version__}, {date}, commit {_commit()}; seed {seed}, {steps} steps, one "
+        "run (the same floor and orders for every row). Overlapping pairs: summed over the "
+        "steps (the simulator's rule). Interventions: share of movable AGV-steps whose action "
+        "the shield changed (any stage); by liveness: the share the resolver changed; mean "
+        "action: the controller's own actions (before the shield) averaged over all "
+        "AGV-steps.",
+        "",
+        "| controller | shield liveness | deliveries / 1000 steps | overlapping pairs | "
+        "interventions per AGV-step | by liveness | yields | mean action (x, y) | s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in table:
+        lines.append(f"| {r['method']} | {r['liveness']} | {r['throughput']:.1f} | "
+                     f"{r['overlaps']:.0f} | {_fmt(r['interventions'], '.3f')} | "
+                     f"{_fmt(r['by_liveness'], '.3f')} | {_fmt(r['yields'], 'd')} | "
+                     f"{_mean(r['mean_action'])} | {r['seconds']:.0f} |")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--floor", default="warehouse-20", help="a lifelong floor (warehouse-N)")
+    p.add_argument("--steps", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--weights", nargs="*", default=[WEIGHTS], metavar="RUN_DIR_OR_FILE",
+                   help="lifelong entity run folders or policy files (none: no learned rows)")
+    p.add_argument("--out", type=Path, default=OUT)
+    args = p.parse_args(argv)
+    if args.steps < 1:
+        p.error("--steps must be a positive integer")
+    if args.seed < 0:
+        p.error("--seed must be >= 0")
+    try:
+        scenario = sim.get_scenario(args.floor)
+    except (KeyError, ValueError) as err:
+        p.error(f"--floor {args.floor}: {err}")
+    if not getattr(scenario, "lifelong", False):
+        p.error(f"--floor {args.floor} is not a lifelong floor")
+    for entry in args.weights:
+        if not Path(entry).exists():
+            p.error(f"--weights {entry}: no such file or folder")
+    table = rows(args.floor, args.steps, args.seed, args.weights)
+    command = "python benchmarks/shield_lifelong.py " + " ".join(
+        sys.argv[1:] if argv is None else argv)
+    write(table, args.out, command.strip(), args.floor, args.steps, args.seed)
+    return table
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,156 @@
+"""The safety shield's liveness rules (allocator/shield.py, ``liveness=``): on by default on
+lifelong floors, off on episodic scenes (whose actions stay what they were)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import allocator
+import sim
+from allocator.avoidance import VelocityAvoidance
+from allocator.avoidance.liveness import DeadlockResolver
+from allocator.shield import SafetyShield
+from sim.controllers import NearestTaskController
+from sim.lifelong import lifelong_scenario
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _bench():
+    """``benchmarks/shield_lifelong.py`` (its scripted :class:`PathFollower`)."""
+    spec = importlib.util.spec_from_file_location("shield_lifelong",
+                                                  ROOT / "benchmarks" / "shield_lifelong.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class Swap:
+    """Every AGV drives straight for where the AGV listed opposite it started: two AGVs on a
+    line swap places, head on and perfectly symmetric (a scripted obs -> act controller)."""
+
+    name = "swap"
+
+    def reset(self, env) -> None:
+        self.env = env
+        self.goal = env.agent_pos.flip(1).clone()
+
+    def act(self, obs: torch.Tensor) -> torch.Tensor:
+        env = self.env
+        v = (self.goal - env.agent_pos) * 4.0
+        v = v * (1.2 / v.norm(dim=-1, keepdim=True).clamp_min(1.2))
+        return ((v - 0.75 * env.agent_vel) / 0.5).clamp(-1, 1)
+
+
+def _rollout(env, ctl, steps: int) -> tuple[torch.Tensor, int]:
+    ctl.reset(env)
+    obs = env.observe()
+    actions, pairs = [], 0
+    for _ in range(steps):
+        a = ctl.act(obs)
+        actions.append(a.clone())
+        obs, _, _, info = env.step(a)
+        pairs += int(info["collision_pairs"].sum())
+        if bool(env.done.all()):
+            break
+    return torch.stack(actions), pairs
+
+
+@pytest.mark.parametrize("controller", ["maddpg-ipf", "nearest"])
+def test_episodic_actions_are_unchanged_by_default(controller: str) -> None:
+    def make():
+        return allocator.make("maddpg-ipf", scenario="3v3") if controller == "maddpg-ipf" \
+            else NearestTaskController()
+
+    runs = {}
+    for live in (None, False, True):
+        shield = SafetyShield(make(), liveness=live)
+        runs[live] = _rollout(sim.make_env("3v3", num_envs=4, seed=3), shield, 30)[0]
+        assert shield.live is (live is True) and (shield.resolver is None) is (live is not True)
+        if live is not True:
+            assert shield.interventions["liveness"] == 0
+    assert torch.equal(runs[None], runs[False])  # bit for bit: the episodic path as before
+    # forcing the rules on does change the actions, so the comparison above can fail
+    assert runs[True].shape != runs[False].shape or not torch.equal(runs[True], runs[False])
+
+
+def test_default_is_on_for_lifelong_floors_and_the_learned_allocator_gets_it() -> None:
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    shield = SafetyShield(NearestTaskController(), seed=5)
+    shield.reset(env)
+    assert shield.live and isinstance(shield.resolver, DeadlockResolver)
+    assert shield.interventions == {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
+    off = SafetyShield(NearestTaskController(), liveness=False)
+    off.reset(env)
+    assert not off.live and off.resolver is None
+    # a fresh resolver at every reset, with the shield's seed
+    first = shield.resolver
+    shield.reset(env)
+    assert shield.resolver is not first
+    assert np.array_equal(shield.resolver.priority, DeadlockResolver(1, 20, 0.15, seed=5).priority)
+    learned = allocator.make("maddpg-ipf", scenario="3v3", shield=True)
+    assert learned.safety.liveness is None  # the default reaches allocator.make(shield=True)
+
+
+@pytest.mark.parametrize("row", [1.0, 3.0])  # the open front of the floor, a shelf aisle
+def test_a_symmetric_head_on_swap_freezes_without_the_rules_and_passes_with_them(
+        row: float) -> None:
+    world = sim.make_env("warehouse-20", num_envs=1, seed=0).world
+    ends = {}
+    for live in (None, False):  # None: on, the env is lifelong
+        env = sim.make_env(lifelong_scenario(world, 2, arrivals=sim.Poisson(1e-9)),
+                           num_envs=1, seed=0)
+        env.set_state(np.array([[[3.0, row], [4.6, row]]]))
+        shield = SafetyShield(Swap(), liveness=live)
+        _, pairs = _rollout(env, shield, 80)
+        assert pairs == 0
+        ends[live] = (env.agent_pos - shield.controller.goal).norm(dim=-1)
+        assert int(env.released.sum()) == 0  # nothing but the two AGVs in play
+    assert bool((ends[False] > 0.5).all())  # the QP and the brakes hold both, face to face
+    assert bool((ends[None] < 0.05).all())  # the resolver breaks the tie: both arrive
+
+
+def test_shielded_path_follower_delivers_on_a_lifelong_floor_without_overlaps() -> None:
+    follower = _bench().PathFollower()
+    shield = SafetyShield(follower)
+    m = sim.evaluate_lifelong(shield, "warehouse-20", steps=300, seed=0)
+    assert shield.live and shield.resolver is not None and shield.resolver.yields > 0
+    assert m.delivered > 0
+    assert m.collisions_per_1000 == 0
+    assert shield.interventions["liveness"] > 0 and shield.agent_steps > 0
+
+
+def test_the_qp_sees_shelves_and_walls_as_in_safe_driver() -> None:
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    shield = SafetyShield(NearestTaskController())
+    shield.reset(env)
+    driver = allocator.SafeDriver()
+    driver.reset(env)
+    assert shield._avoid.world is env.world and driver._avoid.world is env.world
+    assert shield._avoid.config.max_shelves == driver._avoid.config.max_shelves > 0
+    x0, y0 = env.world.obstacles[0, :2]  # lower-left corner of a shelf
+    r = env.world.agent_radius
+    pos = np.array([[[x0 + 1.0, y0 - r - 0.02], [r + 0.02, 1.0]]])  # by a shelf, by a wall
+    vel = np.zeros_like(pos)
+    pref = np.array([[[0.0, 1.2], [-1.2, 0.0]]])  # straight into the shelf and the wall
+    for qp in (shield._avoid, driver._avoid):  # 0.02 from each: slow down to about 0.04
+        out = qp.solve(pos, vel, pref).velocity
+        assert out[0, 0, 1] < 0.1 and out[0, 1, 0] > -0.1
+    # without the world the same QP goes on at what one action reaches (0.5 from rest)
+    blind = VelocityAvoidance(None, shield._avoid.config).solve(pos, vel, pref).velocity
+    assert blind[0, 0, 1] > 0.4 and blind[0, 1, 0] < -0.4
+
+
+def test_path_follower_bad_input() -> None:
+    bench = _bench()
+    with pytest.raises(ValueError, match="gain must be a finite number > 0"):
+        bench.PathFollower(gain=0)
+    with pytest.raises(ValueError, match="reset\\(env\\) must be called"):
+        bench.PathFollower().act(torch.zeros(1, 1, 40))
+    with pytest.raises(ValueError, match="lifelong floors"):
+        bench.PathFollower().reset(sim.make_env("3v3", num_envs=1, seed=0))
