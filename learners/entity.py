@@ -525,7 +525,8 @@ class EntityConfig(OffPolicyConfig):
     shield: bool = False
     """Train with :class:`allocator.shield.SafetyShield` in the loop: the exploring action
     goes through the shield, and the shield's action (what the simulator executed) is what is
-    stored and what the critic is trained on."""
+    stored and what the critic is trained on. Evaluations (and so ``best.safetensors``) run
+    shielded too: the policy is chosen in the mode it is trained for."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield`` too."""

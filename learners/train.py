@@ -514,10 +514,15 @@ def train(
             ep_terms[t][ids] = 0.0
         counters["episodes"] += len(ids)
 
+    def deployed() -> Any:
+        """What an evaluation runs: the learner, shielded when it trains shielded (a fresh
+        shield, so that the training shield's state and counters stay the training env's)."""
+        return learner if shield is None else make_shield(learner)
+
     def evaluate() -> dict[str, float]:
         if lifelong:
             return evaluate_lifelong()
-        m = sim.evaluate(learner, config.scenario, episodes=config.eval_episodes,
+        m = sim.evaluate(deployed(), config.scenario, episodes=config.eval_episodes,
                          seed=config.eval_seed)
         counters["last_eval"] = m.as_dict()
         if m.response_rate > counters["best_response_rate"] or (
@@ -530,7 +535,7 @@ def train(
 
     def evaluate_lifelong() -> dict[str, float]:
         nonlocal best_throughput
-        m = sim.evaluate_lifelong(learner, config.scenario, steps=config.eval_steps,
+        m = sim.evaluate_lifelong(deployed(), config.scenario, steps=config.eval_steps,
                                   seed=config.eval_seed)
         learner.reset(env)  # back to the training floor's layout (the same floor)
         out = {f.name: float(getattr(m, f.name)) for f in dataclasses.fields(m)

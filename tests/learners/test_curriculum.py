@@ -137,8 +137,10 @@ def test_shield_in_the_loop_stores_the_executed_actions(tmp_path):
         tensors, meta = load_checkpoint(result.run_dir / "checkpoint.safetensors")
         assert meta["config"]["shield"] is shield
         row = _rows(result.run_dir / "progress.csv")[-1]
-        out[shield] = (float(row["train_term_collision"]), tensors["buffer.action"])
+        out[shield] = (float(row["train_term_collision"]), tensors["buffer.action"],
+                       float(row["eval_collisions"]))
     assert out[False][0] < 0.0 and out[True][0] == 0.0
+    assert out[False][2] > 0.0 and out[True][2] == 0.0  # evaluations run shielded too
     n = min(len(out[False][1]), len(out[True][1]))
     assert not torch.equal(out[False][1][:n], out[True][1][:n])
     assert out[True][1].abs().max() <= 1.0
