@@ -38,11 +38,19 @@ def pair_distances(agent_pos: Tensor) -> Tensor:
     return dx.mul_(dx).add_(dy.mul_(dy)).double().sqrt_().float()
 
 
+CONTACT_MIN_DISTANCE = 1e-3
+"""Centre distance (world units) below which the soft contact force between two AGVs fades
+linearly to 0 instead of keeping its magnitude (see :func:`contact_forces`)."""
+
+
 def contact_forces(agent_pos: Tensor, dist: Tensor, world: World, eye: Tensor) -> Tensor:
     """MPE's soft contact force on every AGV, (B, N, 2).
 
     ``f_i = sum_j c * k * softplus((2r - d_ij) / k) * (p_i - p_j) / d_ij``, computed as
-    ``p_i * sum_j s_ij - sum_j s_ij p_j`` with one batched matmul.
+    ``p_i * sum_j s_ij - sum_j s_ij p_j`` with one batched matmul. ``d_ij`` is taken at least
+    :data:`CONTACT_MIN_DISTANCE`, so two AGVs closer than that push each other less, down to 0
+    at the same point, and no rounding error of the matmul form exceeds a small fraction of
+    the force.
 
     Parameters
     ----------
@@ -56,7 +64,11 @@ def contact_forces(agent_pos: Tensor, dist: Tensor, world: World, eye: Tensor) -
     ph = world.physics
     dist_min = 2.0 * world.agent_radius
     penetration = torch.nn.functional.softplus(dist_min - dist, beta=1.0 / ph.contact_margin)
-    scale = (ph.contact_force * penetration / dist.clamp_min(1e-12)).masked_fill(eye, 0.0)
+    # below CONTACT_MIN_DISTANCE the force fades linearly to 0 (the direction is undefined):
+    # a 1/d scale there turns float32 rounding of p_i * sum_j s_ij - sum_j s_ij p_j into
+    # forces of 1e8 for a pile of AGVs within 1e-6 of one point
+    scale = (ph.contact_force * penetration / dist.clamp_min(CONTACT_MIN_DISTANCE)
+             ).masked_fill(eye, 0.0)
     return agent_pos * scale.sum(dim=2, keepdim=True) - torch.bmm(scale, agent_pos)
 
 

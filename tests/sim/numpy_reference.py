@@ -82,7 +82,7 @@ def contact_forces(rules: Rules, pos: np.ndarray) -> np.ndarray:
             delta = pos[i] - pos[j]
             dist = float(np.hypot(*delta))
             penetration = k * np.logaddexp(0.0, (2 * rules.radius - dist) / k)
-            force[i] += rules.contact_force * penetration * delta / max(dist, 1e-12)
+            force[i] += rules.contact_force * penetration * delta / max(dist, 1e-3)
     return force
 
 

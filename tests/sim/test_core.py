@@ -1,5 +1,7 @@
 """The batched step: batch-versus-loop, determinism, bounds, claiming, bad input."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -273,3 +275,28 @@ def test_nearest_task_controller_reads_the_task_slot_by_name_when_there_is_none(
     action = ctrl.act(obs)
     toward = (action * obs[..., lay.task_rel(0)]).sum(-1)
     assert bool((toward[obs[..., lay.task_mask(0)][..., 0] > 0] > 0).all())
+
+
+def test_contact_forces_stay_bounded_in_a_pile():
+    """16 AGVs within 1e-6 of one point far from the origin: every contact force stays below
+    the physical bound (15 neighbours x c x 2r); the matmul form with a 1/d scale gave 3e8."""
+    from sim.physics import CONTACT_MIN_DISTANCE, contact_forces
+
+    world = sim.get_scenario("warehouse-20").world
+    ph = world.physics
+    bound = 15 * ph.contact_force * (2 * world.agent_radius + ph.contact_margin)
+    gen = torch.Generator().manual_seed(0)
+    eye = torch.eye(16, dtype=torch.bool)
+    for spread in (0.0, 1e-6, 1e-5, 1e-4, 1e-2):
+        pos = torch.tensor([7.0, 5.0]) + (torch.rand(1, 16, 2, generator=gen) - 0.5) * spread
+        dist = torch.cdist(pos, pos, compute_mode="donot_use_mm_for_euclid_dist")
+        force = contact_forces(pos, dist, world, eye)
+        assert torch.isfinite(force).all()
+        assert float(force.norm(dim=-1).max()) <= bound
+    # two AGVs at a normal contact distance: the force is MPE's, unchanged
+    pos = torch.tensor([[[1.0, 1.0], [1.2, 1.0]]])
+    dist = torch.cdist(pos, pos)
+    force = contact_forces(pos, dist, world, torch.eye(2, dtype=torch.bool))
+    k = ph.contact_margin
+    want = ph.contact_force * k * math.log1p(math.exp((2 * world.agent_radius - 0.2) / k))
+    assert abs(float(force[0, 1, 0]) - want) < 1e-3 * want and 0.2 > CONTACT_MIN_DISTANCE
