@@ -10,7 +10,7 @@ Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floor a
   none, along the floor's shortest path), behind :class:`allocator.SafetyShield` with
   ``liveness=False`` and ``liveness=True``;
 - the learned policy of every ``--weights`` entry (a lifelong entity run folder or policy
-  file; default ``runs/lifelong/maddpg-e-greedy-warehouse-20-s0``),
+  file; none by default),
   ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY, shield=True)``, with the shield's
   liveness rules off and on, and without the shield for reference (a run folder loads its
   ``policy.safetensors``, the last policy; pass ``RUN/best.safetensors`` for the best);
@@ -46,7 +46,6 @@ from allocator.distances import FloorDistances
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "scale" / "lifelong" / "shield_liveness.md"
-WEIGHTS = "runs/lifelong/maddpg-e-greedy-warehouse-20-s0"
 
 
 class PathFollower:
@@ -239,7 +238,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--floor", default="warehouse-20", help="a lifelong floor (warehouse-N)")
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--weights", nargs="*", default=[WEIGHTS], metavar="RUN_DIR_OR_FILE",
+    p.add_argument("--weights", nargs="*", default=[], metavar="RUN_DIR_OR_FILE",
                    help="lifelong entity run folders or policy files (none: no learned rows)")
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
