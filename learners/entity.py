@@ -524,9 +524,12 @@ class EntityConfig(OffPolicyConfig):
     """Joint transitions per gradient update (each holds N AGVs' experience)."""
     shield: bool = False
     """Train with :class:`allocator.shield.SafetyShield` in the loop: the exploring action
-    goes through the shield, and the shield's action (what the simulator executed) is what is
-    stored and what the critic is trained on. Evaluations (and so ``best.safetensors``) run
-    shielded too: the policy is chosen in the mode it is trained for."""
+    goes through the shield and the simulator executes the shield's action, while the policy's
+    intended action is what is stored and what the critic is trained on (the shield is part of
+    the environment: the critic learns what an intention leads to through it; storing the
+    executed action instead did not raise the shielded throughput on warehouse-20, see
+    ``docs/learners.md``). Evaluations (and so ``best.safetensors``) run shielded too: the
+    policy is chosen in the mode it is trained for."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield`` too."""

@@ -579,9 +579,11 @@ def train(
             # 1. collect one vectorized step with exploration noise
             noise_std = _noise_std(cfg, counters["episodes"])
             action = learner.explore(obs, noise_std, noise_gen)
-            if shield is not None:  # what the simulator executes is what is stored
-                action = shield.filter(action)
-            next_obs, reward, done, info = env.step(action)
+            # with the shield in the loop the simulator executes the shield's action, and the
+            # policy's intended action is what is stored: the critic learns what an intention
+            # leads to through the shield
+            executed = shield.filter(action) if shield is not None else action
+            next_obs, reward, done, info = env.step(executed)
             next_state = env.global_state()
             # every task claimed: terminal; step limit only: truncated, so bootstrap;
             # lifelong operation has no terminal state

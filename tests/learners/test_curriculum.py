@@ -120,10 +120,11 @@ def test_init_from_checks_what_it_starts_from(tmp_path):
     assert result.updates > base.updates  # the update count carried over
 
 
-def test_shield_in_the_loop_stores_the_executed_actions(tmp_path):
-    """With shield=True the actions executed (and stored) are the shield's: no training step
-    has overlapping AGVs (the collision reward term stays 0), while the same exploration
-    without the shield collides; the stored actions differ between the two runs."""
+def test_shield_in_the_loop_executes_the_shields_actions(tmp_path):
+    """With shield=True the actions executed are the shield's: no training step has
+    overlapping AGVs (the collision reward term stays 0), while the same exploration without
+    the shield collides; the stored actions are the policy's intended ones (they differ
+    between the two runs once the runs' states differ)."""
     from allocator import SafetyShield
     from learners.checkpoint import load_checkpoint
 

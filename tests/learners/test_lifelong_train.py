@@ -107,3 +107,33 @@ def test_agv_train_cli_on_a_lifelong_floor(tmp_path, capsys):
     assert config["train"]["window"] == 30 and config["train"]["eval_steps"] == 40
     with pytest.raises(SystemExit):
         parser.parse_args([*args, "--window", "0"])
+
+
+def test_shielded_training_stores_the_intended_actions(tmp_path):
+    """With the shield in the loop on a lifelong floor (the fleet starts packed in the depot,
+    so the shield changes most first actions) the buffer holds the policy's intended actions:
+    the first step's equal those of the same run without the shield (same weights,
+    observations and noise), while the executed ones differed."""
+    from allocator import SafetyShield
+    from learners.checkpoint import load_checkpoint
+
+    stored = {}
+    for shield in (False, True):
+        config = _config(tmp_path / f"s{shield}", episodes=2)
+        config.window = 10
+        result = train(config, {**SMALL, "shield": shield}, make_shield=SafetyShield)
+        tensors, _ = load_checkpoint(result.run_dir / "checkpoint.safetensors")
+        stored[shield] = tensors["buffer.action"][:SMALL["num_envs"]]
+    assert torch.equal(stored[False], stored[True])
+    env = sim.make_env("warehouse-20", num_envs=SMALL["num_envs"], seed=config.seed)
+    safety = SafetyShield(_Still())
+    safety.reset(env)
+    assert not torch.equal(safety.filter(stored[True]), stored[True])
+
+
+class _Still:
+    def reset(self, env):
+        pass
+
+    def act(self, obs):
+        return torch.zeros(*obs.shape[:2], 2)
