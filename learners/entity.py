@@ -282,6 +282,14 @@ def _mlp(sizes: list[int], last_relu: bool = True) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def _masked_softmax(logits: Tensor, mask: Tensor) -> Tensor:
+    """Softmax over the last axis where ``mask`` (same shape, bool) holds: masked entries get
+    weight exactly 0 (exp(-1e9 - top) is 0), and a row with none visible all zeros."""
+    logits = logits.masked_fill(~mask, -1e9)
+    w = torch.exp(logits - logits.amax(-1, keepdim=True).detach()) * mask
+    return w / w.sum(-1, keepdim=True).clamp_min(1e-30)
+
+
 class _AttentionPool(nn.Module):
     """Masked single-head attention of a query (the own-state embedding) over tokens.
 
@@ -303,10 +311,7 @@ class _AttentionPool(nn.Module):
         # small (<= 6 here), so a broadcast product beats K-long batched matrix products
         qk = self.query(own) @ self.key.weight
         logits = (qk.unsqueeze(-2) * emb).sum(-1) * self.scale
-        logits = logits.masked_fill(~mask, -1e9)  # exp(-1e9 - top) is exactly 0
-        top = logits.amax(-1, keepdim=True).detach()
-        w = torch.exp(logits - top) * mask
-        w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
+        w = _masked_softmax(logits, mask)
         values = emb.masked_fill(~mask.unsqueeze(-1), 0.0)
         return (w.unsqueeze(-1) * values).sum(-2)
 
@@ -399,9 +404,7 @@ class WaypointHead(nn.Module):
         kind[..., 0] = 1.0
         prior = self.target_bias * kind - self.path_weight * length * (1.0 - kind)
         logits = self.score(torch.cat([h.unsqueeze(-2).expand_as(emb), emb], dim=-1))
-        logits = (logits.squeeze(-1) + prior).masked_fill(~mask, -1e9)
-        w = torch.exp(logits - logits.amax(-1, keepdim=True).detach()) * mask
-        w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
+        w = _masked_softmax(logits.squeeze(-1) + prior, mask)
         unit = wp / torch.linalg.vector_norm(wp, dim=-1, keepdim=True).clamp_min(1e-6)
         return self.gain * (w.unsqueeze(-1) * unit).sum(-2) + self.residual(h)
 
