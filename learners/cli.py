@@ -194,6 +194,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "growing N with the same weights, e.g. "
                              "'3v3:2000,6v6:2000,10v10:1000,20v20:500' (replaces --scenario "
                              "and --episodes; see docs/learners.md)")
+    parser.add_argument("--init-from", metavar="CHECKPOINT", default=None,
+                        help="start a new entity run (maddpg-e, bicnet-e) from another run's "
+                             "training checkpoint (its folder or checkpoint.safetensors): "
+                             "networks, targets and Adam moments carry over, e.g. to go on "
+                             "from warehouse-20 to warehouse-50; the hyperparameters must match")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -234,6 +239,7 @@ def _preset(algo: str, args: argparse.Namespace) -> dict[str, Any]:
 
 def run_train(args: argparse.Namespace) -> int:
     """Run ``agv train``; returns the exit status (0 done, 130 interrupted, 2 bad input)."""
+    from learners.checkpoint import resolve_checkpoint_path
     from learners.train import TrainConfig, load_run_config, train
 
     curriculum = getattr(args, "curriculum", None)
@@ -260,22 +266,23 @@ def run_train(args: argparse.Namespace) -> int:
             learner_config = {**_preset(config.algo, args),
                               **_parse_overrides(config.algo, args.overrides)}
         _set_run_flags(config, args, with_episodes=True)
-        result = train(config, learner_config, resume=bool(args.resume),
+        init_from = getattr(args, "init_from", None)
+        if init_from is not None:
+            if args.resume:
+                raise ValueError("--init-from starts a new run; --resume continues one from its "
+                                 "own checkpoint: give one of them")
+            init_from = resolve_checkpoint_path(init_from)
+            if not init_from.is_file():
+                raise ValueError(f"--init-from: no training checkpoint at {init_from}")
+        result = train(config, learner_config, resume=bool(args.resume), init_from=init_from,
                        make_shield=getattr(args, "make_shield", None))
         _export_best(args, result, "the best policy")
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)
         return 2
-    ev = result.last_eval
-    if config.lifelong:
-        score = (f"throughput {ev.get('throughput', float('nan')):.1f} deliveries / 1000 steps "
-                 f"(best {result.best_throughput:.1f})")
-    else:
-        score = (f"task response {ev.get('response_rate', float('nan')):.3f} (best "
-                 f"{result.best_response_rate:.3f})")
     print(f"{config.algo}-{config.reward} on {config.scenario}: {result.episodes} episodes, "
-          f"{result.updates} updates, {result.seconds:.0f} s; {score}; checkpoints in "
-          f"{result.run_dir}")
+          f"{result.updates} updates, {result.seconds:.0f} s; "
+          f"{_score(result, config.lifelong)}; checkpoints in {result.run_dir}")
     return 130 if result.interrupted else 0
 
 
@@ -316,6 +323,9 @@ def _run_curriculum(args: argparse.Namespace) -> int:
         if args.scenario is not None or args.episodes is not None:
             raise ValueError("--curriculum sets the scenario and episodes of every stage; "
                              "leave out --scenario and --episodes")
+        if getattr(args, "init_from", None) is not None:
+            raise ValueError("--init-from is for a single run; a curriculum starts each stage "
+                             "from the previous one (put the first floor in as a stage)")
         if args.resume:
             config, stages, saved = load_curriculum(args.resume)
             for key in ("algo", "reward", "seed"):
@@ -343,13 +353,21 @@ def _run_curriculum(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)
         return 2
-    ev = result.last_eval
     print(f"{config.algo}-{config.reward} curriculum "
           f"{','.join(f'{s.scenario}:{s.episodes}' for s in stages)}: last stage "
-          f"{result.episodes} episodes, {result.updates} updates in all; task response "
-          f"{ev.get('response_rate', float('nan')):.3f} (best "
-          f"{result.best_response_rate:.3f}); checkpoints in {result.run_dir.parent}")
+          f"{result.episodes} episodes, {result.updates} updates in all; "
+          f"{_score(result, stages[-1].lifelong)}; checkpoints in {result.run_dir.parent}")
     return 130 if result.interrupted else 0
+
+
+def _score(result: Any, lifelong: bool) -> str:
+    """The summary line's score: throughput on a lifelong floor, else task response."""
+    ev = result.last_eval
+    if lifelong:
+        return (f"throughput {ev.get('throughput', float('nan')):.1f} deliveries / 1000 steps "
+                f"(best {result.best_throughput:.1f})")
+    return (f"task response {ev.get('response_rate', float('nan')):.3f} (best "
+            f"{result.best_response_rate:.3f})")
 
 
 def add_evaluate_arguments(parser: argparse.ArgumentParser,

@@ -1,8 +1,12 @@
 """Training over a curriculum of fleet sizes with one set of weights (issue 17).
 
 A curriculum is a list of stages ``(scenario, episodes)``, e.g. ``3v3:2000,6v6:2000,
-10v10:1000,20v20:500``. Stage k is an ordinary :func:`learners.train.train` run in
-``RUN_DIR/stage-k-<scenario>`` on its own scenario, started from stage k - 1's final training
+10v10:1000,20v20:500``, or on lifelong floors ``warehouse-20:600,warehouse-50:300`` (an
+episode of a lifelong stage is a window of ``TrainConfig.window`` steps). The stages are all
+episodic or all lifelong: the two modes' networks differ.
+
+Stage k is an ordinary :func:`learners.train.train` run in ``RUN_DIR/stage-k-<scenario>`` on
+its own scenario, started from stage k - 1's final training
 checkpoint (``init_from``: networks, targets, Adam moments and update count carry over; the
 replay buffer, whose rows have the stage's N, the environments, the exploration schedule and
 the counters start afresh). Only the entity learners (``maddpg-e``, ``bicnet-e``) can do this:
@@ -53,11 +57,16 @@ class Stage:
         if not isinstance(self.scenario, str):
             raise ValueError(f"a curriculum stage's scenario must be a name, got "
                              f"{self.scenario!r}")
-        if getattr(sim.get_scenario(self.scenario), "lifelong", False):
-            raise ValueError(f"curriculum stage {self.scenario!r} is lifelong; the stages are "
-                             "episodic scenarios ('NvM', 'warehouse')")
+        sim.get_scenario(self.scenario)  # a clear error for an unknown name
         object.__setattr__(self, "episodes",
                            check_int(f"episodes of stage {self.scenario!r}", self.episodes, 1))
+
+    @property
+    def lifelong(self) -> bool:
+        """Whether the stage runs on a lifelong floor (``warehouse-N``)."""
+        import sim
+
+        return bool(getattr(sim.get_scenario(self.scenario), "lifelong", False))
 
 
 def parse_curriculum(spec: str | list[Stage] | list[tuple[str, int]]) -> list[Stage]:
@@ -90,6 +99,12 @@ def parse_curriculum(spec: str | list[Stage] | list[tuple[str, int]]) -> list[St
                          f"{type(spec).__name__}")
     if not stages:
         raise ValueError("a curriculum needs at least one stage, e.g. '6v6:2000,20v20:500'")
+    modes = {s.lifelong for s in stages}
+    if len(modes) > 1:
+        lifelong = [s.scenario for s in stages if s.lifelong]
+        episodic = [s.scenario for s in stages if not s.lifelong]
+        raise ValueError(f"a curriculum's stages are all episodic or all lifelong (their "
+                         f"networks differ); got lifelong {lifelong} and episodic {episodic}")
     return stages
 
 
@@ -223,9 +238,10 @@ def train_curriculum(
                            make_shield=make_shield)
         if result.interrupted:
             return result
+        score = ({"best_throughput": result.best_throughput} if stage.lifelong else
+                 {"best_response_rate": result.best_response_rate})
         atomic_write_text(done, json.dumps({"episodes": result.episodes,
-                                            "updates": result.updates,
-                                            "best_response_rate": result.best_response_rate},
+                                            "updates": result.updates, **score},
                                            indent=2) + "\n")
         previous = folder / "checkpoint.safetensors"
     last = _stage_dir(run_dir, len(stages) - 1, stages[-1])

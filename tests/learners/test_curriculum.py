@@ -9,6 +9,7 @@ import json
 import pytest
 import torch
 
+from learners.checkpoint import read_metadata
 from learners.cli import add_train_arguments, run_train
 from learners.curriculum import Stage, load_curriculum, parse_curriculum, train_curriculum
 from learners.train import TrainConfig, train
@@ -39,9 +40,11 @@ class _Crash(Exception):
 def test_parse_curriculum_and_bad_values():
     assert parse_curriculum(" 3v3:10, 6v6:20 ") == [Stage("3v3", 10), Stage("6v6", 20)]
     assert parse_curriculum([("3v3", 5)]) == [Stage("3v3", 5)]
+    assert [s.lifelong for s in parse_curriculum("warehouse-20:4,warehouse-30:2")] == [True] * 2
     for bad, match in (("", "at least one stage"), ("3v3", "SCENARIO:EPISODES"),
                        ("3v3:0", "positive integer|>= 1"), ("3v3:1.5", "positive integer"),
-                       ("nope:10", "unknown scenario"), ("warehouse-20:10", "lifelong"),
+                       ("nope:10", "unknown scenario"),
+                       ("3v3:10,warehouse-20:10", "all episodic or all lifelong"),
                        ("3v3:10:2", "positive integer")):
         with pytest.raises(ValueError, match=match):
             parse_curriculum(bad)
@@ -195,3 +198,65 @@ def test_agv_train_hands_the_shield_in(tmp_path):
     assert code == 0
     row = _rows(run_dir / "progress.csv")[-1]
     assert float(row["train_term_collision"]) == 0.0  # the shield drove: no overlap
+
+
+LIFELONG_SMALL = {"hidden": 8, "batch_size": 16, "num_envs": 2, "learning_starts": 40,
+                  "buffer_size": 400}
+
+
+def _lifelong_config(run_dir) -> TrainConfig:
+    return TrainConfig(algo="maddpg-e", reward="greedy", scenario="warehouse-20", episodes=1,
+                       seed=1, run_dir=str(run_dir), eval_every=2, log_every=2,
+                       checkpoint_every=2, window=15, eval_steps=20, progress=False,
+                       tensorboard=False)
+
+
+def test_lifelong_curriculum_goes_from_floor_to_floor(tmp_path):
+    """warehouse-20 then warehouse-30 with one set of weights: the second floor starts from
+    the first one's update count, and its done.json scores throughput."""
+    result = train_curriculum(_lifelong_config(tmp_path / "run"),
+                              "warehouse-20:4,warehouse-30:4", LIFELONG_SMALL)
+    first = tmp_path / "run" / "stage-0-warehouse-20"
+    second = tmp_path / "run" / "stage-1-warehouse-30"
+    done = json.loads((first / "done.json").read_text())
+    assert set(done) == {"episodes", "updates", "best_throughput"} and done["updates"] > 0
+    rows = _rows(second / "progress.csv")
+    # the count goes on from stage 0's (the new buffer fills first: no update in row 0)
+    assert int(rows[0]["updates"]) == done["updates"] < int(rows[-1]["updates"])
+    assert result.updates == int(rows[-1]["updates"]) and result.best_throughput >= 0
+    assert (tmp_path / "run" / "best.safetensors").is_file()
+
+
+def test_agv_train_init_from_goes_on_on_another_floor(tmp_path, capsys):
+    import argparse
+
+    def cli(argv):
+        parser = argparse.ArgumentParser()
+        add_train_arguments(parser)
+        return run_train(parser.parse_args(argv + ["--no-progress", "--window", "15",
+                                                   "--eval-steps", "20", "--eval-every", "0"]))
+
+    small = [x for k, v in LIFELONG_SMALL.items() for x in ("--set", f"{k}={v}")]
+    first = tmp_path / "w20"
+    assert cli(["--algo", "maddpg-e", "--reward", "greedy", "--scenario", "warehouse-20",
+                "--episodes", "4", "--run-dir", str(first)] + small) == 0
+    updates = read_metadata(first / "checkpoint.safetensors")["updates"]
+    second = tmp_path / "w30"
+    assert cli(["--algo", "maddpg-e", "--reward", "greedy", "--scenario", "warehouse-30",
+                "--episodes", "4", "--run-dir", str(second), "--init-from", str(first)]
+               + small) == 0
+    assert "throughput" in capsys.readouterr().out
+    rows = _rows(second / "progress.csv")
+    assert int(rows[-1]["updates"]) > updates  # the same run from scratch makes `updates`
+    for argv, match in (
+            (["--resume", str(second), "--init-from", str(first)], "--init-from starts a new"),
+            (["--curriculum", "warehouse-30:2", "--run-dir", str(tmp_path / "c"), "--init-from",
+              str(first)], "--init-from is for a single run"),
+            (["--scenario", "warehouse-30", "--algo", "maddpg-e", "--reward", "greedy",
+              "--episodes", "2", "--run-dir", str(tmp_path / "x"), "--init-from",
+              str(tmp_path / "none")], "no training checkpoint"),
+            (["--scenario", "warehouse-30", "--algo", "maddpg-e", "--reward", "greedy",
+              "--episodes", "2", "--run-dir", str(tmp_path / "y"), "--init-from", str(first),
+              "--set", "hidden=16"], "other hyperparameters")):
+        assert cli(argv) == 2
+        assert match in capsys.readouterr().err
