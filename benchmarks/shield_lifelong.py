@@ -1,7 +1,7 @@
 """The safety shield on a lifelong floor, with and without its liveness rules.
 
     nice python benchmarks/shield_lifelong.py [--floor warehouse-20] [--steps 1000] [--seed 0]
-        [--weights RUN_DIR_OR_FILE ...] [--out FILE]
+        [--weights RUN_DIR_OR_FILE ...] [--baselines path-follower hungarian ...] [--out FILE]
 
 Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floor and orders:
 
@@ -14,8 +14,11 @@ Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floor a
   ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY, shield=True)``, with the shield's
   liveness rules off and on, and without the shield for reference (a run folder loads its
   ``policy.safetensors``, the last policy; pass ``RUN/best.safetensors`` for the best);
-- for reference, the classical dispatchers ``hungarian`` and ``fifo`` driven by
-  :class:`allocator.SafeDriver` (the same resolver, QP and braking filter, on planned paths).
+- for reference, the classical dispatchers driven by :class:`allocator.SafeDriver` (the same
+  resolver, QP and braking filter, on planned paths; ``--baselines``, default all):
+  ``hungarian``, ``fifo``, ``auction`` (the decentralized auction with unlimited radio range,
+  as the learned policies sense every AGV and order on the floor) and ``auction-3`` (radio
+  range 3.0, the scale table's lifelong auction).
 
 Columns: deliveries per 1000 steps, overlapping AGV pairs summed over the steps (the
 simulator's rule), the shield's interventions per movable AGV-step (``any``, and the share the
@@ -152,21 +155,41 @@ class _Recorder:
         return self.total / max(self.count, 1)
 
 
-def rows(floor: str, steps: int, seed: int, weights: list[str]) -> list[dict]:
+BASELINES = ("path-follower", "hungarian", "fifo", "auction", "auction-3")
+"""The reference rows (``--baselines``): the shielded path follower, and the classical
+dispatchers driven by SafeDriver (``auction``: unlimited radio range, ``auction-3``: 3.0)."""
+
+
+def _baseline(name: str) -> list[tuple[str, str, Any]]:
+    """(label, liveness column, controller) of one reference row (two for the follower)."""
+    if name == "path-follower":
+        return [("path follower", "on" if live else "off",
+                 allocator.SafetyShield(PathFollower(), liveness=live)) for live in (False, True)]
+    if name == "hungarian":
+        ctl = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
+    elif name == "fifo":
+        ctl = allocator.FifoDispatcher(driver=allocator.SafeDriver())
+    else:
+        comm_range = math.inf if name == "auction" else 3.0
+        ctl = allocator.AuctionDispatcher(comm_range, driver=allocator.SafeDriver())
+        name = f"auction (range {comm_range:g})"
+    return [(f"{name} + SafeDriver", "SafeDriver's", ctl)]
+
+
+def rows(floor: str, steps: int, seed: int, weights: list[str],
+         baselines: tuple[str, ...] | list[str] = BASELINES) -> list[dict]:
     """Run every row; returns one dict per row (also printed as it finishes)."""
     variants: list[tuple[str, str, Any]] = []
-    for live in (False, True):
-        variants.append(("path follower", "on" if live else "off",
-                         allocator.SafetyShield(PathFollower(), liveness=live)))
+    if "path-follower" in baselines:
+        variants += _baseline("path-follower")
     for entry in weights:
         for live in (None, False, True):
             variants.append((f"learned ({entry})",
                              "no shield" if live is None else "on" if live else "off",
                              _learned(entry, floor, live)))
-    variants.append(("hungarian + SafeDriver", "SafeDriver's",
-                     allocator.HungarianDispatcher(driver=allocator.SafeDriver())))
-    variants.append(("fifo + SafeDriver", "SafeDriver's",
-                     allocator.FifoDispatcher(driver=allocator.SafeDriver())))
+    for name in baselines:
+        if name != "path-follower":
+            variants += _baseline(name)
     out = []
     for label, live, ctl in variants:
         shield = ctl if isinstance(ctl, allocator.SafetyShield) else getattr(ctl, "safety", None)
@@ -240,6 +263,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--weights", nargs="*", default=[], metavar="RUN_DIR_OR_FILE",
                    help="lifelong entity run folders or policy files (none: no learned rows)")
+    p.add_argument("--baselines", nargs="*", default=list(BASELINES), choices=BASELINES,
+                   metavar="NAME", help=f"reference rows, any of {' '.join(BASELINES)} "
+                                        "(default all)")
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
     if args.steps < 1:
@@ -255,7 +281,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for entry in args.weights:
         if not Path(entry).exists():
             p.error(f"--weights {entry}: no such file or folder")
-    table = rows(args.floor, args.steps, args.seed, args.weights)
+    table = rows(args.floor, args.steps, args.seed, args.weights, args.baselines)
     command = "python benchmarks/shield_lifelong.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
     write(table, args.out, command.strip(), args.floor, args.steps, args.seed)

@@ -154,3 +154,18 @@ def test_path_follower_bad_input() -> None:
         bench.PathFollower().act(torch.zeros(1, 1, 40))
     with pytest.raises(ValueError, match="lifelong floors"):
         bench.PathFollower().reset(sim.make_env("3v3", num_envs=1, seed=0))
+
+
+def test_the_benchmark_runs_the_auction_at_both_ranges(tmp_path) -> None:
+    """The decentralized reference rows: the auction with unlimited range (as the learned
+    policies sense) and at 3.0, both driven by SafeDriver (0 overlaps); a bad name is refused."""
+    bench = _bench()
+    out = tmp_path / "t.md"
+    table = bench.main(["--floor", "warehouse-20", "--steps", "40", "--baselines", "auction",
+                        "auction-3", "--out", str(out)])
+    assert [r["method"] for r in table] == ["auction (range inf) + SafeDriver",
+                                            "auction (range 3) + SafeDriver"]
+    assert all(r["overlaps"] == 0 for r in table)
+    assert "auction (range 3) + SafeDriver" in out.read_text()
+    with pytest.raises(SystemExit):
+        bench.main(["--baselines", "nope", "--out", str(out)])
