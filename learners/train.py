@@ -366,9 +366,10 @@ def train(
         Called with the checkpoint's counters after every periodic checkpoint (used by tests to
         simulate a crash).
     init_from : path-like, optional
-        A training checkpoint of the same algorithm and learner config (possibly on another
-        scenario, e.g. the previous stage of a curriculum, :mod:`learners.curriculum`) whose
-        networks, targets, Adam moments and update count start this new run; the replay
+        A training checkpoint of the same algorithm, reward and network width (possibly on
+        another scenario, e.g. the previous stage of a curriculum, :mod:`learners.curriculum`,
+        and with other learning rates, noise or batch) whose networks, targets, Adam moments
+        and update count start this new run; the replay
         buffer, environments and counters start afresh. Only for the entity learners
         (``learners.algorithms.ENTITY_ALGORITHMS``), whose weights do not depend on N.
     make_shield : callable, optional
@@ -692,6 +693,12 @@ class _Still:
         return torch.zeros(*obs.shape[:2], 2)
 
 
+INIT_FROM_SHAPES = ("hidden",)
+"""The learner settings a run started with ``init_from`` must share with its checkpoint (they
+set the networks' shapes); the others (learning rates, noise, batch, buffer, environments,
+shield) may change, e.g. to fine-tune on another floor."""
+
+
 def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
                   resume: bool) -> dict[str, Tensor]:
     """The learner tensors of a training checkpoint that starts a new run (``init_from``).
@@ -700,7 +707,7 @@ def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg
     ------
     ValueError
         When resuming, for a non-entity algorithm, or for a checkpoint of another algorithm,
-        reward or learner config.
+        reward, mode (lifelong or episodic) or network width (:data:`INIT_FROM_SHAPES`).
     """
     from learners.algorithms import ENTITY_ALGORITHMS
 
@@ -720,11 +727,11 @@ def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg
         if meta[key] != getattr(config, key):
             raise ValueError(f"init_from {path} was trained with {key}={meta[key]!r}, this run "
                              f"has {getattr(config, key)!r}")
-    if meta["config"] != dataclasses.asdict(learner_cfg):
-        diff = {k: v for k, v in dataclasses.asdict(learner_cfg).items()
-                if meta["config"].get(k) != v}
-        raise ValueError(f"init_from {path} was trained with other hyperparameters: this run "
-                         f"has {diff}")
+    for key in INIT_FROM_SHAPES:
+        if meta["config"].get(key) != getattr(learner_cfg, key):
+            raise ValueError(f"init_from {path} has networks of {key}={meta['config'].get(key)!r}"
+                             f", this run asks for {key}={getattr(learner_cfg, key)!r}; the "
+                             "networks must have the same shape")
     return tensors
 
 
