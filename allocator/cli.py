@@ -334,8 +334,9 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo", help="evaluate every method on the paper's scenarios and draw it",
         description="Evaluate every available method on 3v3 and 6v6, print the table beside "
-                    "the paper's numbers, and write figures and animations; then run the "
-                    "dispatchers in lifelong operation on warehouse-20.")
+                    "the paper's numbers, and write figures and animations; the scale "
+                    "headline on 20v20; then run the dispatchers and the shipped lifelong "
+                    "policy in lifelong operation on warehouse-20.")
     length = p.add_mutually_exclusive_group()
     length.add_argument("--quick", action="store_true",
                         help="30 test episodes per scenario (a smoke run)")
@@ -345,6 +346,9 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
                    help="folder for the table, figures and animations (default agv-demo)")
     p.add_argument("--seed", type=seed, default=0,
                    help="seed of the test episodes, in [0, 2**63) (default 0)")
+    p.add_argument("--scale-episodes", type=non_negative_int, default=None,
+                   help="episodes of the scale headline on 20v20 (default 20, 4 with --quick; "
+                        "0 skips it)")
     p.add_argument("--lifelong-steps", type=non_negative_int, default=None,
                    help="steps of the lifelong row on warehouse-20 (default 500, 200 with "
                         "--quick; 0 skips it)")

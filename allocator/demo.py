@@ -1,6 +1,8 @@
 """``agv demo``: every available method on the paper's scenarios, the table beside the paper's
-numbers, and the figures (tasks completed per episode, preference matrices, animations); then
-the dispatchers in lifelong operation on a warehouse floor (throughput over time)."""
+numbers, and the figures (tasks completed per episode, preference matrices, animations); the
+scale headline (20 AGVs, the any-N learned weights beside Hungarian and the auction); then the
+dispatchers and the shipped lifelong policy in lifelong operation on a warehouse floor
+(throughput over time)."""
 
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ from sim.io import atomic_save, atomic_write_text
 from sim.render import _plt
 
 __all__ = ["run_demo", "available_methods", "format_table", "run_lifelong",
-           "format_lifelong_table"]
+           "format_lifelong_table", "lifelong_methods", "run_scale", "scale_methods",
+           "format_scale_table"]
 
 
 def available_methods(scenario: str) -> Iterator[tuple[str, Callable[[], Any]]]:
@@ -82,25 +85,43 @@ LIFELONG_FLOOR = "warehouse-20"
 LIFELONG_DISPATCHERS = ("hungarian", "fifo", "auction")
 
 
-def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
-    """The lifelong row of the demo: each dispatcher (and the scripted nearest-task
-    controller) on :data:`LIFELONG_FLOOR` for ``steps`` steps, the same orders for all;
-    writes ``table_lifelong.md`` and ``lifelong_throughput.png`` (throughput and waits over
-    time) to ``out``."""
+def lifelong_methods() -> list[tuple[str, Callable[[], Any]]]:
+    """(name, factory) of the demo's lifelong rows: the scripted nearest-task controller, each
+    dispatcher of :data:`LIFELONG_DISPATCHERS` with its default driver, Hungarian with
+    :class:`allocator.SafeDriver` (no overlaps), and every learned policy whose lifelong
+    weights ship (``allocator/weights/lifelong``), shielded."""
     import allocator
+    from allocator.learned import ALGOS, REWARDS, any_n_weights_path
 
-    rows, runs = [], {}
     makers: list[tuple[str, Callable[[], Any]]] = [("nearest-task", NearestTaskController)]
     makers += [(name, lambda n=name: allocator.make(n)) for name in LIFELONG_DISPATCHERS]
-    for name, make in makers:
+    makers.append(("hungarian + SafeDriver",
+                   lambda: allocator.HungarianDispatcher(driver=allocator.SafeDriver())))
+    for algo in ALGOS:
+        for reward in REWARDS:
+            if any_n_weights_path(algo, reward, lifelong=True).is_file():
+                makers.append((f"{algo}-{reward} (shielded)",
+                               lambda n=f"{algo}-{reward}": allocator.make(
+                                   n, scenario=LIFELONG_FLOOR, weights="auto", shield=True)))
+    return makers
+
+
+def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
+    """The lifelong row of the demo: every :func:`lifelong_methods` entry on
+    :data:`LIFELONG_FLOOR` for ``steps`` steps, the same orders for all; writes
+    ``table_lifelong.md`` and ``lifelong_throughput.png`` (throughput and waits over time) to
+    ``out``."""
+    rows, runs = [], {}
+    for name, make in lifelong_methods():
         m = sim.evaluate_lifelong(make(), LIFELONG_FLOOR, steps=steps, seed=seed)
         runs[name] = m
         rows.append({"floor": LIFELONG_FLOOR, "method": name, "steps": steps,
                      "throughput": m.throughput, "bound": m.throughput_bound,
-                     "wait_p95": m.wait_p95, "lost": m.lost, "seconds": m.seconds})
-        print(f"  {LIFELONG_FLOOR} {name:18s} {m.throughput:6.1f} deliveries / 1000 steps  "
+                     "wait_p95": m.wait_p95, "lost": m.lost,
+                     "overlaps": m.collisions_per_1000, "seconds": m.seconds})
+        print(f"  {LIFELONG_FLOOR} {name:24s} {m.throughput:6.1f} deliveries / 1000 steps  "
               f"(bound {m.throughput_bound:.0f}; p95 wait {m.wait_p95:.0f} steps; "
-              f"{m.seconds:.1f} s)")
+              f"{m.collisions_per_1000:.0f} overlapping pairs / 1000 steps; {m.seconds:.1f} s)")
     atomic_write_text(out / "table_lifelong.md", format_lifelong_table(rows) + "\n")
     sim.plot_lifelong(runs, path=out / "lifelong_throughput.png",
                       title=f"{LIFELONG_FLOOR}, {steps} steps, seed {seed}")
@@ -110,11 +131,68 @@ def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
 def format_lifelong_table(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of the demo's lifelong rows."""
     lines = ["| floor | method | steps | deliveries / 1000 steps | bound | p95 wait (steps) | "
-             "lost | s |", "|" + "---|" * 8]
+             "lost | overlapping pairs / 1000 steps | s |", "|" + "---|" * 9]
     for r in rows:
         lines.append(f"| {r['floor']} | {r['method']} | {r['steps']} | {r['throughput']:.1f} "
                      f"| {r['bound']:.0f} | {r['wait_p95']:.0f} | {r['lost']} | "
-                     f"{r['seconds']:.1f} |")
+                     f"{r['overlaps']:.0f} | {r['seconds']:.1f} |")
+    return "\n".join(lines)
+
+
+SCALE_SCENARIO = "20v20"
+
+
+def scale_methods() -> list[tuple[str, Callable[[], Any]]]:
+    """(name, factory) of the demo's scale headline on :data:`SCALE_SCENARIO`: Hungarian, the
+    auction at the scenario's sensing range, and every learned family whose any-N weights ship
+    (``allocator/weights/any``), plain and shielded."""
+    import allocator
+    from allocator.learned import ALGOS, REWARDS, any_n_weights_path
+
+    rng = float(sim.get_scenario(SCALE_SCENARIO).sensing_range)
+    makers: list[tuple[str, Callable[[], Any]]] = [
+        ("hungarian", lambda: allocator.make("hungarian")),
+        (f"auction (range {rng:g})", lambda: allocator.make("auction", comm_range=rng))]
+    for algo in ALGOS:
+        for reward in REWARDS:
+            if any_n_weights_path(algo, reward).is_file():
+                for shield in (False, True):
+                    makers.append((f"{algo}-{reward} (any-N{', shielded' if shield else ''})",
+                                   lambda n=f"{algo}-{reward}", s=shield: allocator.make(
+                                       n, scenario=SCALE_SCENARIO, weights="auto", shield=s)))
+    return makers
+
+
+def run_scale(out: Path, episodes: int, seed: int) -> list[dict[str, Any]]:
+    """The scale headline: every :func:`scale_methods` entry on ``episodes`` episodes of
+    :data:`SCALE_SCENARIO` (the same scenes for all); writes ``table_scale.md`` to ``out``.
+    The whole table, N = 3 to 100 and the lifelong floors: ``benchmarks/scale_table.py``."""
+    rows: list[dict[str, Any]] = []
+    hungarian_time = float("nan")
+    for name, make in scale_methods():
+        ctl = make()
+        m = sim.evaluate(ctl, SCALE_SCENARIO, episodes=episodes, seed=seed)
+        if name == "hungarian":
+            hungarian_time = m.avg_time
+        rows.append({"scenario": SCALE_SCENARIO, "method": name, "response_rate":
+                     m.response_rate, "avg_time": m.avg_time,
+                     "time_vs_hungarian": m.avg_time / hungarian_time, "overlaps": m.collisions,
+                     "seconds": m.seconds})
+        print(f"  {SCALE_SCENARIO} {name:30s} response {m.response_rate:7.2%}  time "
+              f"{m.avg_time:5.1f} ({m.avg_time / hungarian_time:.2f}x Hungarian)  "
+              f"{m.collisions:.1f} overlapping pairs / episode  ({m.seconds:.1f} s)")
+    atomic_write_text(out / "table_scale.md", format_scale_table(rows) + "\n")
+    return rows
+
+
+def format_scale_table(rows: list[dict[str, Any]]) -> str:
+    """A Markdown table of the demo's scale headline."""
+    lines = ["| scenario | method | response rate | avg time | time / Hungarian | "
+             "overlapping pairs / episode | s |", "|" + "---|" * 7]
+    for r in rows:
+        lines.append(f"| {r['scenario']} | {r['method']} | {r['response_rate']:.2%} | "
+                     f"{r['avg_time']:.1f} | {r['time_vs_hungarian']:.2f} | "
+                     f"{r['overlaps']:.1f} | {r['seconds']:.1f} |")
     return "\n".join(lines)
 
 
@@ -125,8 +203,9 @@ def run_demo(args: argparse.Namespace) -> int:
     ----------
     args : argparse.Namespace
         ``episodes`` (a positive int, or None: 30 with ``quick``, else 300), ``quick``,
-        ``out`` (the folder), ``seed`` and ``lifelong_steps`` (None: 500, 200 with
-        ``quick``; 0 skips the lifelong row).
+        ``out`` (the folder), ``seed``, ``scale_episodes`` (the scale headline's 20v20
+        episodes; None: 20, 4 with ``quick``; 0 skips it) and ``lifelong_steps`` (None: 500,
+        200 with ``quick``; 0 skips the lifelong row).
 
     Returns
     -------
@@ -167,6 +246,14 @@ def run_demo(args: argparse.Namespace) -> int:
                 sim.render_episode(factory(), scenario, seed=args.seed,
                                    path=out / f"episode_{scenario}_{name}.gif",
                                    still=out / f"episode_{scenario}_{name}.png", title=name)
+    scale_episodes = getattr(args, "scale_episodes", None)
+    if scale_episodes is None:
+        scale_episodes = 4 if args.quick else 20
+    if scale_episodes:
+        print()
+        scale_rows = run_scale(out, episodes=scale_episodes, seed=args.seed)
+        print()
+        print(format_scale_table(scale_rows))
     steps = getattr(args, "lifelong_steps", None)
     if steps is None:
         steps = 200 if args.quick else 500

@@ -20,8 +20,11 @@ def test_demo_quick_end_to_end(tmp_path, capsys) -> None:
     assert list(tmp_path.glob("*.gif")) and list(tmp_path.glob("*.png"))
     # The lifelong row: every dispatcher on warehouse-20, the same orders, none lost.
     lifelong = (tmp_path / "table_lifelong.md").read_text()
-    for name in ("nearest-task", "hungarian", "fifo", "auction"):
+    for name in ("nearest-task", "hungarian", "fifo", "auction", "hungarian + SafeDriver"):
         assert f"| warehouse-20 | {name} | 200 |" in lifelong
+    # The scale headline: Hungarian and the shipped any-N weights, shielded, on 20v20.
+    scale = (tmp_path / "table_scale.md").read_text()
+    assert "| 20v20 | hungarian |" in scale and "maddpg-ipf (any-N, shielded)" in scale
     assert (tmp_path / "lifelong_throughput.png").stat().st_size > 1000
 
 
@@ -47,7 +50,7 @@ def test_demo_reports_missing_weights(tmp_path, monkeypatch, capsys) -> None:
     import allocator.learned as learned
 
     monkeypatch.setattr(learned, "WEIGHTS_DIR", tmp_path / "nowhere")
-    assert main(["demo", "--episodes", "2", "--lifelong-steps", "0",
+    assert main(["demo", "--episodes", "2", "--lifelong-steps", "0", "--scale-episodes", "0",
                  "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
     assert "bicnet-ipf" in out and "skipped" in out and "agv train" in out
@@ -64,8 +67,25 @@ def test_demo_lifelong_row_alone(tmp_path, capsys) -> None:
     from allocator.demo import run_lifelong
 
     rows = run_lifelong(tmp_path, steps=40, seed=1)
-    assert [r["method"] for r in rows] == ["nearest-task", "hungarian", "fifo", "auction"]
+    names = [r["method"] for r in rows]
+    assert names[:5] == ["nearest-task", "hungarian", "fifo", "auction",
+                         "hungarian + SafeDriver"]
     assert all(r["lost"] == 0 and r["throughput"] >= 0 for r in rows)
+    # SafeDriver and the shield never let two AGVs overlap
+    assert all(r["overlaps"] == 0 for r in rows
+               if r["method"].endswith("SafeDriver") or r["method"].endswith("(shielded)"))
     assert (tmp_path / "table_lifelong.md").exists()
     with pytest.raises(SystemExit):
         main(["demo", "--lifelong-steps", "-1", "--out", str(tmp_path)])
+
+
+def test_demo_scale_headline_alone(tmp_path) -> None:
+    from allocator.demo import run_scale
+
+    rows = run_scale(tmp_path, episodes=2, seed=1)
+    assert rows[0]["method"] == "hungarian" and rows[0]["time_vs_hungarian"] == 1.0
+    shielded = [r for r in rows if r["method"].endswith("shielded)")]
+    assert shielded and all(r["overlaps"] == 0 for r in shielded)
+    assert "| 20v20 | hungarian |" in (tmp_path / "table_scale.md").read_text()
+    with pytest.raises(SystemExit):
+        main(["demo", "--scale-episodes", "-1", "--out", str(tmp_path)])
