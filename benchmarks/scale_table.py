@@ -63,9 +63,12 @@ from sim.io import atomic_write_text
 OUT = Path(__file__).parent / "results" / "scale"
 CLASSICAL = ("hungarian", "greedy", "fifo", "auction")
 LEARNED = ("maddpg-ipf", "bicnet-ipf")
-DISPATCHERS = ("hungarian", "fifo", "greedy", "auction", "hungarian+safe")
-"""Lifelong rows; ``hungarian+safe`` drives with :class:`allocator.SafeDriver` (no AGV ever
-overlaps another) instead of the default path follower."""
+DISPATCHERS = ("hungarian", "fifo", "greedy", "auction", "hungarian+safe", "fifo+safe",
+               "auction+safe")
+"""Lifelong rows; ``+safe`` drives with :class:`allocator.SafeDriver` (no AGV ever overlaps
+another) instead of the default path follower; ``auction`` talks over radio range
+:data:`LIFELONG_COMM_RANGE`, ``auction+safe`` over an unlimited range, as the learned lifelong
+policies sense the whole floor (their K nearest AGVs and orders, at any distance)."""
 BASELINES = (*DISPATCHERS, "nearest")
 """What ``--dispatchers`` may name: the default rows and ``nearest``
 (:class:`sim.controllers.NearestTaskController`, no dispatcher)."""
@@ -199,6 +202,10 @@ def lifelong_rows(floors: list[str], steps: int, seed: int, weights: list[str] |
                 inner = allocator.make("auction", comm_range=LIFELONG_COMM_RANGE)
             elif name == "hungarian+safe":
                 inner = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
+            elif name == "fifo+safe":
+                inner = allocator.FifoDispatcher(driver=allocator.SafeDriver())
+            elif name == "auction+safe":
+                inner = allocator.AuctionDispatcher(math.inf, driver=allocator.SafeDriver())
             elif name == "nearest":
                 from sim.controllers import NearestTaskController
 
@@ -248,7 +255,8 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
         "plain and shielded (`shield=True`); `any-N` rows: the shipped any-N weights "
         "(`allocator/weights/any`), `entity:FILE` rows: an entity learner's policy file, "
         "both run zero-shot at every N. Auction: radio range = the scenario's sensing "
-        "range (episodic), 3.0 (lifelong).",
+        "range (episodic), 3.0 (lifelong `auction`), unlimited (lifelong `auction+safe`, as "
+        "the learned lifelong policies sense the whole floor); `+safe`: driven by SafeDriver.",
     ]
     if any(r["kind"] == "episodic" for r in rows):
         lines += [
