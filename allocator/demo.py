@@ -91,19 +91,24 @@ def lifelong_methods() -> list[tuple[str, Callable[[], Any]]]:
     :class:`allocator.SafeDriver` (no overlaps), and every learned policy whose lifelong
     weights ship (``allocator/weights/lifelong``), shielded."""
     import allocator
-    from allocator.learned import ALGOS, REWARDS, any_n_weights_path
 
     makers: list[tuple[str, Callable[[], Any]]] = [("nearest-task", NearestTaskController)]
     makers += [(name, lambda n=name: allocator.make(n)) for name in LIFELONG_DISPATCHERS]
     makers.append(("hungarian + SafeDriver",
                    lambda: allocator.HungarianDispatcher(driver=allocator.SafeDriver())))
-    for algo in ALGOS:
-        for reward in REWARDS:
-            if any_n_weights_path(algo, reward, lifelong=True).is_file():
-                makers.append((f"{algo}-{reward} (shielded)",
-                               lambda n=f"{algo}-{reward}": allocator.make(
-                                   n, scenario=LIFELONG_FLOOR, weights="auto", shield=True)))
+    for name in _shipped_families(lifelong=True):
+        makers.append((f"{name} (shielded)", lambda n=name: allocator.make(
+            n, scenario=LIFELONG_FLOOR, weights="auto", shield=True)))
     return makers
+
+
+def _shipped_families(lifelong: bool) -> list[str]:
+    """The ``<algo>-<reward>`` names whose any-N weights ship (``lifelong``: the lifelong ones,
+    ``allocator/weights/lifelong``; else ``allocator/weights/any``)."""
+    from allocator.learned import ALGOS, REWARDS, any_n_weights_path
+
+    return [f"{a}-{r}" for a in ALGOS for r in REWARDS
+            if any_n_weights_path(a, r, lifelong=lifelong).is_file()]
 
 
 def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
@@ -147,19 +152,16 @@ def scale_methods() -> list[tuple[str, Callable[[], Any]]]:
     auction at the scenario's sensing range, and every learned family whose any-N weights ship
     (``allocator/weights/any``), plain and shielded."""
     import allocator
-    from allocator.learned import ALGOS, REWARDS, any_n_weights_path
 
     rng = float(sim.get_scenario(SCALE_SCENARIO).sensing_range)
     makers: list[tuple[str, Callable[[], Any]]] = [
         ("hungarian", lambda: allocator.make("hungarian")),
         (f"auction (range {rng:g})", lambda: allocator.make("auction", comm_range=rng))]
-    for algo in ALGOS:
-        for reward in REWARDS:
-            if any_n_weights_path(algo, reward).is_file():
-                for shield in (False, True):
-                    makers.append((f"{algo}-{reward} (any-N{', shielded' if shield else ''})",
-                                   lambda n=f"{algo}-{reward}", s=shield: allocator.make(
-                                       n, scenario=SCALE_SCENARIO, weights="auto", shield=s)))
+    for name in _shipped_families(lifelong=False):
+        for shield in (False, True):
+            makers.append((f"{name} (any-N{', shielded' if shield else ''})",
+                           lambda n=name, s=shield: allocator.make(
+                               n, scenario=SCALE_SCENARIO, weights="auto", shield=s)))
     return makers
 
 
@@ -170,8 +172,7 @@ def run_scale(out: Path, episodes: int, seed: int) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     hungarian_time = float("nan")
     for name, make in scale_methods():
-        ctl = make()
-        m = sim.evaluate(ctl, SCALE_SCENARIO, episodes=episodes, seed=seed)
+        m = sim.evaluate(make(), SCALE_SCENARIO, episodes=episodes, seed=seed)
         if name == "hungarian":
             hungarian_time = m.avg_time
         rows.append({"scenario": SCALE_SCENARIO, "method": name, "response_rate":
