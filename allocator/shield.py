@@ -102,6 +102,10 @@ class SafetyShield:
         The speed the liveness rules take as cruising (> 0; default 1.2, SafeDriver's): an
         AGV wants to move when its intended speed exceeds 20 % of it, makes progress when
         its speed exceeds 10 % of it, and yields or steps aside at half of it.
+    keep_right : float
+        Where the liveness rules run: turn the intended velocities this many radians to the
+        right first, SafeDriver's lane discipline (in [0, pi/2); default 0, the policy's
+        direction).
 
     Attributes
     ----------
@@ -127,8 +131,8 @@ class SafetyShield:
 
     def __init__(self, controller: Any, qp: bool = True, margin: float = 0.01,
                  tolerance: float = 1e-3, avoidance_options: dict[str, Any] | None = None,
-                 liveness: bool | None = None, seed: int = 0, cruise_speed: float = 1.2
-                 ) -> None:
+                 liveness: bool | None = None, seed: int = 0, cruise_speed: float = 1.2,
+                 keep_right: float = 0.0) -> None:
         if not (callable(getattr(controller, "reset", None))
                 and callable(getattr(controller, "act", None))):
             raise ValueError(f"controller must have reset(env) and act(obs) methods, got "
@@ -150,6 +154,10 @@ class SafetyShield:
                 or not isinstance(cruise_speed, numbers.Real) \
                 or not np.isfinite(cruise_speed) or cruise_speed <= 0:
             raise ValueError(f"cruise_speed must be a finite number > 0, got {cruise_speed!r}")
+        if isinstance(keep_right, (bool, np.bool_)) or not isinstance(keep_right, numbers.Real) \
+                or not np.isfinite(keep_right) or not 0 <= keep_right < np.pi / 2:
+            raise ValueError(f"keep_right must be an angle in [0, pi/2) radians, got "
+                             f"{keep_right!r}")
         if avoidance_options is not None and not isinstance(avoidance_options, dict):
             raise ValueError(f"avoidance_options must be a dict of AvoidanceConfig fields, "
                              f"got {type(avoidance_options).__name__}")
@@ -161,6 +169,7 @@ class SafetyShield:
         self.liveness = None if liveness is None else bool(liveness)
         self.seed = int(seed)
         self.cruise_speed = float(cruise_speed)
+        self.keep_right = float(keep_right)
         self.live = False
         self.resolver: DeadlockResolver | None = None
         self.env: Any = None
@@ -262,6 +271,12 @@ class SafetyShield:
             # is what the resolver takes as preferred, before the QP and the braking filter.
             speed = self.cruise_speed
             wanted = np.where(movable[..., None], intended, 0.0)
+            if self.keep_right:
+                # SafeDriver's lane discipline: turned a little to the right, opposite flows
+                # in an aisle pass each other instead of meeting head on
+                c, s = np.cos(self.keep_right), np.sin(self.keep_right)
+                wanted = np.stack([c * wanted[..., 0] + s * wanted[..., 1],
+                                   -s * wanted[..., 0] + c * wanted[..., 1]], -1)
             wants = movable & (np.linalg.norm(wanted, axis=-1) > 0.2 * speed)
             progress = np.linalg.norm(vel, axis=-1) > 0.1 * speed
             pushable = None

@@ -1,30 +1,37 @@
-"""The safety shield on a lifelong floor, with and without its liveness rules.
+"""Shielded controllers on a lifelong floor: the shield's liveness rules and lanes, the
+learned policies against the dispatchers driven by SafeDriver, over seeds.
 
-    nice python benchmarks/shield_lifelong.py [--floor warehouse-20] [--steps 1000] [--seed 0]
-        [--weights RUN_DIR_OR_FILE ...] [--baselines path-follower hungarian ...] [--out FILE]
+    nice python benchmarks/shield_lifelong.py [--floor warehouse-20] [--steps 1000]
+        [--seeds 0 1 2] [--weights RUN_DIR_OR_FILE ...] [--variants none off on lanes]
+        [--keep-right 0.3 ...] [--baselines path-follower hungarian ...] [--out FILE]
 
-Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floor and orders:
+Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floors and orders
+(one run per seed):
 
 - ``path follower``: :class:`PathFollower`, a scripted controller of the ``obs -> act``
   protocol (each AGV heads for its target, or the nearest visible open pickup when it has
   none, along the floor's shortest path), behind :class:`allocator.SafetyShield` with
   ``liveness=False`` and ``liveness=True``;
 - the learned policy of every ``--weights`` entry (a lifelong entity run folder or policy
-  file; none by default),
-  ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY, shield=True)``, with the shield's
-  liveness rules off and on, and without the shield for reference (a run folder loads its
-  ``policy.safetensors``, the last policy; pass ``RUN/best.safetensors`` for the best);
+  file; none by default), ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY,
+  shield=True)``, in each ``--variants`` form: without the shield (``none``), with the
+  shield's liveness rules ``off`` and ``on``, and on with lanes (``lanes``: the intended
+  velocities turned right by each ``--keep-right`` angle, ``SafetyShield.keep_right``) (a run
+  folder loads its ``policy.safetensors``, the last policy; pass ``RUN/best.safetensors`` for
+  the best);
 - for reference, the classical dispatchers driven by :class:`allocator.SafeDriver` (the same
   resolver, QP and braking filter, on planned paths; ``--baselines``, default all):
   ``hungarian``, ``fifo``, ``auction`` (the decentralized auction with unlimited radio range,
   as the learned policies sense every AGV and order on the floor) and ``auction-3`` (radio
   range 3.0, the scale table's lifelong auction).
 
-Columns: deliveries per 1000 steps, overlapping AGV pairs summed over the steps (the
-simulator's rule), the shield's interventions per movable AGV-step (``any``, and the share the
-liveness rules changed), the resolver's yields, the mean of the actions the controller gave the
-shield (over all AGV-steps: a policy that pushes every AGV one way shows there), wall-clock
-seconds. Writes a markdown table with the command, date, commit and seed to ``--out``.
+Columns: deliveries per 1000 steps (mean over the seeds, 95% t-interval, each seed's),
+overlapping AGV pairs summed over the steps and seeds (the simulator's rule), the shield's
+interventions per movable AGV-step (``any``, and the share the liveness rules changed), the
+resolver's yields, the mean of the actions the controller gave the shield (over all
+AGV-steps: a policy that pushes every AGV one way shows there), wall-clock seconds; then each
+shielded row's throughput as a multiple of the SafeDriver dispatchers'. Writes a markdown
+table with the command, date, commit and seeds to ``--out``.
 """
 
 from __future__ import annotations
@@ -41,11 +48,13 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy import stats
 from torch import Tensor
 
 import allocator
 import sim
 from allocator.distances import FloorDistances
+from sim.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "scale" / "lifelong" / "shield_liveness.md"
@@ -118,9 +127,9 @@ class PathFollower:
         return torch.as_tensor(np.clip(action, -1.0, 1.0), dtype=obs.dtype)
 
 
-def _learned(weights: str, floor: str, liveness: bool | None) -> Any:
+def _learned(weights: str, floor: str, liveness: bool | None, keep_right: float = 0.0) -> Any:
     """The learned policy of ``weights`` with ``shield=True``, its shield's liveness set
-    (``None``: no shield at all)."""
+    (``None``: no shield at all) and its lane angle ``keep_right``."""
     from learners.checkpoint import read_metadata
 
     meta = read_metadata(weights)
@@ -129,6 +138,7 @@ def _learned(weights: str, floor: str, liveness: bool | None) -> Any:
     if liveness is not None:
         assert ctl.safety.liveness is None  # the default reaches the learned allocator's shield
         ctl.safety.liveness = liveness
+        ctl.safety.keep_right = keep_right
     return ctl
 
 
@@ -176,35 +186,58 @@ def _baseline(name: str) -> list[tuple[str, str, Any]]:
     return [(f"{name} + SafeDriver", "SafeDriver's", ctl)]
 
 
-def rows(floor: str, steps: int, seed: int, weights: list[str],
-         baselines: tuple[str, ...] | list[str] = BASELINES) -> list[dict]:
-    """Run every row; returns one dict per row (also printed as it finishes)."""
-    variants: list[tuple[str, str, Any]] = []
+VARIANTS = ("none", "off", "on", "lanes")
+"""The learned rows (``--variants``): no shield, the shield with its liveness rules off, on,
+and on with lanes (the intended velocities turned right by each ``--keep-right`` angle)."""
+
+
+def rows(floor: str, steps: int, seeds: list[int], weights: list[str],
+         baselines: tuple[str, ...] | list[str] = BASELINES,
+         variants: tuple[str, ...] | list[str] = VARIANTS,
+         keep_right: tuple[float, ...] | list[float] = (0.3,)) -> list[dict]:
+    """Run every row on every seed; returns one dict per row (also printed as it finishes):
+    the mean throughput over the seeds, its 95% t-interval, the per-seed values, the
+    overlapping pairs summed over all runs, and the shield's counters averaged over them."""
+    runs: list[tuple[str, str, Any]] = []
     if "path-follower" in baselines:
-        variants += _baseline("path-follower")
+        runs += _baseline("path-follower")
     for entry in weights:
-        for live in (None, False, True):
-            variants.append((f"learned ({entry})",
-                             "no shield" if live is None else "on" if live else "off",
+        for variant in variants:
+            if variant == "lanes":
+                runs += [(f"learned ({entry})", f"on, lanes {k:g} rad",
+                          _learned(entry, floor, True, k)) for k in keep_right]
+            else:
+                live = {"none": None, "off": False, "on": True}[variant]
+                runs.append((f"learned ({entry})", "no shield" if live is None else variant,
                              _learned(entry, floor, live)))
     for name in baselines:
         if name != "path-follower":
-            variants += _baseline(name)
+            runs += _baseline(name)
     out = []
-    for label, live, ctl in variants:
+    for label, live, ctl in runs:
         shield = ctl if isinstance(ctl, allocator.SafetyShield) else getattr(ctl, "safety", None)
         recorder = _Recorder(shield, "filter") if shield is not None \
             else _Recorder(ctl, "act") if live == "no shield" else None
+        per_seed, overlaps, rates, by_rules, yields = [], 0.0, [], [], 0
         t = time.perf_counter()
-        m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed, runs=1)
+        for seed in seeds:
+            m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed, runs=1)
+            per_seed.append(m.throughput)
+            overlaps += m.collisions_per_1000 * steps / 1000.0
+            if shield is not None:
+                rates.append(shield.intervention_rate())
+                by_rules.append(shield.interventions["liveness"] / max(shield.agent_steps, 1))
+                yields += shield.resolver.yields if shield.resolver is not None else 0
         seconds = time.perf_counter() - t
-        row = dict(method=label, liveness=live, throughput=m.throughput,
-                   delivered=m.delivered, overlaps=m.collisions_per_1000 * steps / 1000.0,
-                   interventions=None if shield is None else shield.intervention_rate(),
-                   by_liveness=None if shield is None
-                   else shield.interventions["liveness"] / max(shield.agent_steps, 1),
-                   yields=None if shield is None or shield.resolver is None
-                   else shield.resolver.yields,
+        values = np.asarray(per_seed, dtype=float)
+        half = float(stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1)
+                     / math.sqrt(len(values))) if len(values) > 1 else math.nan
+        live_shield = shield is not None and shield.resolver is not None
+        row = dict(method=label, liveness=live, throughput=float(values.mean()),
+                   throughput_ci95=half, per_seed=per_seed, overlaps=overlaps,
+                   interventions=float(np.mean(rates)) if rates else None,
+                   by_liveness=float(np.mean(by_rules)) if by_rules else None,
+                   yields=yields if live_shield else None,
                    mean_action=None if recorder is None else recorder.mean().round(2).tolist(),
                    seconds=seconds)
         print(row, flush=True)
@@ -228,41 +261,66 @@ def _commit() -> str:
         return "unknown"
 
 
+def _ratios(table: list[dict]) -> list[str]:
+    """Lines giving each row's mean throughput as a multiple of the SafeDriver dispatchers'."""
+    refs = {r["method"]: r["throughput"] for r in table if r["method"].endswith("SafeDriver")}
+    lines = []
+    for r in table:
+        if r["method"].endswith("SafeDriver") or r["liveness"] == "no shield":
+            continue
+        parts = [f"{r['throughput'] / v:.2f}x {name.removesuffix(' + SafeDriver')}"
+                 for name, v in refs.items() if v > 0]
+        if parts:
+            lines.append(f"- {r['method']}, liveness {r['liveness']}: {', '.join(parts)}")
+    return lines
+
+
 def write(table: list[dict], out: Path, command: str, floor: str, steps: int,
-          seed: int) -> None:
-    """The markdown table of ``table`` with the command, date, commit and seed."""
+          seeds: list[int]) -> None:
+    """The markdown table of ``table`` with the command, date, commit and seeds."""
     date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
-        f"# SafetyShield liveness on {floor}",
+        f"# Shielded lifelong controllers on {floor}",
         "",
         f"`{command}` on {platform.machine()}, Python {platform.python_version()}, torch "
-        f"{torch.__version__}, {date}, commit {_commit()}; seed {seed}, {steps} steps, one "
-        "run (the same floor and orders for every row). Overlapping pairs: summed over the "
-        "steps (the simulator's rule). Interventions: share of movable AGV-steps whose action "
-        "the shield changed (any stage); by liveness: the share the resolver changed; mean "
-        "action: the controller's own actions (before the shield) averaged over all "
-        "AGV-steps.",
+        f"{torch.__version__}, {date}, commit {_commit()}; seeds {' '.join(map(str, seeds))}, "
+        f"{steps} steps, one run per seed (the same floor and orders for every row). "
+        "Deliveries: mean over the seeds and its 95% t-interval. Overlapping pairs: summed "
+        "over the steps and seeds (the simulator's rule). Interventions: share of movable "
+        "AGV-steps whose action the shield changed (any stage); by liveness: the share the "
+        "resolver changed (both averaged over the seeds); yields: the resolver's, summed; mean "
+        "action: the controller's own actions (before the shield) averaged over all AGV-steps.",
         "",
-        "| controller | shield liveness | deliveries / 1000 steps | overlapping pairs | "
-        "interventions per AGV-step | by liveness | yields | mean action (x, y) | s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| controller | shield liveness | deliveries / 1000 steps | per seed | overlapping "
+        "pairs | interventions per AGV-step | by liveness | yields | mean action (x, y) | s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in table:
-        lines.append(f"| {r['method']} | {r['liveness']} | {r['throughput']:.1f} | "
+        ci = "" if not math.isfinite(r["throughput_ci95"]) else f" ± {r['throughput_ci95']:.1f}"
+        lines.append(f"| {r['method']} | {r['liveness']} | {r['throughput']:.1f}{ci} | "
+                     f"{' / '.join(f'{v:.0f}' for v in r['per_seed'])} | "
                      f"{r['overlaps']:.0f} | {_fmt(r['interventions'], '.3f')} | "
                      f"{_fmt(r['by_liveness'], '.3f')} | {_fmt(r['yields'], 'd')} | "
                      f"{_mean(r['mean_action'])} | {r['seconds']:.0f} |")
+    ratios = _ratios(table)
+    if ratios:
+        lines += ["", "Mean throughput against the dispatchers with SafeDriver:", "", *ratios]
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
+    atomic_write_text(out, "\n".join(lines) + "\n")
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--floor", default="warehouse-20", help="a lifelong floor (warehouse-N)")
     p.add_argument("--steps", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], metavar="SEED",
+                   help="seeds of the floor and orders, one run each (default 0)")
     p.add_argument("--weights", nargs="*", default=[], metavar="RUN_DIR_OR_FILE",
                    help="lifelong entity run folders or policy files (none: no learned rows)")
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
+                   metavar="V", help=f"learned rows, any of {' '.join(VARIANTS)} (default all)")
+    p.add_argument("--keep-right", type=float, nargs="+", default=[0.3], metavar="RAD",
+                   help="lane angles of the 'lanes' rows, in [0, pi/2) (default 0.3)")
     p.add_argument("--baselines", nargs="*", default=list(BASELINES), choices=BASELINES,
                    metavar="NAME", help=f"reference rows, any of {' '.join(BASELINES)} "
                                         "(default all)")
@@ -270,8 +328,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     args = p.parse_args(argv)
     if args.steps < 1:
         p.error("--steps must be a positive integer")
-    if args.seed < 0:
-        p.error("--seed must be >= 0")
+    if min(args.seeds) < 0:
+        p.error("--seeds must be >= 0")
+    if not all(0 <= k < math.pi / 2 for k in args.keep_right):
+        p.error("--keep-right angles must be in [0, pi/2)")
     try:
         scenario = sim.get_scenario(args.floor)
     except (KeyError, ValueError) as err:
@@ -281,10 +341,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for entry in args.weights:
         if not Path(entry).exists():
             p.error(f"--weights {entry}: no such file or folder")
-    table = rows(args.floor, args.steps, args.seed, args.weights, args.baselines)
+    table = rows(args.floor, args.steps, args.seeds, args.weights, args.baselines,
+                 args.variants, args.keep_right)
     command = "python benchmarks/shield_lifelong.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
-    write(table, args.out, command.strip(), args.floor, args.steps, args.seed)
+    write(table, args.out, command.strip(), args.floor, args.steps, args.seeds)
     return table
 
 

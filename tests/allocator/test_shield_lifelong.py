@@ -161,11 +161,49 @@ def test_the_benchmark_runs_the_auction_at_both_ranges(tmp_path) -> None:
     policies sense) and at 3.0, both driven by SafeDriver (0 overlaps); a bad name is refused."""
     bench = _bench()
     out = tmp_path / "t.md"
-    table = bench.main(["--floor", "warehouse-20", "--steps", "40", "--baselines", "auction",
-                        "auction-3", "--out", str(out)])
+    table = bench.main(["--floor", "warehouse-20", "--steps", "40", "--seeds", "0", "1",
+                        "--baselines", "auction", "auction-3", "--out", str(out)])
     assert [r["method"] for r in table] == ["auction (range inf) + SafeDriver",
                                             "auction (range 3) + SafeDriver"]
-    assert all(r["overlaps"] == 0 for r in table)
+    assert all(r["overlaps"] == 0 and len(r["per_seed"]) == 2 for r in table)
+    assert all(r["throughput"] == pytest.approx(sum(r["per_seed"]) / 2) for r in table)
     assert "auction (range 3) + SafeDriver" in out.read_text()
-    with pytest.raises(SystemExit):
-        bench.main(["--baselines", "nope", "--out", str(out)])
+    for bad in (["--baselines", "nope"], ["--keep-right", "2"], ["--seeds", "-1"],
+                ["--variants", "maybe"]):
+        with pytest.raises(SystemExit):
+            bench.main(bad + ["--out", str(out)])
+
+
+def test_shield_keep_right_turns_the_intended_velocity_right() -> None:
+    """keep_right (with the liveness rules) turns what the policy intends to the right; 0, the
+    default, leaves it; a bad angle is refused."""
+    from allocator import SafetyShield
+
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    env.reset()
+    toward_x = torch.zeros(1, env.num_agents, 2)
+    toward_x[..., 0] = 1.0
+    out = {}
+    for angle in (0.0, 0.5):
+        shield = SafetyShield(_Const(toward_x), qp=False, keep_right=angle)
+        shield.reset(env)
+        out[angle] = shield.filter(toward_x)
+    movable = out[0.0].abs().sum(-1) > 0
+    # driving along +x, turning right means a component along -y
+    assert out[0.5][..., 1][movable].mean() < out[0.0][..., 1][movable].mean() - 0.05
+    for bad in (-0.1, 1.6, float("nan"), True):
+        with pytest.raises(ValueError, match="keep_right"):
+            SafetyShield(_Const(toward_x), keep_right=bad)
+
+
+class _Const:
+    """A controller that always gives the same actions."""
+
+    def __init__(self, actions: torch.Tensor) -> None:
+        self.actions = actions
+
+    def reset(self, env) -> None:
+        pass
+
+    def act(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.actions
