@@ -198,7 +198,9 @@ class LearnedAllocator:
         if shield:
             from allocator.shield import SafetyShield
 
-            self.safety = SafetyShield(_Unshielded(self))
+            # the lane angle the weights were trained with behind the shield (entity learners)
+            lanes = float(getattr(self.policy.learner.config, "shield_keep_right", 0.0))
+            self.safety = SafetyShield(_Unshielded(self), keep_right=lanes)
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:

@@ -49,6 +49,10 @@ __all__ = [
     "header_digest", "code_version", "tensor_digest", "write_sidecar", "export_policy",
 ]
 
+ADDED_CONFIG_FIELDS = ("shield_keep_right",)
+"""Learner config fields added after checkpoints of this format were first written: a header
+without them is read with the field's default (which is what those runs did)."""
+
 FORMAT = "agv-learner-checkpoint"
 FORMAT_VERSION = 1
 KINDS = ("policy", "training")
@@ -226,7 +230,8 @@ def check_header(meta: Any, path: Path | str = "<checkpoint>") -> dict[str, Any]
         raise bad("config", f"must be a JSON object of the {meta['algo']} hyperparameters, got "
                             f"{config!r}")
     cfg_cls = ALGORITHMS[meta["algo"]][1]
-    missing = sorted({f.name for f in dataclasses.fields(cfg_cls)} - set(config))
+    missing = sorted({f.name for f in dataclasses.fields(cfg_cls)} - set(config)
+                     - set(ADDED_CONFIG_FIELDS))
     if missing:
         raise bad("config", f"lacks the {cfg_cls.__name__} field(s) {missing}")
     field_check("config", lambda: make_config(meta["algo"], config))

@@ -42,7 +42,7 @@ import torch
 from torch import Tensor, nn
 
 from learners.buffer import Batch
-from learners.common import ActorCritic, OffPolicyConfig, check_bool, movable_mask
+from learners.common import ActorCritic, OffPolicyConfig, check_bool, check_real, movable_mask
 from learners.floor import FloorWaypoints, obstacle_points
 from sim.observations import AGENT_FEATURES, TASK_FEATURES, LifelongObsLayout, ObsLayout
 
@@ -533,11 +533,18 @@ class EntityConfig(OffPolicyConfig):
     executed action instead did not raise the shielded throughput on warehouse-20, see
     ``docs/learners.md``). Evaluations (and so ``best.safetensors``) run shielded too: the
     policy is chosen in the mode it is trained for."""
+    shield_keep_right: float = 0.0
+    """With ``shield=True`` on a lifelong floor: the shield's lane angle
+    (``SafetyShield(keep_right=...)``, radians in [0, pi/2); 0: none). A learned allocator
+    serving these weights with ``shield=True`` uses the same angle."""
 
     def validate(self) -> None:
-        """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield`` too."""
+        """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield`` and
+        ``shield_keep_right`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
+        self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
+                                            math.pi / 2, high_open=True)
 
 
 @dataclass

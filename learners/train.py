@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import io
 import json
 import math
@@ -481,6 +482,9 @@ def train(
         if make_shield is None:
             raise ValueError("shield=True needs make_shield=allocator.SafetyShield (learners "
                              "does not import allocator; agv train passes it)")
+        lanes = float(getattr(learner.config, "shield_keep_right", 0.0))
+        if lanes:
+            make_shield = functools.partial(make_shield, keep_right=lanes)
         shield = make_shield(_Still())
         shield.reset(env)
     run_dir.mkdir(parents=True, exist_ok=True)

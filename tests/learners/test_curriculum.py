@@ -260,3 +260,29 @@ def test_agv_train_init_from_goes_on_on_another_floor(tmp_path, capsys):
               "--set", "hidden=16"], "the same shape")):
         assert cli(argv) == 2
         assert match in capsys.readouterr().err
+
+
+def test_lanes_in_the_loop_are_served_with_the_weights(tmp_path):
+    """shield_keep_right: the training shield turns intended velocities by it, and a learned
+    allocator serving the weights with shield=True uses the same angle; bad angles are
+    refused."""
+    from allocator import SafetyShield, make
+
+    made = []
+
+    def make_shield(controller, **kw):
+        made.append(kw)
+        return SafetyShield(controller, **kw)
+
+    config = _lifelong_config(tmp_path / "lanes")
+    config.episodes = 4
+    result = train(config, {**LIFELONG_SMALL, "shield": True, "shield_keep_right": 0.3},
+                   make_shield=make_shield)
+    assert made and all(kw == {"keep_right": 0.3} for kw in made)
+    solver = make("maddpg-greedy", scenario="warehouse-20",
+                  checkpoint=result.run_dir / "policy.safetensors", shield=True)
+    assert solver.safety.keep_right == 0.3
+    for bad in (-0.1, 1.6, "x"):
+        with pytest.raises(ValueError, match="shield_keep_right"):
+            train(_lifelong_config(tmp_path / "bad"), {**LIFELONG_SMALL,
+                                                     "shield_keep_right": bad})
