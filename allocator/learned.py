@@ -98,6 +98,11 @@ class LearnedAllocator:
         Pass the policy's actions through :class:`allocator.shield.SafetyShield` (the ORCA QP,
         then the braking filter) when it drives an env (default False: the policy as
         trained). :attr:`safety` then holds the shield and its intervention counts.
+    keep_right : float, optional
+        With ``shield=True``: the shield's lane angle on lifelong floors
+        (``SafetyShield(keep_right=...)``, radians in [0, pi/2)). None (default): the angle the
+        weights were trained with behind the shield (``shield_keep_right`` of an entity
+        learner's config; 0 for the others).
     weights : {"scenario", "auto", "any"} or path-like
         Which shipped weights (when no ``checkpoint`` is given): only the scenario's own
         (``"scenario"``, the default); the scenario's own if they exist, else the any-N ones
@@ -124,7 +129,7 @@ class LearnedAllocator:
     def __init__(
         self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
         max_steps: int | None = None, shield: bool = False, weights: str = "scenario",
-        **options: Any,
+        keep_right: float | None = None, **options: Any,
     ) -> None:
         from learners.policy import LearnedPolicy
         from sim.scenarios import get_scenario
@@ -144,6 +149,8 @@ class LearnedAllocator:
                              f"None for the shipped weights), got {checkpoint!r}")
         if not isinstance(shield, (bool, np.bool_)):
             raise ValueError(f"shield must be True or False, got {shield!r}")
+        if keep_right is not None and not shield:
+            raise ValueError("keep_right is the shield's lane angle: it needs shield=True")
         if isinstance(weights, (str, os.PathLike)) and weights not in WEIGHT_CHOICES \
                 and Path(weights).exists():
             if checkpoint is not None:
@@ -198,14 +205,14 @@ class LearnedAllocator:
         if shield:
             from allocator.shield import SafetyShield
 
-            # the lane angle the weights were trained with behind the shield (entity learners)
-            lanes = float(getattr(self.policy.learner.config, "shield_keep_right", 0.0))
-            self.safety = SafetyShield(_Unshielded(self), keep_right=lanes)
+            if keep_right is None:  # the angle the weights were trained with behind the shield
+                keep_right = float(getattr(self.policy.learner.config, "shield_keep_right", 0.0))
+            self.safety = SafetyShield(_Unshielded(self), keep_right=keep_right)
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:
         """The keyword options the constructor takes."""
-        return ("checkpoint", "max_steps", "scenario", "shield", "weights")
+        return ("checkpoint", "keep_right", "max_steps", "scenario", "shield", "weights")
 
     def _shipped(self, weights: str) -> Path:
         """The shipped weights file for ``weights`` (see the class docstring)."""

@@ -282,6 +282,15 @@ def test_lanes_in_the_loop_are_served_with_the_weights(tmp_path):
     solver = make("maddpg-greedy", scenario="warehouse-20",
                   checkpoint=result.run_dir / "policy.safetensors", shield=True)
     assert solver.safety.keep_right == 0.3
+    wider = make("maddpg-greedy", scenario="warehouse-50", shield=True, keep_right=0.5,
+                 checkpoint=result.run_dir / "policy.safetensors")
+    assert wider.safety.keep_right == 0.5
+    with pytest.raises(ValueError, match="needs shield=True"):
+        make("maddpg-greedy", scenario="warehouse-20", keep_right=0.5,
+             checkpoint=result.run_dir / "policy.safetensors")
+    with pytest.raises(ValueError, match="keep_right must be an angle"):
+        make("maddpg-greedy", scenario="warehouse-20", shield=True, keep_right=2.0,
+             checkpoint=result.run_dir / "policy.safetensors")
     for bad in (-0.1, 1.6, "x"):
         with pytest.raises(ValueError, match="shield_keep_right"):
             train(_lifelong_config(tmp_path / "bad"), {**LIFELONG_SMALL,
