@@ -133,15 +133,21 @@ def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
     return rows
 
 
+def _markdown(columns: list[str], cells: list[list[str]]) -> str:
+    """A Markdown table: a header of ``columns`` and one line per row of ``cells``."""
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(row) + " |" for row in cells]
+    return "\n".join(lines)
+
+
 def format_lifelong_table(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of the demo's lifelong rows."""
-    lines = ["| floor | method | steps | deliveries / 1000 steps | bound | p95 wait (steps) | "
-             "lost | overlapping pairs / 1000 steps | s |", "|" + "---|" * 9]
-    for r in rows:
-        lines.append(f"| {r['floor']} | {r['method']} | {r['steps']} | {r['throughput']:.1f} "
-                     f"| {r['bound']:.0f} | {r['wait_p95']:.0f} | {r['lost']} | "
-                     f"{r['overlaps']:.0f} | {r['seconds']:.1f} |")
-    return "\n".join(lines)
+    return _markdown(
+        ["floor", "method", "steps", "deliveries / 1000 steps", "bound", "p95 wait (steps)",
+         "lost", "overlapping pairs / 1000 steps", "s"],
+        [[r["floor"], r["method"], str(r["steps"]), f"{r['throughput']:.1f}",
+          f"{r['bound']:.0f}", f"{r['wait_p95']:.0f}", str(r["lost"]), f"{r['overlaps']:.0f}",
+          f"{r['seconds']:.1f}"] for r in rows])
 
 
 SCALE_SCENARIO = "20v20"
@@ -188,13 +194,12 @@ def run_scale(out: Path, episodes: int, seed: int) -> list[dict[str, Any]]:
 
 def format_scale_table(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of the demo's scale headline."""
-    lines = ["| scenario | method | response rate | avg time | time / Hungarian | "
-             "overlapping pairs / episode | s |", "|" + "---|" * 7]
-    for r in rows:
-        lines.append(f"| {r['scenario']} | {r['method']} | {r['response_rate']:.2%} | "
-                     f"{r['avg_time']:.1f} | {r['time_vs_hungarian']:.2f} | "
-                     f"{r['overlaps']:.1f} | {r['seconds']:.1f} |")
-    return "\n".join(lines)
+    return _markdown(
+        ["scenario", "method", "response rate", "avg time", "time / Hungarian",
+         "overlapping pairs / episode", "s"],
+        [[r["scenario"], r["method"], f"{r['response_rate']:.2%}", f"{r['avg_time']:.1f}",
+          f"{r['time_vs_hungarian']:.2f}", f"{r['overlaps']:.1f}", f"{r['seconds']:.1f}"]
+         for r in rows])
 
 
 def run_demo(args: argparse.Namespace) -> int:
