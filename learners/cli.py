@@ -198,7 +198,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start a new entity run (maddpg-e, bicnet-e) from another run's "
                              "training checkpoint (its folder or checkpoint.safetensors): "
                              "networks, targets and Adam moments carry over, e.g. to go on "
-                             "from warehouse-20 to warehouse-50; the hyperparameters must match")
+                             "from warehouse-20 to warehouse-50; the network width (hidden) "
+                             "must match, the other settings may change")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
