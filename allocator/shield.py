@@ -69,6 +69,14 @@ def movable_agents(env: Any) -> np.ndarray:
     return movable
 
 
+def turn_right(velocity: np.ndarray, angle: float) -> np.ndarray:
+    """``velocity`` (..., 2) turned ``angle`` radians clockwise: the lane discipline that lets
+    opposite flows in an aisle pass each other instead of meeting head on."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * velocity[..., 0] + s * velocity[..., 1],
+                     -s * velocity[..., 0] + c * velocity[..., 1]], -1)
+
+
 class SafetyShield:
     """Wraps a controller; its actions reach the simulator only after the shield.
 
@@ -271,12 +279,8 @@ class SafetyShield:
             # is what the resolver takes as preferred, before the QP and the braking filter.
             speed = self.cruise_speed
             wanted = np.where(movable[..., None], intended, 0.0)
-            if self.keep_right:
-                # SafeDriver's lane discipline: turned a little to the right, opposite flows
-                # in an aisle pass each other instead of meeting head on
-                c, s = np.cos(self.keep_right), np.sin(self.keep_right)
-                wanted = np.stack([c * wanted[..., 0] + s * wanted[..., 1],
-                                   -s * wanted[..., 0] + c * wanted[..., 1]], -1)
+            if self.keep_right:  # SafeDriver's lane discipline
+                wanted = turn_right(wanted, self.keep_right)
             wants = movable & (np.linalg.norm(wanted, axis=-1) > 0.2 * speed)
             progress = np.linalg.norm(vel, axis=-1) > 0.1 * speed
             pushable = None

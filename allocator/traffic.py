@@ -38,7 +38,7 @@ from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, braking_velocity
 from allocator.avoidance.liveness import DeadlockResolver
 from allocator.distances import FloorDistances
-from allocator.shield import movable_agents
+from allocator.shield import movable_agents, turn_right
 
 __all__ = ["SafeDriver"]
 
@@ -155,12 +155,8 @@ class SafeDriver:
             pref[go] = (wp[go] - ahead[go]) * self.gain
         speed = np.linalg.norm(pref, axis=-1, keepdims=True)
         pref = pref * (self.max_speed / np.maximum(speed, self.max_speed))
-        if self.keep_right:
-            # lane discipline: drive a little to the right of the path, so that opposite
-            # flows in an aisle pass each other instead of meeting head on
-            c, s = np.cos(self.keep_right), np.sin(self.keep_right)
-            pref = np.stack([c * pref[..., 0] + s * pref[..., 1],
-                             -s * pref[..., 0] + c * pref[..., 1]], -1)
+        if self.keep_right:  # lane discipline: drive a little to the right of the path
+            pref = turn_right(pref, self.keep_right)
         self.timing["path"] += time.perf_counter() - t0
         # 2. liveness
         wants = go & (np.linalg.norm(pref, axis=-1) > 0.2 * self.max_speed)
