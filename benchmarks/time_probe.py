@@ -1,13 +1,13 @@
-"""One probe run of issue 16's search: BiCNet on 3v3 with the IPF reward's time options.
+"""One probe run of issue 16's search: BiCNet with the IPF reward's time options.
 
     python benchmarks/time_probe.py NAME --time-cost 3 --goal-weight 3 --gamma 0.9 \
-        [--episodes 30000] [--seed 0]
+        [--episodes 30000] [--seed 0] [--scenario 3v3] [--eval-every 1000]
 
 Trains ``bicnet`` with the fast preset's settings chosen for ``bicnet-ipf`` in
 ``benchmarks/results/training/reward_search.json`` (``--gamma`` replaces its 0.95) and the
 reward ``IPFReward(time_cost=..., goal_weight=...)`` (the plain ``ipf`` reward when both are at
 their defaults 0 and 1) into ``runs/probes/NAME`` (continuing a run that is there, up to
-``--episodes``), evaluating on the validation seed 12345 every 1000 episodes
+``--episodes``), evaluating on the validation seed 12345 every ``--eval-every`` episodes
 (``progress.csv``). The chosen values are the defaults of the ``ipf-time`` variant, which
 ``agv train --reward ipf-time`` and ``benchmarks/train_policies.py`` use.
 """
@@ -33,6 +33,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gamma", type=float, default=0.95)
     parser.add_argument("--episodes", type=int, default=30000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--scenario", default="3v3", help="an episodic NvM scenario")
+    parser.add_argument("--eval-every", type=int, default=1000)
     args = parser.parse_args(argv)
     record = json.loads((ROOT / "benchmarks/results/training/reward_search.json").read_text())
     settings = dict(record["methods"]["bicnet-ipf"]["settings"], gamma=args.gamma)
@@ -44,8 +46,9 @@ def main(argv: list[str] | None = None) -> None:
                                                                     goal_weight=weight)
         reward = "ipf-time"
     run_dir = ROOT / "runs" / "probes" / args.name
-    config = TrainConfig(algo="bicnet", reward=reward, scenario="3v3", episodes=args.episodes,
-                         seed=args.seed, run_dir=str(run_dir), eval_every=1000,
+    config = TrainConfig(algo="bicnet", reward=reward, scenario=args.scenario,
+                         episodes=args.episodes, seed=args.seed, run_dir=str(run_dir),
+                         eval_every=args.eval_every,
                          progress=False, tensorboard=False)
     result = train(config, settings, resume=(run_dir / "checkpoint.safetensors").is_file())
     print(args.name, result.last_eval)
