@@ -3,7 +3,7 @@
     python benchmarks/scale_table.py [--sizes 3 6 10 20 50 100] [--episodes 100 100 50 20 10 5]
         [--floors warehouse-20 warehouse-50 warehouse-100] [--lifelong-steps 1000]
         [--seed 0] [--quick] [--out benchmarks/results/scale]
-        [--methods hungarian maddpg-ipf ...] [--any-n] [--entity POLICY.safetensors ...]
+        [--methods hungarian maddpg-ipf ...] [--no-any-n] [--entity POLICY.safetensors ...]
         [--lifelong-weights RUN_DIR_OR_FILE ...] [--dispatchers hungarian fifo ...]
 
 Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
@@ -16,12 +16,12 @@ time (steps until every task is claimed, the step limit where not), that time ov
 Hungarian's, overlapping AGV pairs summed over an episode's steps (averaged), the shield's
 interventions per movable AGV-step, wall-clock seconds.
 
-Any-N rows (issue 17): ``--any-n`` adds ``maddpg-ipf`` / ``bicnet-ipf`` with the shipped
-any-N weights (``allocator/weights/any``, the entity-token learners of
-:mod:`learners.entity`) at every N, and ``--entity FILE`` the policy file of an entity learner
-run (e.g. ``runs/.../best.safetensors``), plain and shielded, named ``<algo>-<reward> any-N``
-and ``FILE's algo-reward (FILE)``. ``--methods`` keeps only the named rows (``hungarian`` is
-always run: the time column is relative to it).
+Any-N rows (issue 17): ``maddpg-ipf`` / ``bicnet-ipf`` with the shipped any-N weights
+(``allocator/weights/any``, the entity-token learners of :mod:`learners.entity`) at every N,
+where they ship (``--no-any-n`` leaves them out), and ``--entity FILE`` the policy file of an
+entity learner run (e.g. ``runs/.../best.safetensors``), plain and shielded, named
+``<algo>-<reward> any-N`` and ``FILE's algo-reward (FILE)``. ``--methods`` keeps only the
+named rows (``hungarian`` is always run: the time column is relative to it).
 
 Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
 ``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) with their default
@@ -341,8 +341,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--methods", nargs="+", default=None,
                    help="episodic rows to run (default all; hungarian is always run)")
-    p.add_argument("--any-n", action="store_true",
-                   help="add the learned rows with the shipped any-N weights")
+    p.add_argument("--any-n", action=argparse.BooleanOptionalAction, default=True,
+                   help="the learned rows with the shipped any-N weights, where they ship "
+                        "(default on; --no-any-n leaves them out)")
     p.add_argument("--entity", nargs="+", default=[], metavar="FILE",
                    help="add rows for these entity-learner policy files")
     p.add_argument("--lifelong-weights", nargs="+", default=[], metavar="RUN_OR_FILE",

@@ -17,8 +17,16 @@ def test_tiny_run_writes_table_json_and_figure(tmp_path: Path) -> None:
     assert meta["seed"] == 2 and "--sizes 3" in meta["command"]
     rows = meta["rows"]
     episodic = [r for r in rows if r["kind"] == "episodic"]
-    # 4 classical methods, 2 learned ones plain and shielded.
-    assert len(episodic) == 4 + 2 * 2
+    # 4 classical methods, 2 learned ones plain and shielded, and by default the shipped
+    # any-N weights plain and shielded
+    from allocator.learned import any_n_weights_path
+
+    any_n = [m for m in ("maddpg-ipf", "bicnet-ipf")
+             if any_n_weights_path(*m.split("-")).is_file()]
+    assert any_n, "the any-N weights ship (allocator/weights/any)"
+    assert len(episodic) == 4 + 2 * 2 + 2 * len(any_n)
+    assert {r["method"] for r in episodic if r["method"].endswith("any-N")} == \
+        {f"{m} any-N" for m in any_n}
     assert all(0.0 <= r["response"] <= 1.0 for r in episodic)
     shielded = [r for r in episodic if r["shield"]]
     assert all(r["overlaps"] == 0 and r["interventions"] is not None for r in shielded)
@@ -38,6 +46,14 @@ def test_tiny_run_writes_table_json_and_figure(tmp_path: Path) -> None:
     table = [line for line in md.splitlines() if line.startswith("| 3v3")]
     assert len(table) == len(episodic)
     assert (tmp_path / "scale.png").stat().st_size > 1000
+
+
+def test_no_any_n_leaves_the_any_n_rows_out(tmp_path: Path) -> None:
+    bench.main(["--sizes", "3", "--episodes", "2", "--floors", "--no-any-n",
+                "--methods", "hungarian", "maddpg-ipf", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
+    assert [(r["method"], r["shield"]) for r in rows] == [
+        ("hungarian", False), ("maddpg-ipf", False), ("maddpg-ipf", True)]
 
 
 def test_bad_arguments(tmp_path: Path) -> None:
