@@ -196,7 +196,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "and --episodes; see docs/learners.md)")
     parser.add_argument("--init-from", metavar="CHECKPOINT", default=None,
                         help="start a new entity run (maddpg-e, bicnet-e) from another run's "
-                             "training checkpoint (its folder or checkpoint.safetensors): "
+                             "training checkpoint (its folder, a curriculum run's folder "
+                             "for its last stage, or checkpoint.safetensors): "
                              "networks, targets and Adam moments carry over, e.g. to go on "
                              "from warehouse-20 to warehouse-50; the network width (hidden) "
                              "must match, the other settings may change")
@@ -272,6 +273,10 @@ def run_train(args: argparse.Namespace) -> int:
             if args.resume:
                 raise ValueError("--init-from starts a new run; --resume continues one from its "
                                  "own checkpoint: give one of them")
+            if _is_curriculum(init_from):  # its last stage's checkpoint
+                from learners.curriculum import last_stage_checkpoint
+
+                init_from = last_stage_checkpoint(init_from)
             init_from = resolve_checkpoint_path(init_from)
             if not init_from.is_file():
                 raise ValueError(f"--init-from: no training checkpoint at {init_from}")

@@ -117,6 +117,24 @@ def is_curriculum_run(run_dir: str | os.PathLike[str]) -> bool:
     return (Path(run_dir) / CURRICULUM_FILE).is_file()
 
 
+def last_stage_checkpoint(run_dir: str | os.PathLike[str]) -> Path:
+    """The training checkpoint of a curriculum run's last stage that has one, for
+    ``--init-from RUN_DIR`` (a curriculum folder has no checkpoint of its own).
+
+    Raises
+    ------
+    ValueError
+        If ``run_dir`` holds no curriculum, or no stage of it has written a checkpoint.
+    """
+    _, stages, _ = load_curriculum(run_dir)
+    for k in range(len(stages) - 1, -1, -1):
+        path = _stage_dir(Path(run_dir), k, stages[k]) / "checkpoint.safetensors"
+        if path.is_file():
+            return path
+    raise ValueError(f"{run_dir} is a curriculum run whose stages have no training checkpoint "
+                     f"yet")
+
+
 def load_curriculum(run_dir: str | os.PathLike[str]
                     ) -> tuple[TrainConfig, list[Stage], dict[str, Any]]:
     """The train settings, stages and learner config recorded in a curriculum run.

@@ -123,6 +123,24 @@ def test_init_from_checks_what_it_starts_from(tmp_path):
     assert result.updates > base.updates  # the update count carried over
 
 
+def test_init_from_a_curriculum_folder_takes_its_last_stage(tmp_path):
+    from learners.curriculum import last_stage_checkpoint
+
+    run = tmp_path / "cur"
+    train_curriculum(_config(run), STAGES, TINY)
+    last = last_stage_checkpoint(run)
+    stages = sorted(run.glob("stage-*"))
+    assert last == stages[-1] / "checkpoint.safetensors" and len(stages) == 2
+    (stages[-1] / "checkpoint.safetensors").unlink()  # the stage before it is taken then
+    assert last_stage_checkpoint(run) == stages[-2] / "checkpoint.safetensors"
+    for stage in stages[:-1]:
+        (stage / "checkpoint.safetensors").unlink()
+    with pytest.raises(ValueError, match="no training checkpoint yet"):
+        last_stage_checkpoint(run)
+    with pytest.raises(ValueError, match="holds no curriculum"):
+        last_stage_checkpoint(tmp_path)
+
+
 def test_shield_in_the_loop_executes_the_shields_actions(tmp_path):
     """With shield=True the actions executed are the shield's: no training step has
     overlapping AGVs (the collision reward term stays 0), while the same exploration without
