@@ -45,22 +45,26 @@ def available_methods(scenario: str) -> Iterator[tuple[str, Callable[[], Any]]]:
         yield name, (lambda s=solver: s)
 
 
+def _markdown(columns: list[str], cells: list[list[str]]) -> str:
+    """A Markdown table: a header of ``columns`` and one line per row of ``cells``."""
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(row) + " |" for row in cells]
+    return "\n".join(lines)
+
+
 def format_table(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of evaluation rows, the paper's numbers beside ours."""
-    head = ("| scenario | method | response rate | paper | avg reward | paper | avg time | paper "
-            "| collisions/ep | eval s |")
-    lines = [head, "|" + "---|" * 10]
+    cells = []
     for r in rows:
         paper = PAPER_TABLES.get(r["scenario"], {}).get(r["method"])
         pr, pw, pt = ("-", "-", "-")
         if paper:
             pr, pw, pt = f"{paper[0]:.2%}", f"{paper[1]:.1f}", f"{paper[2]:.1f}"
-        lines.append(
-            f"| {r['scenario']} | {r['method']} | {r['response_rate']:.2%} | {pr} "
-            f"| {r['avg_reward']:.1f} | {pw} | {r['avg_time']:.1f} | {pt} "
-            f"| {r['collisions']:.2f} | {r['seconds']:.1f} |"
-        )
-    return "\n".join(lines)
+        cells.append([r["scenario"], r["method"], f"{r['response_rate']:.2%}", pr,
+                      f"{r['avg_reward']:.1f}", pw, f"{r['avg_time']:.1f}", pt,
+                      f"{r['collisions']:.2f}", f"{r['seconds']:.1f}"])
+    return _markdown(["scenario", "method", "response rate", "paper", "avg reward", "paper",
+                      "avg time", "paper", "collisions/ep", "eval s"], cells)
 
 
 def _claims_figure(results: dict[tuple[str, str], sim.Metrics], scenario: str, path: Path) -> None:
@@ -131,13 +135,6 @@ def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
     sim.plot_lifelong(runs, path=out / "lifelong_throughput.png",
                       title=f"{LIFELONG_FLOOR}, {steps} steps, seed {seed}")
     return rows
-
-
-def _markdown(columns: list[str], cells: list[list[str]]) -> str:
-    """A Markdown table: a header of ``columns`` and one line per row of ``cells``."""
-    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(row) + " |" for row in cells]
-    return "\n".join(lines)
 
 
 def format_lifelong_table(rows: list[dict[str, Any]]) -> str:
