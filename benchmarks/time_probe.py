@@ -30,6 +30,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("name")
     parser.add_argument("--time-cost", type=float, default=0.0)
     parser.add_argument("--goal-weight", type=float, default=1.0)
+    parser.add_argument("--assign-weight", type=float, default=0.0,
+                        help="factor of the 'assign' term (distance to the optimal task)")
     parser.add_argument("--gamma", type=float, default=0.95)
     parser.add_argument("--episodes", type=int, default=30000)
     parser.add_argument("--seed", type=int, default=0)
@@ -39,11 +41,11 @@ def main(argv: list[str] | None = None) -> None:
     record = json.loads((ROOT / "benchmarks/results/training/reward_search.json").read_text())
     settings = dict(record["methods"]["bicnet-ipf"]["settings"], gamma=args.gamma)
     reward = "ipf"
-    if (args.time_cost, args.goal_weight) != (0.0, 1.0):
+    if (args.time_cost, args.goal_weight, args.assign_weight) != (0.0, 1.0, 0.0):
         # the variant's name, made with this probe's values (TrainConfig takes reward names)
-        cost, weight = args.time_cost, args.goal_weight
-        sim.rewards.REWARD_VARIANTS["ipf-time"] = lambda: IPFReward(time_cost=cost,
-                                                                    goal_weight=weight)
+        cost, weight, assign = args.time_cost, args.goal_weight, args.assign_weight
+        sim.rewards.REWARD_VARIANTS["ipf-time"] = lambda: IPFReward(
+            time_cost=cost, goal_weight=weight, assign_weight=assign)
         reward = "ipf-time"
     run_dir = ROOT / "runs" / "probes" / args.name
     config = TrainConfig(algo="bicnet", reward=reward, scenario=args.scenario,

@@ -6,6 +6,7 @@ import math
 import numbers
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from sim.ipf import (
@@ -17,6 +18,7 @@ from sim.ipf import (
     check_resolution,
     ipf_grid,
 )
+from sim.rewards.assignment import optimal_assignment
 from sim.state import SimState, StepContext
 from sim.world import World
 
@@ -49,6 +51,13 @@ class IPFReward:
       (issue 16; the variant ``"ipf-time"`` of :data:`sim.rewards.REWARD_VARIANTS`). It is 0
       at the final step so that the learners' absorbing terminal value (``r / (1 - gamma)``,
       :class:`learners.common.OffPolicyConfig`) does not charge it forever.
+    - ``"assign"`` (only with ``assign_weight > 0``; not part of the paper's reward):
+      ``-assign_weight * d(i, sigma(i))``, AGV i's distance after the step to the task a
+      min-sum assignment of the idle AGVs to the unclaimed tasks gives it
+      (:func:`sim.rewards.assignment.optimal_assignment`, the Hungarian allocator's choice), 0
+      for an AGV without one. A training signal that reads the whole state (centralized
+      training); the policy still acts on its own observation (issue 16; the variant
+      ``"ipf-assign"``).
 
     Parameters
     ----------
@@ -65,13 +74,17 @@ class IPFReward:
     time_cost : float
         The per-step team cost of the ``"time"`` term while any task is unclaimed, >= 0
         (default 0: the paper's reward, without the term).
+    assign_weight : float
+        The factor of the ``"assign"`` term, >= 0 (default 0: the paper's reward, without
+        the term).
 
     Raises
     ------
     ValueError
         For a resolution that is not a positive finite cell size, potentials that are not
-        finite numbers, a goal weight that is not a finite number > 0 or a time cost that is
-        not a finite number >= 0; :meth:`setup` for a floor the resolution does not fit.
+        finite numbers, a goal weight that is not a finite number > 0, or a time cost or
+        assign weight that is not a finite number >= 0; :meth:`setup` for a floor the
+        resolution does not fit.
     """
 
     zeroes_inactive = True
@@ -83,6 +96,7 @@ class IPFReward:
         agent_value: float = AGENT_VALUE,
         goal_weight: float = 1.0,
         time_cost: float = 0.0,
+        assign_weight: float = 0.0,
     ) -> None:
         self.resolution = check_resolution(resolution)
         for name, value in (("task_value", task_value), ("agent_value", agent_value)):
@@ -95,6 +109,11 @@ class IPFReward:
                 or not math.isfinite(time_cost) or time_cost < 0:
             raise ValueError(f"time_cost must be a finite number >= 0, got {time_cost!r}")
         self.time_cost = float(time_cost)
+        if isinstance(assign_weight, bool) or not isinstance(assign_weight, numbers.Real) \
+                or not math.isfinite(assign_weight) or assign_weight < 0:
+            raise ValueError(f"assign_weight must be a finite number >= 0, got "
+                             f"{assign_weight!r}")
+        self.assign_weight = float(assign_weight)
         if isinstance(goal_weight, bool) or not isinstance(goal_weight, numbers.Real) \
                 or not math.isfinite(goal_weight) or goal_weight <= 0:
             raise ValueError(f"goal_weight must be a finite number > 0, got {goal_weight!r}")
@@ -148,4 +167,11 @@ class IPFReward:
             waiting = (~state.task_claimed).any(dim=1) & ctx.active  # (B,)
             terms["time"] = (-self.time_cost * waiting.to(goal.dtype)).unsqueeze(1).expand_as(
                 goal).contiguous()
+        if self.assign_weight > 0:
+            task = optimal_assignment(ctx.agent_task_dist, state.agent_task < 0,
+                                      ~state.task_claimed)  # (B, N)
+            dist = ctx.agent_task_dist.gather(2, task.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+            keep = (task >= 0) & ctx.active.unsqueeze(1)
+            terms["assign"] = torch.where(keep, -self.assign_weight * dist.to(goal.dtype),
+                                          torch.zeros_like(goal))
         return terms
