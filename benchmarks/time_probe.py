@@ -1,15 +1,16 @@
 """One probe run of issue 16's search: BiCNet with the IPF reward's time options.
 
     python benchmarks/time_probe.py NAME --time-cost 3 --goal-weight 3 --gamma 0.9 \
-        [--episodes 30000] [--seed 0] [--scenario 3v3] [--eval-every 1000]
+        [--assign-weight 0] [--episodes 30000] [--seed 0] [--scenario 3v3] [--eval-every 1000]
 
 Trains ``bicnet`` with the fast preset's settings chosen for ``bicnet-ipf`` in
 ``benchmarks/results/training/reward_search.json`` (``--gamma`` replaces its 0.95) and the
-reward ``IPFReward(time_cost=..., goal_weight=...)`` (the plain ``ipf`` reward when both are at
-their defaults 0 and 1) into ``runs/probes/NAME`` (continuing a run that is there, up to
-``--episodes``), evaluating on the validation seed 12345 every ``--eval-every`` episodes
-(``progress.csv``). The chosen values are the defaults of the ``ipf-time`` variant, which
-``agv train --reward ipf-time`` and ``benchmarks/train_policies.py`` use.
+reward ``IPFReward(time_cost=..., goal_weight=..., assign_weight=...)`` (the plain ``ipf``
+reward when all three are at their defaults 0, 1 and 0) into ``runs/probes/NAME``
+(continuing a run that is there, up to ``--episodes``), evaluating on the validation seed
+12345 every ``--eval-every`` episodes (``progress.csv``). The chosen values are the defaults
+of the ``ipf-time`` variant, which ``agv train --reward ipf-time`` and
+``benchmarks/train_policies.py`` use.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     record = json.loads((ROOT / "benchmarks/results/training/reward_search.json").read_text())
     settings = dict(record["methods"]["bicnet-ipf"]["settings"], gamma=args.gamma)
+    IPFReward(time_cost=args.time_cost, goal_weight=args.goal_weight,
+              assign_weight=args.assign_weight)  # a bad value is refused before any run
     reward = "ipf"
     if (args.time_cost, args.goal_weight, args.assign_weight) != (0.0, 1.0, 0.0):
         # the variant's name, made with this probe's values (TrainConfig takes reward names)

@@ -79,7 +79,7 @@ def optimal_assignment(dist: Tensor, free: Tensor, open_: Tensor) -> Tensor:
             r, c = linear_sum_assignment(cost_np[e])
             col[e, torch.from_numpy(r)] = torch.from_numpy(c.astype(np.int64))
         col = col.to(dist.device)
-    inside = col < m
-    col_safe = col.clamp_max(m - 1)
+    inside = (col >= 0) & (col < m)
+    col_safe = col.clamp(0, m - 1)
     matched = inside & valid.gather(2, col_safe.unsqueeze(-1)).squeeze(-1)
     return torch.where(matched, col_safe, torch.full_like(col_safe, -1))

@@ -1,4 +1,5 @@
-"""``benchmarks/time_probe.py``'s ``--scenario`` and ``--eval-every`` (issue 16's 6v6 probes):
+"""``benchmarks/time_probe.py``'s ``--scenario``, ``--eval-every`` and reward weights (issue 16's
+6v6 probes):
 bad values are clear errors raised before any training or any file is written."""
 
 from __future__ import annotations
@@ -16,8 +17,12 @@ time_probe = load("time_probe")
     (["--scenario", "7x7"], "unknown scenario '7x7'"),
     (["--scenario", ""], "unknown scenario ''"),
     (["--eval-every", "-1"], "eval_every must be an integer >= 0"),
+    (["--assign-weight", "-1"], "assign_weight must be a finite number >= 0"),
+    (["--assign-weight", "nan"], "assign_weight must be a finite number >= 0"),
+    (["--time-cost", "inf"], "time_cost must be a finite number >= 0"),
+    (["--goal-weight", "0"], "goal_weight must be a finite number > 0"),
 ])
-def test_bad_scenario_or_eval_every_is_a_clear_error(tmp_path: Path, flags, match) -> None:
+def test_bad_scenario_eval_every_or_weight_is_a_clear_error(tmp_path: Path, flags, match) -> None:
     run = tmp_path / "probe"  # an absolute NAME: runs/probes/NAME is then this folder
     with pytest.raises(ValueError, match=match):
         time_probe.main([str(run), "--episodes", "10", *flags])
