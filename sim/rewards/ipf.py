@@ -54,10 +54,11 @@ class IPFReward:
     - ``"assign"`` (only with ``assign_weight > 0``; not part of the paper's reward):
       ``-assign_weight * d(i, sigma(i))``, AGV i's distance after the step to the task a
       min-sum assignment of the idle AGVs to the unclaimed tasks gives it
-      (:func:`sim.rewards.assignment.optimal_assignment`, the Hungarian allocator's choice), 0
-      for an AGV without one. A training signal that reads the whole state (centralized
-      training); the policy still acts on its own observation (issue 16; the variant
-      ``"ipf-assign"``).
+      (:func:`sim.rewards.assignment.optimal_assignment`, Hungarian on straight-line
+      distances), 0 for an AGV without one. A training signal that reads the whole state
+      (centralized training); the policy still acts on its own observation (issue 16:
+      ``benchmarks/time_probe.py --assign-weight``; not a registered variant, since it did not
+      shorten the 6v6 time, ``docs/learners.md``).
 
     Parameters
     ----------
