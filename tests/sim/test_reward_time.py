@@ -46,16 +46,21 @@ def test_the_step_that_claims_the_last_task_costs_nothing() -> None:
     assert terms["time"] == [0.0, 0.0]
 
 
-def test_the_other_terms_are_the_paper_ipf_reward_unchanged() -> None:
+@pytest.mark.parametrize(("options", "term"), [({"time_cost": 2.0}, "time"),
+                                               ({"assign_weight": 1.0}, "assign")])
+def test_the_other_terms_are_the_paper_ipf_reward_unchanged(options, term) -> None:
+    # the time term here, the assign term of tests/sim/test_reward_assign.py: each only adds
     actions = torch.rand(5, 4, 3, 2, generator=torch.Generator().manual_seed(3)) * 2 - 1
     plain = sim.make_env("3v3", num_envs=4, reward="ipf", seed=2)
-    timed = sim.make_env("3v3", num_envs=4, reward=IPFReward(time_cost=2.0), seed=2)
+    extra = sim.make_env("3v3", num_envs=4, reward=IPFReward(**options), seed=2)
     for a in actions:
         _, r0, _, i0 = plain.step(a)
-        _, r1, _, i1 = timed.step(a)
+        _, r1, _, i1 = extra.step(a)
+        assert set(i1["reward_terms"]) == {"ipf", "goal", "collision", term}
         for name in ("ipf", "goal", "collision"):
             torch.testing.assert_close(i1["reward_terms"][name], i0["reward_terms"][name])
-        torch.testing.assert_close(r1 - r0, i1["reward_terms"]["time"])
+        torch.testing.assert_close(r1 - r0, i1["reward_terms"][term])
+        assert bool((i1["reward_terms"][term] <= 0).all())
 
 
 def test_episode_sum_of_the_time_term_follows_the_time_metric() -> None:
