@@ -167,13 +167,17 @@ def _slots(obs: Tensor, tasks: slice, agents: slice, kt: int,
     return t_rel, t_mask, torch.linalg.vector_norm(t_rel, dim=-1), a_rel, a_mask, a_vel
 
 
-def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
+def tokens(obs: Tensor, layout: ObsLayout, margin_moving: bool = False) -> Tokens:
     """Split observations into masked tokens and derive the token features.
 
     Parameters
     ----------
     obs : Tensor, shape (B, N, layout.size)
     layout : ObsLayout
+    margin_moving : bool
+        The task tokens' margin and "another AGV visible" features count only the visible
+        AGVs with a nonzero velocity (parked AGVs stand exactly still), see
+        :attr:`EntityConfig.margin_moving`; False: every visible AGV.
 
     Returns
     -------
@@ -184,7 +188,8 @@ def tokens(obs: Tensor, layout: ObsLayout) -> Tokens:
     t_rel, t_mask, t_dist, a_rel, a_mask, a_vel = _slots(obs, layout.tasks, layout.agents,
                                                           kt, ka)
     # margin: distance of the nearest visible other AGV to each task slot minus this AGV's
-    margin, seen = _margin(t_rel, t_dist, a_rel, a_mask)
+    rivals = a_mask & (a_vel != 0).any(-1) if margin_moving else a_mask
+    margin, seen = _margin(t_rel, t_dist, a_rel, rivals)
     task = torch.stack([t_rel[..., 0], t_rel[..., 1], t_dist, margin, seen], dim=-1)
     agent = torch.cat([a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)],
                       dim=-1)
@@ -537,14 +542,20 @@ class EntityConfig(OffPolicyConfig):
     """With ``shield=True`` on a lifelong floor: the shield's lane angle
     (``SafetyShield(keep_right=...)``, radians in [0, pi/2); 0: none). A learned allocator
     serving these weights with ``shield=True`` uses the same angle."""
+    margin_moving: bool = False
+    """Episodic task tokens: the margin and "another AGV visible" features count only the
+    visible AGVs that move (nonzero velocity in the observation), so that a parked AGV, which
+    stands still and will never claim another task, does not make an open task look taken.
+    False (the default, and what every run before this field did): every visible AGV counts."""
 
     def validate(self) -> None:
-        """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield`` and
-        ``shield_keep_right`` too."""
+        """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
+        ``shield_keep_right`` and ``margin_moving`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
                                             math.pi / 2, high_open=True)
+        self.margin_moving = check_bool("margin_moving", self.margin_moving)
 
 
 @dataclass
@@ -644,7 +655,7 @@ class EntityLearner(ActorCritic):
         if isinstance(layout, LifelongObsLayout):
             assert self.floor is not None  # set_layout checks it
             return lifelong_tokens(obs, layout, self.floor), agent_order(obs, layout)
-        return tokens(obs, layout), agent_order(obs, layout)
+        return tokens(obs, layout, self.config.margin_moving), agent_order(obs, layout)
 
     def _movable(self, obs: Tensor) -> Tensor:
         """1.0 for AGVs whose action moves them, (B, N, 1): episodic, all but parked ones

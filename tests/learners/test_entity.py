@@ -165,6 +165,38 @@ def test_tokens_features_and_margin():
     assert torch.equal(tok.agent, torch.zeros(1, 1, 1, AGENT_TOKEN_FEATURES))
 
 
+def test_margin_moving_leaves_out_agvs_that_stand_still():
+    # the visible AGV is 0.4 from task 0, nearer than this AGV (0.5), but stands still (parked)
+    layout = ObsLayout(1, 1)
+    obs = torch.zeros(1, 1, layout.size)
+    obs[0, 0, layout.task_rel(0)] = torch.tensor([0.3, 0.4])
+    obs[0, 0, layout.task_mask(0)] = 1.0
+    obs[0, 0, layout.agent_rel(0)] = torch.tensor([0.3, 0.0])
+    obs[0, 0, layout.agent_mask(0)] = 1.0
+    every = tokens(obs, layout)
+    moving = tokens(obs, layout, margin_moving=True)
+    assert every.task[0, 0, 0, 3:].tolist() == pytest.approx([-0.1, 1.0])
+    assert moving.task[0, 0, 0, 3:].tolist() == [MARGIN_CLIP, 0.0]
+    assert torch.equal(moving.agent, every.agent) and torch.equal(moving.own, every.own)
+    obs[0, 0, layout.agent_vel(0)] = torch.tensor([0.0, 0.2])  # now it moves: it counts
+    torch.testing.assert_close(tokens(obs, layout, margin_moving=True).task,
+                               tokens(obs, layout).task)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_learner_reads_tokens_with_its_margin_setting(algo):
+    env, obs = _obs("6v6", steps=12)  # some AGVs parked by now (velocity exactly 0)
+    assert bool((env.agent_task >= 0).any())
+    for flag in (False, True):
+        learner = _learner(algo, env, margin_moving=flag)
+        got = learner._read(obs)[0].task
+        assert torch.equal(got, tokens(obs, infer_layout(6, obs.shape[-1]), flag).task)
+    assert not torch.equal(tokens(obs, infer_layout(6, obs.shape[-1]), True).task,
+                           tokens(obs, infer_layout(6, obs.shape[-1])).task)
+    with pytest.raises(ValueError, match="margin_moving"):
+        _learner(algo, env, margin_moving="yes")
+
+
 def test_agent_order_is_by_x_then_y():
     layout = ObsLayout(0, 0)
     obs = torch.zeros(1, 4, layout.size)
