@@ -596,6 +596,9 @@ class EntityLearner(ActorCritic):
         if lifelong is None:
             lifelong = sizes_look_lifelong(obs_dim, state_dim, num_agents)
         self.lifelong = check_bool("lifelong", lifelong)
+        if self.lifelong and self.config.margin_moving:
+            raise ValueError("margin_moving is for episodic scenarios (parked AGVs); on a "
+                             "lifelong floor no AGV parks: leave it False")
         self.layout: ObsLayout | LifelongObsLayout | None = None
         self.floor: FloorWaypoints | None = None
 

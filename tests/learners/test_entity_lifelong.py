@@ -201,3 +201,11 @@ def test_untrained_lifelong_actor_steers_to_its_waypoint():
         assert float(cos[idle & moving].median()) > 0.8
     # the floor table holds the floor's pickups and stations, not every AGV position
     assert learner.floor.cached_targets < 80
+
+
+@pytest.mark.parametrize("algo", ["maddpg-e", "bicnet-e"])
+def test_margin_moving_is_refused_on_a_lifelong_floor(algo):
+    env = sim.make_env("warehouse-20", num_envs=1, reward="ipf", seed=0)
+    with pytest.raises(ValueError, match="margin_moving is for episodic scenarios"):
+        build_learner(algo, env.obs_dim, env.global_state().shape[-1], env.num_agents,
+                      {"hidden": 16, "margin_moving": True}, lifelong=True)
