@@ -41,14 +41,16 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     record = json.loads((ROOT / "benchmarks/results/training/reward_search.json").read_text())
     settings = dict(record["methods"]["bicnet-ipf"]["settings"], gamma=args.gamma)
-    IPFReward(time_cost=args.time_cost, goal_weight=args.goal_weight,
-              assign_weight=args.assign_weight)  # a bad value is refused before any run
+
+    def probe_reward() -> IPFReward:
+        return IPFReward(time_cost=args.time_cost, goal_weight=args.goal_weight,
+                         assign_weight=args.assign_weight)
+
+    probe_reward()  # a bad value is refused before any run
     reward = "ipf"
     if (args.time_cost, args.goal_weight, args.assign_weight) != (0.0, 1.0, 0.0):
         # the variant's name, made with this probe's values (TrainConfig takes reward names)
-        cost, weight, assign = args.time_cost, args.goal_weight, args.assign_weight
-        sim.rewards.REWARD_VARIANTS["ipf-time"] = lambda: IPFReward(
-            time_cost=cost, goal_weight=weight, assign_weight=assign)
+        sim.rewards.REWARD_VARIANTS["ipf-time"] = probe_reward
         reward = "ipf-time"
     run_dir = ROOT / "runs" / "probes" / args.name
     config = TrainConfig(algo="bicnet", reward=reward, scenario=args.scenario,

@@ -25,6 +25,19 @@ from sim.world import World
 __all__ = ["IPFReward"]
 
 
+def _finite(name: str, value: object, bound: str = "") -> float:
+    """``value`` as a float, or a ValueError naming ``name`` unless it is a finite real number
+    (not a bool) meeting ``bound``: ``""`` (none), ``">= 0"`` or ``"> 0"``."""
+    ok = not isinstance(value, bool) and isinstance(value, numbers.Real) \
+        and math.isfinite(value)
+    if ok and bound:
+        ok = value >= 0 if bound == ">= 0" else value > 0
+    if not ok:
+        rule = f" {bound}" if bound else ""
+        raise ValueError(f"{name} must be a finite number{rule}, got {value!r}")
+    return float(value)
+
+
 class IPFReward:
     """The paper's IPF reward ``r = r_IPF + r_g + r_c``, per AGV, with each term reported.
 
@@ -100,25 +113,11 @@ class IPFReward:
         assign_weight: float = 0.0,
     ) -> None:
         self.resolution = check_resolution(resolution)
-        for name, value in (("task_value", task_value), ("agent_value", agent_value)):
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
-                    or not math.isfinite(value):
-                raise ValueError(f"{name} must be a finite number, got {value!r}")
-        self.task_value = float(task_value)
-        self.agent_value = float(agent_value)
-        if isinstance(time_cost, bool) or not isinstance(time_cost, numbers.Real) \
-                or not math.isfinite(time_cost) or time_cost < 0:
-            raise ValueError(f"time_cost must be a finite number >= 0, got {time_cost!r}")
-        self.time_cost = float(time_cost)
-        if isinstance(assign_weight, bool) or not isinstance(assign_weight, numbers.Real) \
-                or not math.isfinite(assign_weight) or assign_weight < 0:
-            raise ValueError(f"assign_weight must be a finite number >= 0, got "
-                             f"{assign_weight!r}")
-        self.assign_weight = float(assign_weight)
-        if isinstance(goal_weight, bool) or not isinstance(goal_weight, numbers.Real) \
-                or not math.isfinite(goal_weight) or goal_weight <= 0:
-            raise ValueError(f"goal_weight must be a finite number > 0, got {goal_weight!r}")
-        self.goal_weight = float(goal_weight)
+        self.task_value = _finite("task_value", task_value)
+        self.agent_value = _finite("agent_value", agent_value)
+        self.time_cost = _finite("time_cost", time_cost, ">= 0")
+        self.assign_weight = _finite("assign_weight", assign_weight, ">= 0")
+        self.goal_weight = _finite("goal_weight", goal_weight, "> 0")
         self._cache = TaskBlockCache()
         self._grid: IPFGrid | None = None
         self._kernels: Any = None
