@@ -53,11 +53,22 @@ def optimal_assignment(dist: Tensor, free: Tensor, open_: Tensor) -> Tensor:
         (B, N) int64: the task of each AGV, -1 for an AGV left without one (not free, or
         more free AGVs than open tasks). Ties go to the first permutation in lexicographic
         order (batched path) or to scipy's choice (large problems).
+
+    Raises
+    ------
+    ValueError
+        For shapes that do not match, masks that are not bool, or distances that are not
+        finite.
     """
     if dist.dim() != 3 or free.shape != dist.shape[:2] or open_.shape != (dist.shape[0],
                                                                            dist.shape[2]):
         raise ValueError(f"expected dist (B, N, M), free (B, N) and open_ (B, M), got "
                          f"{tuple(dist.shape)}, {tuple(free.shape)}, {tuple(open_.shape)}")
+    if free.dtype != torch.bool or open_.dtype != torch.bool:
+        raise ValueError(f"free and open_ must be bool masks, got {free.dtype} and "
+                         f"{open_.dtype}")
+    if not bool(torch.isfinite(dist).all()):
+        raise ValueError("dist must hold finite distances (it has NaN or infinite values)")
     b, n, m = dist.shape
     valid = free.unsqueeze(2) & open_.unsqueeze(1)  # (B, N, M)
     if b == 0 or n == 0 or m == 0:

@@ -60,6 +60,21 @@ def test_the_assignment_is_not_the_nearest_task() -> None:
     assert task.tolist() == [[1, 0]]
 
 
+@pytest.mark.parametrize("bad", [math.nan, math.inf, 1e400], ids=["nan", "inf", "huge"])
+def test_distances_that_are_not_finite_are_refused(bad) -> None:
+    dist = torch.ones(2, 3, 3)
+    dist[1, 2, 0] = bad
+    mask = torch.ones(2, 3, dtype=torch.bool)
+    with pytest.raises(ValueError, match="dist must hold finite distances"):
+        optimal_assignment(dist, mask, mask)
+
+
+def test_masks_must_be_bool() -> None:
+    with pytest.raises(ValueError, match="free and open_ must be bool masks, got torch.float32"):
+        optimal_assignment(torch.ones(2, 3, 3), torch.ones(2, 3),
+                           torch.ones(2, 3, dtype=torch.bool))
+
+
 def test_empty_problems_and_bad_shapes() -> None:
     assert optimal_assignment(torch.zeros(2, 3, 0), torch.ones(2, 3, dtype=torch.bool),
                               torch.ones(2, 0, dtype=torch.bool)).tolist() == [[-1] * 3] * 2
