@@ -34,6 +34,9 @@ import sim
 from sim.evaluate import evaluation_scenes
 from sim.scenarios import Scenario, get_scenario
 
+MAX_EPISODES = 10_000
+"""The most episodes one diagnosis plays: they run as one batch of environments."""
+
 
 def play(alloc: Any, scenario: str, episodes: int, seed: int) -> tuple[sim.AGVEnv, Tensor]:
     """Run ``alloc`` on the test scenes to the end; the env and the final intended actions."""
@@ -98,8 +101,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--liveness", action="store_true",
                         help="the shield's deadlock rules on (off by default when episodic)")
     args = parser.parse_args(argv)
-    if args.episodes < 1:
-        raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    if not 1 <= args.episodes <= MAX_EPISODES:
+        raise ValueError(f"--episodes must be in [1, {MAX_EPISODES}] (all of them run as one "
+                         f"batch), got {args.episodes}")
     if not isinstance(get_scenario(args.scenario), Scenario):
         raise ValueError(f"scenario {args.scenario!r} is lifelong; this diagnosis is episodic")
     print(f"{args.policy} ({args.weights} weights) on {args.scenario}, seed {args.seed}, "

@@ -35,7 +35,11 @@ def test_a_short_run_prints_both_modes(capsys) -> None:
 
 
 @pytest.mark.parametrize(("flags", "match"), [
-    (["--episodes", "0"], "--episodes must be >= 1"),
+    (["--episodes", "0"], r"--episodes must be in \[1, 10000\]"),
+    (["--episodes", "10001"], r"--episodes must be in \[1, 10000\]"),
+    (["--episodes", "2", "--seed", "-1"], "seed must be an integer"),
+    (["--episodes", "2", "--policy", "nope"], "unknown allocator 'nope'"),
+    (["--scenario", ""], "unknown scenario ''"),
     (["--scenario", "warehouse-20"], "is lifelong"),
 ])
 def test_bad_input_is_a_clear_error(flags, match) -> None:
