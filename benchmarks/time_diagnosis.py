@@ -26,7 +26,15 @@ trajectories recorded and prints one row of:
   and over the others (NaN if none), which splits the time lost to the assignment from the
   time lost to the driving;
 - ``contested``: the fraction of moving idle AGV-steps whose heading (the open task best
-  aligned with its velocity) is also the heading of another moving idle AGV.
+  aligned with its velocity) is also the heading of another moving idle AGV;
+- ``claim 90%``: the mean step of the claim that leaves the last tenth of the tasks (rounded
+  up) open: the 18th of 20, the 5th of 6;
+- the episode's end after that claim (issue 17's look at the tail, measured on idle AGV-steps
+  while some task is open): ``late idle``, their number per episode; ``late far``, the share
+  whose nearest open task is more than 1.0 away; ``late by parked``, the share touching a
+  parked AGV (centres within ``2 r + 0.03``); ``late uphill``, the share for which a step of 0.1
+  toward the nearest open task raises the AGV's own IPF field (the paper's reward term, parked
+  AGVs staying sources at -3), i.e. where that term leads toward the task.
 
 The test seed of the paper's tables is 0; validation (choices) uses 12345.
 """
@@ -40,14 +48,19 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import maximum_bipartite_matching
 
 import sim
 from sim.evaluate import evaluation_scenes, metrics_from_episodes
+from sim.ipf import ipf_grid
 
 COLUMNS = ("resp", "time", "claim 1", "claim mid", "claim last", "speed", "path/straight",
-           "sum/opt", "makespan/opt", "opt-assigned", "time if opt", "time if not", "contested")
+           "sum/opt", "makespan/opt", "opt-assigned", "time if opt", "time if not", "contested",
+           "claim 90%", "late idle", "late far", "late by parked", "late uphill")
 FRACTIONS = ("resp", "speed", "path/straight", "sum/opt", "makespan/opt", "opt-assigned",
-             "contested")
+             "contested", "late far", "late by parked", "late uphill")
 
 
 def _controller(name: str):  # noqa: ANN202 - a controller of any kind
@@ -105,9 +118,8 @@ def diagnose(controller: object, scenario: str, episodes: int, seed: int) -> dic
             ratios.append(path[e, n] / straight)
 
     dist = np.linalg.norm(start[:, :, None, :] - task_pos[:, None, :, :], axis=-1)  # (E, N, M)
-    perms = np.array(list(itertools.permutations(range(N), M)))  # agent of each task
-    per = dist[:, perms, np.arange(M)]                  # (E, P, M)
-    best_sum, best_max = per.sum(-1).min(1), per.max(-1).min(1)
+    best_sum = np.array([_min_sum(d) for d in dist])
+    best_max = np.array([_bottleneck(d) for d in dist])
     finished = claimed[-1].all(axis=1)
     sums, maxes = [], []
     optimal = np.zeros(E, dtype=bool)
@@ -132,6 +144,7 @@ def diagnose(controller: object, scenario: str, episodes: int, seed: int) -> dic
         same = both & (heading[..., a] == heading[..., b])
         shared += int(same.sum())
     contested = shared * 2
+    late = _endgame(env, pos, claimed, holder, task_pos, steps, claim_step)
     metrics = metrics_from_episodes(
         out["claims"], M, steps, out["finished"], out["rewards"], out["collisions"],
         out["task_of_agent"])
@@ -144,7 +157,83 @@ def diagnose(controller: object, scenario: str, episodes: int, seed: int) -> dic
         "time if opt": float(np.mean(order[optimal, -1])) if optimal.any() else math.nan,
         "time if not": float(np.mean(order[~optimal, -1])) if (~optimal).any() else math.nan,
         "contested": contested / max(int(movers.sum()), 1),
+        "claim 90%": float(order[:, _ninety(M) - 1].mean()),
+        **late,
     }
+
+
+def _ninety(m: int) -> int:
+    """The claim that leaves the last tenth of ``m`` tasks (rounded up) open: 18 of 20, 5 of 6."""
+    return max(m - math.ceil(0.1 * m), 1)
+
+
+def _endgame(env: sim.AGVEnv, pos: np.ndarray, claimed: np.ndarray, holder: np.ndarray,
+             task_pos: np.ndarray, steps: np.ndarray, claim_step: np.ndarray) -> dict[str, float]:
+    """The ``late ...`` columns: idle AGV-steps after an episode's 90% claim, while it runs.
+
+    Parameters
+    ----------
+    pos : (T + 1, E, N, 2) positions; claimed : (T + 1, E, M); holder : (T + 1, E, N);
+    task_pos : (E, M, 2); steps : (E,); claim_step : (E, M) step of each task's claim.
+    """
+    T = pos.shape[0] - 1
+    M = task_pos.shape[1]
+    r = env.world.agent_radius
+    after = np.sort(claim_step, axis=1)[:, _ninety(M) - 1]              # (E,)
+    t = np.arange(T)[:, None]
+    window = (t >= after[None]) & (t < steps[None])                    # (T, E)
+    idle = (holder[:-1] < 0) & window[..., None] & (~claimed[:-1]).any(-1, keepdims=True)
+    rel = task_pos[None, :, None] - pos[:-1, :, :, None]                # (T, E, N, M, 2)
+    dist = np.where((~claimed[:-1])[:, :, None], np.linalg.norm(rel, axis=-1), np.inf)
+    near = dist.argmin(-1)                                              # (T, E, N)
+    d_near = np.take_along_axis(dist, near[..., None], -1)[..., 0]
+    pair = np.linalg.norm(pos[:-1, :, :, None] - pos[:-1, :, None], axis=-1)
+    pair = np.where((holder[:-1] >= 0)[:, :, None, :], pair, np.inf)   # to parked AGVs only
+    by_parked = pair.min(-1) < 2 * r + 0.03
+    # The paper's IPF field (parked AGVs stay sources at -3) at the AGV and 0.1 nearer its
+    # nearest open task: "uphill" when the step toward the task raises the AGV's own field.
+    grid = ipf_grid(env.world)
+    step = np.take_along_axis(rel, near[..., None, None], 3)[..., 0, :]
+    step = 0.1 * step / np.maximum(np.linalg.norm(step, axis=-1, keepdims=True), 1e-9)
+    uphill = np.zeros_like(idle)
+    for k in np.nonzero(idle.any(axis=(1, 2)))[0]:
+        args = (torch.from_numpy(task_pos).double(), torch.from_numpy(claimed[k]),
+                torch.from_numpy(holder[k]))
+        here = grid.reward_potentials(torch.from_numpy(pos[k]).double(), *args)
+        ahead = grid.reward_potentials(torch.from_numpy(pos[k] + step[k]).double(), *args)
+        uphill[k] = (ahead > here + 1e-9).numpy()
+    n = max(int(idle.sum()), 1)
+    return {"late idle": float(idle.sum() / pos.shape[1]),
+            "late far": float((idle & (d_near > 1.0)).sum() / n),
+            "late by parked": float((idle & by_parked).sum() / n),
+            "late uphill": float((idle & uphill).sum() / n)}
+
+
+def _min_sum(dist: np.ndarray) -> float:
+    """The least summed distance over the largest matchings, (N, M) -> float."""
+    rows, cols = linear_sum_assignment(dist.T)
+    return float(dist.T[rows, cols].sum())
+
+
+def _bottleneck(dist: np.ndarray) -> float:
+    """The least largest distance over the largest matchings, (N, M) -> float.
+
+    The smallest distance ``d`` such that the AGV-task pairs within ``d`` still match
+    ``min(N, M)`` pairs, found by bisection over the sorted distances (one bipartite matching
+    per probe).
+    """
+    need = min(dist.shape)
+    values = np.unique(dist)
+    lo, hi = 0, len(values) - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        graph = csr_matrix(dist.T <= values[mid])
+        matched = maximum_bipartite_matching(graph, perm_type="column")
+        if int((matched >= 0).sum()) == need:
+            hi = mid
+        else:
+            lo = mid + 1
+    return float(values[lo])
 
 
 def run_episodes_from(env: sim.AGVEnv, controller: object) -> dict[str, np.ndarray]:

@@ -1,16 +1,17 @@
 """One probe run of issue 16's search: BiCNet with the IPF reward's time options.
 
     python benchmarks/time_probe.py NAME --time-cost 3 --goal-weight 3 --gamma 0.9 \
-        [--assign-weight 0] [--episodes 30000] [--seed 0] [--scenario 3v3] [--eval-every 1000]
+        [--assign-weight 0] [--drop-parked-sources] [--episodes 30000] [--seed 0] \
+        [--scenario 3v3] [--eval-every 1000]
 
 Trains ``bicnet`` with the fast preset's settings chosen for ``bicnet-ipf`` in
 ``benchmarks/results/training/reward_search.json`` (``--gamma`` replaces its 0.95) and the
-reward ``IPFReward(time_cost=..., goal_weight=..., assign_weight=...)`` (the plain ``ipf``
-reward when all three are at their defaults 0, 1 and 0) into ``runs/probes/NAME``
-(continuing a run that is there, up to ``--episodes``), evaluating on the validation seed
-12345 every ``--eval-every`` episodes (``progress.csv``). The chosen values are the defaults
-of the ``ipf-time`` variant, which ``agv train --reward ipf-time`` and
-``benchmarks/train_policies.py`` use.
+reward ``IPFReward(time_cost=..., goal_weight=..., assign_weight=..., parked_sources=...)``
+(the plain ``ipf`` reward when all four are at their defaults 0, 1, 0 and True) into
+``runs/probes/NAME`` (continuing a run that is there, up to ``--episodes``), evaluating on
+the validation seed 12345 every ``--eval-every`` episodes (``progress.csv``). The chosen
+values are the defaults of the ``ipf-time`` variant, which ``agv train --reward ipf-time``
+and ``benchmarks/train_policies.py`` use.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--goal-weight", type=float, default=1.0)
     parser.add_argument("--assign-weight", type=float, default=0.0,
                         help="factor of the 'assign' term (distance to the optimal task)")
+    parser.add_argument("--drop-parked-sources", action="store_true",
+                        help="leave parked AGVs out of the IPF field (parked_sources=False)")
     parser.add_argument("--gamma", type=float, default=0.95)
     parser.add_argument("--episodes", type=int, default=30000)
     parser.add_argument("--seed", type=int, default=0)
@@ -44,11 +47,13 @@ def main(argv: list[str] | None = None) -> None:
 
     def probe_reward() -> IPFReward:
         return IPFReward(time_cost=args.time_cost, goal_weight=args.goal_weight,
-                         assign_weight=args.assign_weight)
+                         assign_weight=args.assign_weight,
+                         parked_sources=not args.drop_parked_sources)
 
     probe_reward()  # a bad value is refused before any run
     reward = "ipf"
-    if (args.time_cost, args.goal_weight, args.assign_weight) != (0.0, 1.0, 0.0):
+    if (args.time_cost, args.goal_weight, args.assign_weight, args.drop_parked_sources) != (
+            0.0, 1.0, 0.0, False):
         # the variant's name, made with this probe's values (TrainConfig takes reward names)
         sim.rewards.REWARD_VARIANTS["ipf-time"] = probe_reward
         reward = "ipf-time"

@@ -418,6 +418,7 @@ class IPFGrid:
         agent_value: float = AGENT_VALUE,
         cache: TaskBlockCache | None = None,
         native: bool | None = None,
+        agent_sources: Tensor | None = None,
     ) -> Tensor:
         """``r_IPF`` of every AGV in every environment: its own field at its own cell.
 
@@ -450,6 +451,10 @@ class IPFGrid:
             Use the fused CPU kernel of :mod:`sim.native` (the block formula below, one
             environment at a time in C, colliding sources handled in the same pass) for float32
             CPU tensors. Default: when available; ``False`` forces the torch paths below.
+        agent_sources : Tensor of bool, shape (B, N), optional
+            The AGVs that are sources of the other AGVs' fields (default all). An AGV that is
+            not a source reads 0 (callers override it, as the reward does for parked AGVs).
+            Torch paths only: with it, the default ``native`` is ``False``.
 
         Returns
         -------
@@ -460,9 +465,14 @@ class IPFGrid:
         Raises
         ------
         ValueError
-            For positions that are not (B, N, 2) and (B, M, 2), a mask that is not (B, M), or
-            ``native=True`` where the kernel cannot run.
+            For positions that are not (B, N, 2) and (B, M, 2), a mask that is not (B, M),
+            ``agent_sources`` that is not a (B, N) bool tensor, or ``native=True`` where the
+            kernel cannot run (or with ``agent_sources``).
         """
+        if agent_sources is not None:
+            if native:
+                raise ValueError("agent_sources needs the torch paths (native=False or None)")
+            native = False
         kernels = None
         if native is not False and self.method == "dense" and agent_pos.dtype == torch.float32 \
                 and task_pos.dtype == torch.float32 and task_pos.device.type == "cpu":
@@ -478,6 +488,12 @@ class IPFGrid:
                              "Green's function (method 'dense')")
         _check_batch_shapes(agent_pos, task_pos, task_open)
         N = agent_pos.shape[1]
+        if agent_sources is not None and (
+                agent_sources.dtype != torch.bool
+                or tuple(agent_sources.shape) != tuple(agent_pos.shape[:2])):
+            raise ValueError(f"agent_sources must be a bool tensor of shape (B, N) = "
+                             f"{tuple(agent_pos.shape[:2])}, got {agent_sources.dtype} "
+                             f"{tuple(agent_sources.shape)}")
         T = N + task_pos.shape[1]
         device = agent_pos.device
         index = self._cell_index(device)
@@ -486,6 +502,8 @@ class IPFGrid:
         candidate = fidx < self.num_free
         if task_open is not None:
             candidate[:, N:] &= task_open
+        if agent_sources is not None:
+            candidate[:, :N] &= agent_sources.to(device)
         # Colliding sources (two candidates on one cell) are rare; find them cheaply.
         spread = torch.where(candidate, cells, self._negative_arange(T, device))
         ordered = spread.sort(dim=1).values
@@ -510,6 +528,7 @@ class IPFGrid:
         agent_value: float = AGENT_VALUE,
         cache: TaskBlockCache | None = None,
         dtype: torch.dtype = torch.float64,
+        parked_sources: bool = True,
     ) -> Tensor:
         """``r_IPF`` as the ``"ipf"`` reward pays it, through the kernels the caller chose.
 
@@ -537,6 +556,10 @@ class IPFGrid:
             Reused task factors, updated in place; keep one per batch of environments.
         dtype : torch.dtype
             ``torch.float64`` or ``torch.float32``, the dtype of the result.
+        parked_sources : bool
+            Whether parked AGVs stay sources (at ``agent_value``) of the other AGVs' fields
+            (default True, the reward as shipped). False leaves them out of the field, as
+            claimed tasks are; that runs the torch paths whatever ``kernels`` says.
 
         Returns
         -------
@@ -555,13 +578,17 @@ class IPFGrid:
                 raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
         if dtype not in (torch.float64, torch.float32):
             raise ValueError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
-        if kernels is not None and self.method == "dense":
+        if kernels is not None and self.method == "dense" and parked_sources:
             return self._potentials_native(kernels, agent_pos, task_pos, task_claimed, True,
                                            task_value, agent_value, cache, agent_task, active,
                                            dtype)
         task_open = None if task_claimed is None else ~task_claimed.to(torch.bool)
+        sources = None
+        if not parked_sources:
+            sources = (torch.ones(B, N, dtype=torch.bool, device=agent_pos.device)
+                       if agent_task is None else agent_task < 0)
         phi = self.agent_potentials(agent_pos, task_pos, task_open, task_value, agent_value,
-                                    cache=cache, native=False).double()
+                                    cache=cache, native=False, agent_sources=sources).double()
         if agent_task is not None:
             phi = torch.where(agent_task >= 0, task_value, phi)
         if active is not None:

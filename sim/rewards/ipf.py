@@ -44,7 +44,8 @@ class IPFReward:
     Terms (each ``(B, N)``, zero in environments that were already done):
 
     - ``"ipf"``: ``r_IPF``, AGV i's own field at its own cell, from the state after the step
-      (claimed tasks have left the field; parked AGVs stay sources at -3). Exact, via
+      (claimed tasks have left the field; parked AGVs stay sources at -3 unless
+      ``parked_sources=False``). Exact, via
       :meth:`sim.ipf.IPFGrid.reward_potentials`. A parked AGV stands on the task it serves and
       receives that task's value (+5), as an AGV on a target does in the paper: otherwise
       claiming a task (which removes its +5 from the field) would pay less than hovering just
@@ -91,6 +92,13 @@ class IPFReward:
     assign_weight : float
         The factor of the ``"assign"`` term, >= 0 (default 0: the paper's reward, without
         the term).
+    parked_sources : bool
+        Whether parked AGVs stay sources at ``agent_value`` in the other AGVs' fields (default
+        True, as every shipped policy was trained). False leaves them out, as claimed tasks
+        are: with most AGVs parked, their -3 sources make the field negative over most of the
+        floor and the walls (fixed at 0) its highest ground, so the term leads the last idle
+        AGVs away from the last tasks (issue 16/17, ``benchmarks/time_diagnosis.py``'s
+        ``late uphill``). Computed on the torch path (the fused kernel knows one rule).
 
     Raises
     ------
@@ -111,6 +119,7 @@ class IPFReward:
         goal_weight: float = 1.0,
         time_cost: float = 0.0,
         assign_weight: float = 0.0,
+        parked_sources: bool = True,
     ) -> None:
         self.resolution = check_resolution(resolution)
         self.task_value = _finite("task_value", task_value)
@@ -118,6 +127,9 @@ class IPFReward:
         self.time_cost = _finite("time_cost", time_cost, ">= 0")
         self.assign_weight = _finite("assign_weight", assign_weight, ">= 0")
         self.goal_weight = _finite("goal_weight", goal_weight, "> 0")
+        if not isinstance(parked_sources, bool):
+            raise ValueError(f"parked_sources must be True or False, got {parked_sources!r}")
+        self.parked_sources = parked_sources
         self._cache = TaskBlockCache()
         self._grid: IPFGrid | None = None
         self._kernels: Any = None
@@ -160,7 +172,7 @@ class IPFReward:
         potential = self._grid.reward_potentials(
             state.agent_pos, state.task_pos, state.task_claimed, state.agent_task, ctx.active,
             kernels=self._kernels, task_value=self.task_value, agent_value=self.agent_value,
-            cache=self._cache, dtype=goal.dtype,
+            cache=self._cache, dtype=goal.dtype, parked_sources=self.parked_sources,
         )
         terms = {"ipf": potential, "goal": goal, "collision": collision}
         if self.time_cost > 0:

@@ -381,6 +381,52 @@ def test_reward_potentials_kernel_path_refuses_wrong_dtypes_naming_them() -> Non
         grid.reward_potentials(env.agent_pos.double(), env.task_pos, kernels=lib)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_reward_potentials_without_parked_sources_match_the_field_of_the_rest(seed) -> None:
+    # Independent: the whole field of (the other idle AGVs at -3, the open tasks at +5),
+    # solved directly, read at each idle AGV's cell; parked AGVs are not in it.
+    env, active = _reward_scene(seed)
+    grid = ipf_grid(env.world)
+    got = grid.reward_potentials(env.agent_pos, env.task_pos, env.task_claimed, env.agent_task,
+                                 active, parked_sources=False)
+    shipped = grid.reward_potentials(env.agent_pos, env.task_pos, env.task_claimed,
+                                     env.agent_task, active)
+    parked = env.agent_task >= 0
+    checked = 0
+    for b in torch.nonzero(active).flatten().tolist():
+        assert torch.all(got[b][parked[b]] == TASK_VALUE)
+        open_tasks = env.task_pos[b][~env.task_claimed[b]].double()
+        for i in torch.nonzero(~parked[b]).flatten().tolist():
+            others = [j for j in range(6) if j != i and not parked[b, j]]
+            points = torch.cat([env.agent_pos[b, others].double(), open_tasks])
+            values = torch.tensor([AGENT_VALUE] * len(others) + [TASK_VALUE] * len(open_tasks))
+            field = grid.fields(grid.cell_of(points).long()[None], values[None])[0]
+            want = field.flatten()[grid.cell_of(env.agent_pos[b, i:i + 1].double()).long()]
+            assert float(got[b, i]) == pytest.approx(float(want[0]), abs=1e-6)
+            checked += 1
+    assert checked > 0 and torch.all(got[1] == 0.0)
+    # Parked AGVs at -3 pull the idle AGVs' fields down: dropping them raises every value.
+    idle = active.unsqueeze(1) & ~parked
+    assert torch.all(got[idle] >= shipped[idle] - 1e-9) and torch.any(got[idle] > shipped[idle])
+
+
+def test_agent_sources_are_checked_and_need_the_torch_path() -> None:
+    env, _ = _reward_scene()
+    grid = ipf_grid(env.world)
+    with pytest.raises(ValueError, match=r"agent_sources must be a bool tensor of shape"):
+        grid.agent_potentials(env.agent_pos, env.task_pos, agent_sources=torch.ones(4, 6))
+    with pytest.raises(ValueError, match=r"agent_sources must be a bool tensor of shape"):
+        grid.agent_potentials(env.agent_pos, env.task_pos,
+                              agent_sources=torch.ones(4, 5, dtype=torch.bool))
+    with pytest.raises(ValueError, match="agent_sources needs the torch paths"):
+        grid.agent_potentials(env.agent_pos, env.task_pos, native=True,
+                              agent_sources=torch.ones(4, 6, dtype=torch.bool))
+    every = grid.agent_potentials(env.agent_pos, env.task_pos, native=False)
+    same = grid.agent_potentials(env.agent_pos, env.task_pos,
+                                 agent_sources=torch.ones(4, 6, dtype=torch.bool))
+    torch.testing.assert_close(same, every)
+
+
 def test_reward_potentials_refuse_rule_tensors_of_the_wrong_shape() -> None:
     env, active = _reward_scene()
     grid = ipf_grid(env.world)
