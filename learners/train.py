@@ -351,6 +351,7 @@ def train(
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     init_from: str | os.PathLike[str] | None = None,
     make_shield: Callable[[Any], Any] | None = None,
+    init_other_reward: bool = False,
 ) -> TrainResult:
     """Train a MADDPG or BiCNet learner.
 
@@ -378,6 +379,10 @@ def train(
         it wraps: ``allocator.SafetyShield`` (what ``agv train`` passes). ``learners`` does not
         import ``allocator``, so the caller hands it in; ``shield=True`` without it is a
         ``ValueError``.
+    init_other_reward : bool
+        Let ``init_from`` be a checkpoint trained on another reward (default False: the
+        rewards must match). The critic then starts from values learned for the old reward,
+        which suits a fine-tune whose reward changes a term (``benchmarks/entity_probe.py``).
 
     Returns
     -------
@@ -422,7 +427,7 @@ def train(
                        else make_config(config.algo, learner_config))
     init: dict[str, Tensor] | None = None
     if init_from is not None:
-        init = _init_tensors(init_from, config, learner_cfg, resume)
+        init = _init_tensors(init_from, config, learner_cfg, resume, init_other_reward)
     cfg = learner_cfg
     config_class = ALGORITHMS[config.algo][1]
     if not isinstance(cfg, config_class):
@@ -704,14 +709,15 @@ shield) may change, e.g. to fine-tune on another floor."""
 
 
 def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
-                  resume: bool) -> dict[str, Tensor]:
+                  resume: bool, other_reward: bool = False) -> dict[str, Tensor]:
     """The learner tensors of a training checkpoint that starts a new run (``init_from``).
 
     Raises
     ------
     ValueError
         When resuming, for a non-entity algorithm, or for a checkpoint of another algorithm,
-        reward, mode (lifelong or episodic) or network width (:data:`INIT_FROM_SHAPES`).
+        reward (unless ``other_reward``), mode (lifelong or episodic) or network width
+        (:data:`INIT_FROM_SHAPES`).
     """
     from learners.algorithms import ENTITY_ALGORITHMS
 
@@ -727,7 +733,7 @@ def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg
         raise ValueError(f"init_from {path} was trained on {modes[is_lifelong(meta['scenario'])]}"
                          f" ({meta['scenario']!r}), this run on {modes[config.lifelong]} "
                          f"({config.scenario!r}); their networks differ")
-    for key in ("algo", "reward"):
+    for key in ("algo",) if other_reward else ("algo", "reward"):
         if meta[key] != getattr(config, key):
             raise ValueError(f"init_from {path} was trained with {key}={meta[key]!r}, this run "
                              f"has {getattr(config, key)!r}")

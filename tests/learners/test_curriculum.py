@@ -121,6 +121,16 @@ def test_init_from_checks_what_it_starts_from(tmp_path):
     started.scenario, started.episodes = "4v4", 8
     result = train(started, {**TINY, "tau": 0.5, "actor_lr": 1e-4}, init_from=ckpt)
     assert result.updates > base.updates  # the update count carried over
+    # another reward only when asked for
+    reward = _config(tmp_path / "e")
+    reward.reward, reward.episodes = "greedy", 8
+    with pytest.raises(ValueError, match=f"reward={first.reward!r}, this run has 'greedy'"):
+        train(reward, TINY, init_from=ckpt)
+    assert not (tmp_path / "e" / "checkpoint.safetensors").exists()
+    changed = train(reward, TINY, init_from=ckpt, init_other_reward=True)
+    assert changed.updates > base.updates
+    with pytest.raises(ValueError, match="algo='maddpg-e'"):  # the algorithm still must match
+        train(other, TINY, init_from=ckpt, init_other_reward=True)
 
 
 def test_init_from_a_curriculum_folder_takes_its_last_stage(tmp_path):
