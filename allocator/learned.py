@@ -7,7 +7,9 @@ and tasks in the simulator, lets every AGV act on its own observation until the 
 and reports the assignment that emerged (which AGV claimed which task) with the trajectories.
 As a controller (``reset`` / ``act``) it runs in :func:`sim.evaluate` like any other allocator.
 
-Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidist, greedy, ipf}.
+Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidist, greedy, ipf},
+and ``"bicnet-ipf-time"``: BiCNet trained with the ``ipf-time`` variant of the IPF reward
+(issue 16's time terms), whose weights live in ``allocator/weights/<scenario>/time/``.
 
 **Any fleet size.** ``allocator/weights/any/<algo>-<reward>.safetensors`` holds the weights of
 the entity-token learner of the same family (``maddpg-e`` for ``maddpg-*``, ``bicnet-e`` for
@@ -54,6 +56,11 @@ __all__ = [
 
 ALGOS = ("maddpg", "bicnet")
 REWARDS = ("minidist", "greedy", "ipf")
+VARIANTS = {"bicnet": ("ipf-time",)}
+"""Registered reward variants (:data:`sim.rewards.REWARD_VARIANTS`) served by a family: only
+those with shipped weights, so that every registered name has weights on 3v3 and 6v6."""
+VARIANT_FOLDERS = {"ipf-time": "time"}
+"""The folder of a scenario's weights that holds a variant's weights."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 ANY_N = "any"
 """The folder of ``allocator/weights`` with the any-N (entity-token) weights."""
@@ -70,8 +77,10 @@ class MissingWeightsError(FileNotFoundError, ValueError):
 
 
 def weights_path(algo: str, reward: str, scenario: str) -> Path:
-    """Where the package keeps the weights of ``<algo>-<reward>`` for a scenario."""
-    return WEIGHTS_DIR / scenario / f"{algo}-{reward}.safetensors"
+    """Where the package keeps the weights of ``<algo>-<reward>`` for a scenario (a reward
+    variant's in the scenario's :data:`VARIANT_FOLDERS` folder)."""
+    folder = WEIGHTS_DIR / scenario / VARIANT_FOLDERS.get(reward, "")
+    return folder / f"{algo}-{reward}.safetensors"
 
 
 def any_n_weights_path(algo: str, reward: str, lifelong: bool = False) -> Path:
@@ -418,7 +427,7 @@ class _Unshielded:
 def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:
     name = f"{algo}-{reward}"
     pretty = {"maddpg": "MADDPG", "bicnet": "BiCNet"}[algo]
-    cls_name = f"{pretty}{reward.capitalize()}Allocator"
+    cls_name = f"{pretty}{''.join(part.capitalize() for part in reward.split('-'))}Allocator"
     doc = (f"The trained {pretty} policy with the {reward} reward (registry name {name!r}); "
            "see :class:`LearnedAllocator`.")
     return type(cls_name, (LearnedAllocator,),
@@ -427,7 +436,7 @@ def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:
 
 
 LEARNED: dict[str, type[LearnedAllocator]] = {
-    f"{a}-{r}": _make_class(a, r) for a in ALGOS for r in REWARDS
+    f"{a}-{r}": _make_class(a, r) for a in ALGOS for r in REWARDS + VARIANTS.get(a, ())
 }
 """The learned allocator classes by registry name."""
 globals().update({cls.__name__: cls for cls in LEARNED.values()})

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -99,7 +100,7 @@ def test_missing_shipped_weights_fail_instead_of_skipping_under_ci(tmp_path, mon
 
 @pytest.mark.parametrize("name", sorted(LEARNED))
 def test_shipped_weights_load_and_respond(name):
-    path = weights_path(*name.split("-"), "3v3")
+    path = weights_path(*name.split("-", 1), "3v3")
     _require_shipped(path)
     solver = allocator.make(name, scenario="3v3")
     metrics = sim.evaluate(solver, "3v3", episodes=100, seed=7)
@@ -165,3 +166,15 @@ def test_points_beyond_float32_are_reported_outside_the_world_bounds(tmp_path, w
     scene[what][1, 0] = big
     with pytest.raises(ValueError, match=rf"{what} rows \[1\] lie outside the world bounds"):
         solver.assign(scene["agents"], scene["tasks"])
+
+
+def test_the_ipf_time_variant_is_served_from_its_folder():
+    path = weights_path("bicnet", "ipf-time", "6v6")
+    assert path.parent.name == "time" and path.parent.parent.name == "6v6"
+    _require_shipped(path)
+    solver = allocator.make("bicnet-ipf-time", scenario="6v6")
+    assert type(solver).__name__ == "BiCNetIpfTimeAllocator"
+    assert Path(solver.checkpoint) == path
+    with pytest.raises(ValueError, match="reward='ipf-time', expected reward='ipf'"):
+        allocator.make("bicnet-ipf", scenario="6v6", checkpoint=path)
+    assert "maddpg-ipf-time" not in LEARNED  # no weights: not registered
