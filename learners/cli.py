@@ -201,6 +201,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "networks, targets and Adam moments carry over, e.g. to go on "
                              "from warehouse-20 to warehouse-50; the network width (hidden) "
                              "must match, the other settings may change")
+    parser.add_argument("--init-other-reward", action="store_true",
+                        help="with --init-from: the checkpoint may have been trained on another "
+                             "reward (e.g. an ipf run fine-tuned with ipf-time); the critic "
+                             "starts from the old reward's values")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -269,6 +273,9 @@ def run_train(args: argparse.Namespace) -> int:
                               **_parse_overrides(config.algo, args.overrides)}
         _set_run_flags(config, args, with_episodes=True)
         init_from = getattr(args, "init_from", None)
+        if getattr(args, "init_other_reward", False) and init_from is None:
+            raise ValueError("--init-other-reward goes with --init-from (it lets the checkpoint "
+                             "that starts the run have another reward)")
         if init_from is not None:
             if args.resume:
                 raise ValueError("--init-from starts a new run; --resume continues one from its "
@@ -281,7 +288,8 @@ def run_train(args: argparse.Namespace) -> int:
             if not init_from.is_file():
                 raise ValueError(f"--init-from: no training checkpoint at {init_from}")
         result = train(config, learner_config, resume=bool(args.resume), init_from=init_from,
-                       make_shield=getattr(args, "make_shield", None))
+                       make_shield=getattr(args, "make_shield", None),
+                       init_other_reward=getattr(args, "init_other_reward", False))
         _export_best(args, result, "the best policy")
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)

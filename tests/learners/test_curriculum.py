@@ -285,9 +285,21 @@ def test_agv_train_init_from_goes_on_on_another_floor(tmp_path, capsys):
               str(tmp_path / "none")], "no training checkpoint"),
             (["--scenario", "warehouse-30", "--algo", "maddpg-e", "--reward", "greedy",
               "--episodes", "2", "--run-dir", str(tmp_path / "y"), "--init-from", str(first),
-              "--set", "hidden=16"], "the same shape")):
+              "--set", "hidden=16"], "the same shape"),
+            (["--scenario", "warehouse-30", "--algo", "maddpg-e", "--reward", "minidist",
+              "--episodes", "2", "--run-dir", str(tmp_path / "z"), "--init-from", str(first)],
+             "trained with reward='greedy'"),
+            (["--scenario", "warehouse-30", "--algo", "maddpg-e", "--reward", "greedy",
+              "--episodes", "2", "--run-dir", str(tmp_path / "v"), "--init-other-reward"],
+             "--init-other-reward goes with --init-from")):
         assert cli(argv) == 2
         assert match in capsys.readouterr().err
+    other = tmp_path / "w30-minidist"
+    assert cli(["--algo", "maddpg-e", "--reward", "minidist", "--scenario", "warehouse-30",
+                "--episodes", "4", "--run-dir", str(other), "--init-from", str(first),
+                "--init-other-reward"] + small) == 0
+    assert read_metadata(other / "checkpoint.safetensors")["reward"] == "minidist"
+    assert int(_rows(other / "progress.csv")[-1]["updates"]) > updates
 
 
 def test_lanes_in_the_loop_are_served_with_the_weights(tmp_path):
