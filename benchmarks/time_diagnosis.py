@@ -36,6 +36,8 @@ trajectories recorded and prints one row of:
   toward the nearest open task raises the AGV's own IPF field (the paper's reward term, parked
   AGVs staying sources at -3), i.e. where that term leads toward the task.
 
+``--plot PNG`` also draws each controller's mean fraction of tasks claimed against the step.
+
 The test seed of the paper's tables is 0; validation (choices) uses 12345.
 """
 
@@ -159,7 +161,15 @@ def diagnose(controller: object, scenario: str, episodes: int, seed: int) -> dic
         "contested": contested / max(int(movers.sum()), 1),
         "claim 90%": float(order[:, _ninety(M) - 1].mean()),
         **late,
+        "claimed by step": _claim_curve(claimed, limit),
     }
+
+
+def _claim_curve(claimed: np.ndarray, limit: int) -> np.ndarray:
+    """The mean fraction of the tasks claimed after each step 0 .. limit, (limit + 1,), from the
+    recorded claims (T + 1, E, M); a finished episode keeps its last state."""
+    frames = claimed[np.minimum(np.arange(limit + 1), claimed.shape[0] - 1)]
+    return frames.mean(axis=(1, 2))
 
 
 def _ninety(m: int) -> int:
@@ -250,16 +260,57 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=300)
     parser.add_argument("--policy", nargs="*", default=[], type=Path)
     parser.add_argument("--hungarian", action="store_true")
+    parser.add_argument("--plot", type=Path, default=None, metavar="PNG",
+                        help="also draw the fraction of tasks claimed against the step, one "
+                             "line per controller, into this file")
     args = parser.parse_args(argv)
+    if args.plot is not None and args.plot.suffix.lower() != ".png":
+        raise ValueError(f"--plot must name a .png file, got {str(args.plot)!r}")
     torch.set_num_threads(1)
     names = (["hungarian"] if args.hungarian else []) + [str(p) for p in args.policy]
     print(f"{args.scenario}, seed {args.seed}, {args.episodes} episodes")
     print("| controller | " + " | ".join(COLUMNS) + " |")
     print("|---" * (len(COLUMNS) + 1) + "|")
+    curves = {}
     for name in names:
         row = diagnose(_controller(name), args.scenario, args.episodes, args.seed)
         cells = [f"{row[c]:.3f}" if c in FRACTIONS else f"{row[c]:.2f}" for c in COLUMNS]
         print(f"| {name} | " + " | ".join(cells) + " |")
+        curves[name] = row["claimed by step"]
+    if args.plot is not None:
+        plot_claims(curves, f"{args.scenario}, seed {args.seed}, {args.episodes} episodes",
+                    args.plot)
+        print(f"wrote {args.plot}")
+
+
+def plot_claims(curves: dict[str, np.ndarray], title: str, path: Path) -> None:
+    """Draw each controller's mean fraction of tasks claimed against the step into ``path``.
+
+    Parameters
+    ----------
+    curves : dict of str to ndarray
+        (limit + 1,) fractions by controller name (a policy file's name is shortened to its
+        parent folder and stem).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, curve in curves.items():
+        label = name if name == "hungarian" else "/".join(Path(name).parts[-2:])
+        ax.plot(np.arange(len(curve)), curve, label=label)
+    ax.axhline(0.9, color="grey", lw=0.8, ls=":")
+    ax.set_xlabel("step")
+    ax.set_ylabel("tasks claimed (mean fraction)")
+    ax.set_ylim(0, 1.02)
+    ax.set_title(title)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

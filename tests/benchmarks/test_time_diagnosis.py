@@ -29,12 +29,28 @@ def test_min_sum_and_bottleneck_match_brute_force(n: int, m: int) -> None:
         assert time_diagnosis._bottleneck(dist) == pytest.approx(min(maxes))
 
 
-def test_a_20v20_run_prints_a_row(capsys) -> None:
+def test_a_20v20_run_prints_a_row_and_draws_the_claims(capsys, tmp_path) -> None:
+    png = tmp_path / "claims.png"
     time_diagnosis.main(["--scenario", "20v20", "--seed", "3", "--episodes", "2",
-                         "--hungarian"])
+                         "--hungarian", "--plot", str(png)])
+    assert png.stat().st_size > 1000
     out = capsys.readouterr().out
     row = [line for line in out.splitlines() if line.startswith("| hungarian |")]
     assert len(row) == 1
     cells = [float(c) for c in row[0].strip("|").split("|")[1:]]
     resp, sum_opt = cells[0], cells[8]
     assert resp == 1.0 and sum_opt >= 1.0 - 1e-9
+
+
+def test_the_claim_curve_counts_claims_and_keeps_a_finished_episode_s_state() -> None:
+    claimed = np.zeros((3, 2, 2), dtype=bool)  # (T + 1, E, M): two steps recorded
+    claimed[1:, 0, 0] = True
+    claimed[2:, 1] = True
+    curve = time_diagnosis._claim_curve(claimed, limit=4)
+    np.testing.assert_allclose(curve, [0.0, 0.25, 0.75, 0.75, 0.75])
+
+
+def test_plot_must_name_a_png(tmp_path) -> None:
+    with pytest.raises(ValueError, match="--plot must name a .png file"):
+        time_diagnosis.main(["--scenario", "3v3", "--episodes", "1", "--plot",
+                             str(tmp_path / "x.pdf")])
