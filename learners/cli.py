@@ -176,6 +176,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stop-response", type=rate, default=None,
                         help="stop once an evaluation reaches this task response rate, in "
                              "[0, 1] (default: never)")
+    parser.add_argument("--fastest-min-response", type=rate, default=None,
+                        help="fastest.safetensors keeps the policy of the least validation "
+                             "time among evaluations with at least this response, in [0, 1] "
+                             "(default 0.97)")
     parser.add_argument("--threads", type=positive_int, default=None,
                         help="torch threads (default 1)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
@@ -304,7 +308,7 @@ def _set_run_flags(config: Any, args: argparse.Namespace, with_episodes: bool) -
     """Copy the run flags given on the command line into the ``TrainConfig``."""
     keys = ("episodes",) * with_episodes + ("eval_every", "eval_episodes", "eval_seed",
                                             "checkpoint_every", "stop_response", "threads",
-                                            "window", "eval_steps")
+                                            "window", "eval_steps", "fastest_min_response")
     for key in keys:
         if getattr(args, key) is not None:
             setattr(config, key, getattr(args, key))

@@ -145,3 +145,27 @@ def test_sigint_stops_cleanly_with_a_checkpoint_and_resumes_exactly(tmp_path):
     wa, wb = _weights(whole.learner), _weights(resumed.learner)
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k
+
+
+def test_fastest_keeps_the_least_time_at_the_response_floor(tmp_path):
+    import math
+
+    from learners.checkpoint import read_metadata
+
+    result = train(_tiny_config("maddpg", tmp_path / "all", 64, fastest_min_response=0.0),
+                   TINY)
+    with open(result.run_dir / "progress.csv") as f:
+        evals = [(float(r["eval_response_rate"]), float(r["eval_avg_time"]))
+                 for r in csv.DictReader(f) if r["eval_response_rate"]]
+    assert len(evals) >= 4
+    fastest = read_metadata(result.run_dir / "fastest.safetensors")["last_eval"]
+    assert fastest["avg_time"] == pytest.approx(min(t for _, t in evals), abs=1e-3)
+    # at a floor only some evaluations reach, the least time among those (or no file)
+    floor = sorted(r for r, _ in evals)[len(evals) // 2]
+    again = train(_tiny_config("maddpg", tmp_path / "half", 64, fastest_min_response=floor),
+                  TINY)
+    qualifying = [t for r, t in evals if r >= floor]
+    meta = read_metadata(again.run_dir / "fastest.safetensors")["last_eval"]
+    assert meta["response_rate"] >= floor
+    assert meta["avg_time"] == pytest.approx(min(qualifying), abs=1e-3)
+    assert not math.isnan(meta["avg_time"])
