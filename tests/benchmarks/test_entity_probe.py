@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from benchmark_scripts import load
 
+import sim.rewards
 from learners.checkpoint import read_metadata
 from learners.train import TrainConfig, train
 
@@ -24,7 +25,11 @@ def _start(tmp_path: Path) -> Path:
     return train(config, TINY).run_dir / "checkpoint.safetensors"
 
 
-def test_a_tiny_probe_starts_from_an_ipf_run_with_the_changed_reward(tmp_path: Path) -> None:
+def test_a_tiny_probe_starts_from_an_ipf_run_with_the_changed_reward(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The script registers its reward under 'ipf-time' for its process; restore it after.
+    monkeypatch.setitem(sim.rewards.REWARD_VARIANTS, "ipf-time",
+                        sim.rewards.REWARD_VARIANTS["ipf-time"])
     start = _start(tmp_path)
     settings = tmp_path / "config.json"
     settings.write_text(json.dumps({"bicnet-e": TINY}))
@@ -36,6 +41,12 @@ def test_a_tiny_probe_starts_from_an_ipf_run_with_the_changed_reward(tmp_path: P
     assert record["options"] == {"assign_weight": 2.0, "parked_sources": False}
     meta = read_metadata(tmp_path / "probes" / "p" / "checkpoint.safetensors")
     assert meta["reward"] == "ipf-time" and meta["scenario"] == "4v4"
+    assert sim.rewards.REWARD_VARIANTS["ipf-time"]().parked_sources is False
+
+
+def test_the_variant_is_restored_after_the_probe_test() -> None:
+    # (runs after the test above in file order: the registry is the shipped one again)
+    assert sim.rewards.make_reward("ipf-time").time_cost == sim.rewards.TIME_COST > 0
 
 
 @pytest.mark.parametrize(("flags", "match"), [
