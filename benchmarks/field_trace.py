@@ -18,14 +18,17 @@ import argparse
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the scripts beside this one
+
 import numpy as np
 import torch
+from time_diagnosis import _controller, recorded_episodes
 
 import sim
-from sim.evaluate import _play, evaluation_scenes
 from sim.ipf import AGENT_VALUE, TASK_VALUE, ipf_grid
 
-READINGS = ("parked at -3 (paper)", "parked at 0", "parked left out")
+READINGS = {"parked at -3 (paper)": AGENT_VALUE, "parked at 0": 0.0, "parked left out": None}
+"""Each reading of the parked AGVs: the value of their sources, or None for no source."""
 
 
 def trace(controller: object, scenario: str, seed: int, episodes: int, episode: int,
@@ -48,10 +51,7 @@ def trace(controller: object, scenario: str, seed: int, episodes: int, episode: 
         raise ValueError(f"--episode must be in [0, {episodes - 1}], got {episode}")
     if not 0 <= agv < scn.num_agents:
         raise ValueError(f"--agv must be in [0, {scn.num_agents - 1}], got {agv}")
-    agents, tasks = evaluation_scenes(scn, episodes, seed)
-    env = sim.AGVEnv(scn, num_envs=episodes, reward="minidist", seed=seed)
-    env.set_state(agents, tasks)
-    out = _play(env, env.observe(), controller, record=True)
+    env, tasks, out = recorded_episodes(controller, scn, episodes, seed)
     pos, claimed, holder = out["agent_pos"], out["claimed"], out["agent_task"]
     if not 0 <= step < pos.shape[0]:
         raise ValueError(f"--step must be in [0, {pos.shape[0] - 1}], got {step}")
@@ -63,12 +63,14 @@ def trace(controller: object, scenario: str, seed: int, episodes: int, episode: 
     parked = holder[step, episode, others] >= 0
     open_tasks = tasks[episode].numpy()[~claimed[step, episode]].astype(np.float64)
     result = {}
-    for reading in READINGS:
-        keep = [not (p and reading == READINGS[2]) for p in parked]
+    for reading, parked_value in READINGS.items():
+        if parked_value is None:
+            keep, agent_values = ~parked, np.full(int((~parked).sum()), AGENT_VALUE)
+        else:
+            keep, agent_values = np.ones_like(parked), np.where(parked, parked_value, AGENT_VALUE)
         points = np.concatenate([pos[step, episode, others][keep], open_tasks])
-        values = [0.0 if (p and reading == READINGS[1]) else AGENT_VALUE
-                  for p, k in zip(parked, keep, strict=True) if k]
-        values = torch.tensor(values + [TASK_VALUE] * len(open_tasks), dtype=torch.float64)
+        values = torch.tensor(np.r_[agent_values, np.full(len(open_tasks), TASK_VALUE)],
+                              dtype=torch.float64)
         cells = grid.cell_of(torch.from_numpy(points)).long()
         field = grid.fields(cells[None], values[None])[0].flatten().numpy()
 
@@ -94,8 +96,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--step", type=int, required=True)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    sys.path.insert(0, str(Path(__file__).resolve().parent))  # the scripts beside this one
-    from time_diagnosis import _controller
 
     result = trace(_controller(args.policy), args.scenario, args.seed, args.episodes,
                    args.episode, args.agv, args.step)

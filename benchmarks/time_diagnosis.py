@@ -53,6 +53,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import maximum_bipartite_matching
+from torch import Tensor
 
 import sim
 from sim.evaluate import evaluation_scenes, metrics_from_episodes
@@ -84,10 +85,7 @@ def diagnose(controller: object, scenario: str, episodes: int, seed: int) -> dic
         The :data:`COLUMNS`, described in the module docstring.
     """
     scn = sim.get_scenario(scenario)
-    agents, tasks = evaluation_scenes(scn, episodes, seed)
-    env = sim.AGVEnv(scn, num_envs=episodes, reward="minidist", seed=seed)
-    env.set_state(agents, tasks)
-    out = run_episodes_from(env, controller)
+    env, tasks, out = recorded_episodes(controller, scn, episodes, seed)
     pos = out["agent_pos"]            # (T + 1, E, N, 2)
     claimed = out["claimed"]          # (T + 1, E, M)
     holder = out["agent_task"]        # (T + 1, E, N)
@@ -146,7 +144,7 @@ def diagnose(controller: object, scenario: str, episodes: int, seed: int) -> dic
         same = both & (heading[..., a] == heading[..., b])
         shared += int(same.sum())
     contested = shared * 2
-    late = _endgame(env, pos, claimed, holder, task_pos, steps, claim_step)
+    late = _endgame(env, pos, claimed, holder, task_pos, rel, steps, claim_step)
     metrics = metrics_from_episodes(
         out["claims"], M, steps, out["finished"], out["rewards"], out["collisions"],
         out["task_of_agent"])
@@ -178,13 +176,15 @@ def _ninety(m: int) -> int:
 
 
 def _endgame(env: sim.AGVEnv, pos: np.ndarray, claimed: np.ndarray, holder: np.ndarray,
-             task_pos: np.ndarray, steps: np.ndarray, claim_step: np.ndarray) -> dict[str, float]:
+             task_pos: np.ndarray, rel: np.ndarray, steps: np.ndarray,
+             claim_step: np.ndarray) -> dict[str, float]:
     """The ``late ...`` columns: idle AGV-steps after an episode's 90% claim, while it runs.
 
     Parameters
     ----------
     pos : (T + 1, E, N, 2) positions; claimed : (T + 1, E, M); holder : (T + 1, E, N);
-    task_pos : (E, M, 2); steps : (E,); claim_step : (E, M) step of each task's claim.
+    task_pos : (E, M, 2); rel : (T, E, N, M, 2) each task's position relative to each AGV
+    before each step; steps : (E,); claim_step : (E, M) step of each task's claim.
     """
     T = pos.shape[0] - 1
     M = task_pos.shape[1]
@@ -193,7 +193,6 @@ def _endgame(env: sim.AGVEnv, pos: np.ndarray, claimed: np.ndarray, holder: np.n
     t = np.arange(T)[:, None]
     window = (t >= after[None]) & (t < steps[None])                    # (T, E)
     idle = (holder[:-1] < 0) & window[..., None] & (~claimed[:-1]).any(-1, keepdims=True)
-    rel = task_pos[None, :, None] - pos[:-1, :, :, None]                # (T, E, N, M, 2)
     dist = np.where((~claimed[:-1])[:, :, None], np.linalg.norm(rel, axis=-1), np.inf)
     near = dist.argmin(-1)                                              # (T, E, N)
     d_near = np.take_along_axis(dist, near[..., None], -1)[..., 0]
@@ -246,11 +245,16 @@ def _bottleneck(dist: np.ndarray) -> float:
     return float(values[lo])
 
 
-def run_episodes_from(env: sim.AGVEnv, controller: object) -> dict[str, np.ndarray]:
-    """Run the episodes whose scenes ``env`` already holds, recording trajectories."""
+def recorded_episodes(controller: object, scn: sim.Scenario, episodes: int,
+                      seed: int) -> tuple[sim.AGVEnv, Tensor, dict[str, np.ndarray]]:
+    """Play the evaluation scenes of :func:`sim.evaluate` (same scenes for the same seed) with
+    trajectories recorded: the environment, the tasks (E, M, 2) and ``_play``'s record."""
     from sim.evaluate import _play
 
-    return _play(env, env.observe(), controller, record=True)
+    agents, tasks = evaluation_scenes(scn, episodes, seed)
+    env = sim.AGVEnv(scn, num_envs=episodes, reward="minidist", seed=seed)
+    env.set_state(agents, tasks)
+    return env, tasks, _play(env, env.observe(), controller, record=True)
 
 
 def main(argv: list[str] | None = None) -> None:
