@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the scripts beside t
 
 import numpy as np
 import torch
-from time_diagnosis import _controller, recorded_episodes
+from time_diagnosis import _controller, check_episodes, recorded_episodes
 
 import sim
 from sim.ipf import AGENT_VALUE, TASK_VALUE, ipf_grid
@@ -44,9 +44,11 @@ def trace(controller: object, scenario: str, seed: int, episodes: int, episode: 
     Raises
     ------
     ValueError
-        For an episode, AGV or step out of range, or an AGV that is not idle at that step.
+        For a number of episodes outside [1, 2000], an episode, AGV or step out of range, or
+        an AGV that is not idle at that step.
     """
     scn = sim.get_scenario(scenario)
+    check_episodes(episodes)
     if not 0 <= episode < episodes:
         raise ValueError(f"--episode must be in [0, {episodes - 1}], got {episode}")
     if not 0 <= agv < scn.num_agents:

@@ -66,6 +66,19 @@ FRACTIONS = ("resp", "speed", "path/straight", "sum/opt", "makespan/opt", "opt-a
              "contested", "late far", "late by parked", "late uphill")
 
 
+MAX_EPISODES = 2000
+"""At most this many episodes in one recorded batch: the trajectories and the end-game arrays
+grow with it (about 1.2 GB at 20v20 and 2000 episodes)."""
+
+
+def check_episodes(episodes: int) -> int:
+    """``--episodes`` in [1, :data:`MAX_EPISODES`], or a ValueError naming the range."""
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise ValueError(f"--episodes must be in [1, {MAX_EPISODES}] (one recorded batch), "
+                         f"got {episodes}")
+    return episodes
+
+
 def _controller(name: str):  # noqa: ANN202 - a controller of any kind
     if name == "hungarian":
         import allocator
@@ -268,6 +281,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="also draw the fraction of tasks claimed against the step, one "
                              "line per controller, into this file")
     args = parser.parse_args(argv)
+    check_episodes(args.episodes)
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ValueError(f"--plot must name a .png file, got {str(args.plot)!r}")
     torch.set_num_threads(1)

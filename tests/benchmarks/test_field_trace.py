@@ -36,6 +36,8 @@ def test_main_prints_each_reading(capsys) -> None:
     ({"episode": 2}, r"--episode must be in \[0, 1\]"),
     ({"agv": 6}, r"--agv must be in \[0, 5\]"),
     ({"step": 999}, r"--step must be in"),
+    ({"episodes": 0}, r"--episodes must be in \[1, 2000\]"),
+    ({"episodes": 10**8}, r"--episodes must be in \[1, 2000\]"),
 ])
 def test_out_of_range_is_a_clear_error(kw, match) -> None:
     args = {"seed": 0, "episodes": 2, "episode": 0, "agv": 0, "step": 0, **kw}

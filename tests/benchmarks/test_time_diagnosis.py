@@ -55,3 +55,9 @@ def test_plot_must_name_a_png(tmp_path) -> None:
     with pytest.raises(ValueError, match="--plot must name a .png file"):
         time_diagnosis.main(["--scenario", "3v3", "--episodes", "1", "--plot",
                              str(tmp_path / "x.pdf")])
+
+
+@pytest.mark.parametrize("episodes", ["0", "-3", "2001"])
+def test_episodes_out_of_range_is_a_clear_error(episodes) -> None:
+    with pytest.raises(ValueError, match=r"--episodes must be in \[1, 2000\]"):
+        time_diagnosis.main(["--scenario", "6v6", "--episodes", episodes, "--hungarian"])
