@@ -204,7 +204,15 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "for its last stage, or checkpoint.safetensors): "
                              "networks, targets and Adam moments carry over, e.g. to go on "
                              "from warehouse-20 to warehouse-50; the network width (hidden) "
-                             "must match, the other settings may change")
+                             "must match, the other settings may change. Or a deployed "
+                             "policy (best.safetensors, a shipped weight file) of any "
+                             "algorithm and reward: only its actor carries over (see "
+                             "--critic-warmup)")
+    parser.add_argument("--critic-warmup", type=non_negative_int, default=None,
+                        metavar="UPDATES",
+                        help="the first UPDATES gradient updates train only the critic (the "
+                             "actor's learning rate is 0): for a run started --init-from a "
+                             "deployed policy, whose critic starts fresh (default 0)")
     parser.add_argument("--init-other-reward", action="store_true",
                         help="with --init-from: the checkpoint may have been trained on another "
                              "reward (e.g. an ipf run fine-tuned with ipf-time); the critic "
@@ -290,7 +298,7 @@ def run_train(args: argparse.Namespace) -> int:
                 init_from = last_stage_checkpoint(init_from)
             init_from = resolve_checkpoint_path(init_from)
             if not init_from.is_file():
-                raise ValueError(f"--init-from: no training checkpoint at {init_from}")
+                raise ValueError(f"--init-from: no checkpoint at {init_from}")
         result = train(config, learner_config, resume=bool(args.resume), init_from=init_from,
                        make_shield=getattr(args, "make_shield", None),
                        init_other_reward=getattr(args, "init_other_reward", False))
@@ -308,7 +316,8 @@ def _set_run_flags(config: Any, args: argparse.Namespace, with_episodes: bool) -
     """Copy the run flags given on the command line into the ``TrainConfig``."""
     keys = ("episodes",) * with_episodes + ("eval_every", "eval_episodes", "eval_seed",
                                             "checkpoint_every", "stop_response", "threads",
-                                            "window", "eval_steps", "fastest_min_response")
+                                            "window", "eval_steps", "fastest_min_response",
+                                            "critic_warmup")
     for key in keys:
         if getattr(args, key) is not None:
             setattr(config, key, getattr(args, key))

@@ -131,6 +131,12 @@ class TrainConfig:
     """Write a resumable checkpoint every this many episodes (and always at the end)."""
     stop_response: float | None = None
     """Stop early once an evaluation reaches this task response rate (None: never)."""
+    critic_warmup: int = 0
+    """Gradient updates at the start of the run during which only the critic(s) learn: the
+    actors' learning rate is zero, and their Adam moments start afresh when it is restored.
+    Meant for a run started from a deployed policy (``init_from`` a ``kind="policy"`` file,
+    which carries no critic): the new critic first learns the values of that policy, so that
+    the policy is not pulled around by an untrained critic."""
     fastest_min_response: float = 0.97
     """Episodic only: ``fastest.safetensors`` keeps the policy of the least validation time
     among the evaluations whose task response is at least this (issue 16's time target is
@@ -183,6 +189,7 @@ class TrainConfig:
         for name in ("episodes", "eval_episodes", "log_every", "checkpoint_every", "threads",
                      "window", "eval_steps"):
             setattr(self, name, check_int(name, getattr(self, name), 1))
+        self.critic_warmup = check_int("critic_warmup", self.critic_warmup, 0)
         self.eval_every = check_int("eval_every", self.eval_every, 0)
         # the noise and sampling generators are seeded with seed + 1 and seed + 2
         self.seed = check_int("seed", self.seed, 0, 2**63 - 3)
@@ -385,6 +392,10 @@ def train(
         and update count start this new run; the replay
         buffer, environments and counters start afresh. Only for the entity learners
         (``learners.algorithms.ENTITY_ALGORITHMS``), whose weights do not depend on N.
+        Or a deployed policy (``kind="policy"``, e.g. a shipped ``best.safetensors``) of any
+        algorithm, on the same scenario unless it is an entity learner's: only its actor
+        carries over (the critic starts fresh, see ``TrainConfig.critic_warmup``), and its
+        reward may differ from this run's (a fine-tune with another reward).
     make_shield : callable, optional
         Builds the safety shield of a learner config with ``shield=True`` from the controller
         it wraps: ``allocator.SafetyShield`` (what ``agv train`` passes). ``learners`` does not
@@ -492,7 +503,14 @@ def train(
             window_steps = saved["stats.window_steps"].clone()
             best_throughput = float(counters["last_eval"].get("best_throughput", -1.0))
     elif init is not None:
-        learner.load_training_tensors(init)
+        try:
+            if any(k.startswith("critic.") for k in init):  # a training checkpoint
+                learner.load_training_tensors(init)
+            else:
+                learner.load_policy_tensors(init)
+        except RuntimeError as err:  # a shape the metadata checks did not catch
+            raise ValueError(f"init_from {init_from}: its networks do not fit this run's "
+                             f"({str(err).strip().splitlines()[-1].strip()})") from err
     shield = None
     if getattr(cfg, "shield", False):  # the entity learners' option: the shield in the loop
         if make_shield is None:
@@ -647,6 +665,7 @@ def train(
             # 3. sample, update critics and actors, soft-update the targets
             if len(buffer) >= cfg.learning_starts:
                 for _ in range(cfg.updates_per_step):
+                    _freeze_actor(learner, learner.updates < config.critic_warmup)
                     losses = learner.update(buffer.sample(cfg.batch_size, sample_gen))
             counters["updates"] = learner.updates
             counters["seconds"] = time.perf_counter() - start
@@ -723,26 +742,51 @@ set the networks' shapes); the others (learning rates, noise, batch, buffer, env
 shield) may change, e.g. to fine-tune on another floor."""
 
 
+def _freeze_actor(learner: ActorCritic, frozen: bool) -> None:
+    """Set the actor optimizer's learning rate to 0 (``frozen``) or back to the config's; on
+    unfreezing, drop the Adam moments gathered from the warming-up critic."""
+    opt = learner.actor_optimizer
+    lr = 0.0 if frozen else learner.config.actor_lr
+    if opt.param_groups[0]["lr"] == lr:
+        return
+    for group in opt.param_groups:
+        group["lr"] = lr
+    if not frozen:
+        opt.state.clear()
+
+
 def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
                   resume: bool, other_reward: bool = False) -> dict[str, Tensor]:
-    """The learner tensors of a training checkpoint that starts a new run (``init_from``).
+    """The learner tensors that start a new run (``init_from``): every tensor of an entity
+    learner's training checkpoint, or the actor of a deployed policy (``kind="policy"``).
 
     Raises
     ------
     ValueError
-        When resuming, for a non-entity algorithm, or for a checkpoint of another algorithm,
-        reward (unless ``other_reward``), mode (lifelong or episodic) or network width
-        (:data:`INIT_FROM_SHAPES`).
+        When resuming; for a training checkpoint of a non-entity algorithm; for a checkpoint
+        of another algorithm, reward (unless ``other_reward``; a policy may always have
+        another reward), mode (lifelong or episodic), network width
+        (:data:`INIT_FROM_SHAPES`), or, for a policy whose weights depend on N, scenario.
     """
     from learners.algorithms import ENTITY_ALGORITHMS
 
     if resume:
         raise ValueError("init_from starts a new run; a resumed run continues from its own "
                          "checkpoint")
-    if config.algo not in ENTITY_ALGORITHMS:
-        raise ValueError(f"init_from needs an algorithm whose weights do not depend on N "
-                         f"({list(ENTITY_ALGORITHMS)}), got {config.algo!r}")
-    tensors, meta = load_checkpoint(path, kind="training")
+    tensors, meta = load_checkpoint(path)
+    if meta["kind"] == "policy":
+        other_reward = True  # a policy carries no values of its reward
+        if (meta["algo"] == config.algo and config.algo not in ENTITY_ALGORITHMS
+                and meta["scenario"] != config.scenario):
+            raise ValueError(f"init_from {path} is a {config.algo} policy for "
+                             f"{meta['scenario']!r}; its weights (their observation size, "
+                             "and MADDPG's per-agent actors) fit only that scenario, this run "
+                             f"is on {config.scenario!r}")
+    elif config.algo not in ENTITY_ALGORITHMS:
+        raise ValueError(f"init_from a training checkpoint needs an algorithm whose weights "
+                         f"do not depend on N ({list(ENTITY_ALGORITHMS)}), got "
+                         f"{config.algo!r}; a deployed policy (best.safetensors) of the "
+                         "same scenario may start any algorithm")
     if is_lifelong(meta["scenario"]) != config.lifelong:
         modes = {True: "a lifelong floor", False: "episodic scenes"}
         raise ValueError(f"init_from {path} was trained on {modes[is_lifelong(meta['scenario'])]}"

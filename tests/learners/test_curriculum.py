@@ -115,7 +115,8 @@ def test_init_from_checks_what_it_starts_from(tmp_path):
         train(other, TINY, init_from=ckpt)
     plain = _config(tmp_path / "c")
     plain.algo = "maddpg"
-    with pytest.raises(ValueError, match="do not depend on N"):
+    with pytest.raises(ValueError, match="training checkpoint needs an algorithm whose "
+                                         "weights do not depend on N"):
         train(plain, TINY, init_from=ckpt)
     started = _config(tmp_path / "d")
     started.scenario, started.episodes = "4v4", 8
@@ -282,7 +283,7 @@ def test_agv_train_init_from_goes_on_on_another_floor(tmp_path, capsys):
               str(first)], "--init-from is for a single run"),
             (["--scenario", "warehouse-30", "--algo", "maddpg-e", "--reward", "greedy",
               "--episodes", "2", "--run-dir", str(tmp_path / "x"), "--init-from",
-              str(tmp_path / "none")], "no training checkpoint"),
+              str(tmp_path / "none")], "no checkpoint at"),
             (["--scenario", "warehouse-30", "--algo", "maddpg-e", "--reward", "greedy",
               "--episodes", "2", "--run-dir", str(tmp_path / "y"), "--init-from", str(first),
               "--set", "hidden=16"], "the same shape"),
@@ -335,3 +336,72 @@ def test_lanes_in_the_loop_are_served_with_the_weights(tmp_path):
         with pytest.raises(ValueError, match="shield_keep_right"):
             train(_lifelong_config(tmp_path / "bad"), {**LIFELONG_SMALL,
                                                      "shield_keep_right": bad})
+
+
+def _actor(learner) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in learner.policy_tensors().items()}
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "bicnet"])
+def test_init_from_a_deployed_policy_with_a_critic_warmup(tmp_path, algo):
+    """A shipped policy (actor only, any reward) starts a run: the actor carries over, the
+    critic starts fresh and learns alone for ``critic_warmup`` updates, then the actor learns."""
+    first = _config(tmp_path / "a", algo=algo)
+    first.episodes = 8
+    base = train(first, TINY)
+    policy = base.run_dir / "policy.safetensors"
+    start = _actor(base.learner)
+    tuned = _config(tmp_path / "b", algo=algo)
+    tuned.reward, tuned.episodes = "greedy", 16  # another reward: a policy holds no values
+    tuned.critic_warmup = 10**6  # longer than the run: the actor never moves
+    frozen = train(tuned, TINY, init_from=policy)
+    assert frozen.updates > 0
+    for key, value in _actor(frozen.learner).items():
+        torch.testing.assert_close(value, start[key], rtol=0, atol=0)
+    assert frozen.learner.actor_optimizer.param_groups[0]["lr"] == 0.0
+    short = _config(tmp_path / "c", algo=algo)
+    short.reward, short.episodes, short.critic_warmup = "greedy", 16, 3
+    moved = train(short, TINY, init_from=policy)
+    assert moved.updates > 3
+    assert moved.learner.actor_optimizer.param_groups[0]["lr"] == TINY.get("actor_lr", 1e-3)
+    assert any(not torch.equal(v, start[k]) for k, v in _actor(moved.learner).items())
+    # the critic did not come from the first run (a policy has none)
+    assert not torch.equal(moved.learner.critic.state_dict()[next(iter(
+        moved.learner.critic.state_dict()))], base.learner.critic.state_dict()[next(iter(
+            base.learner.critic.state_dict()))])
+
+
+def test_init_from_a_policy_checks_its_scenario_and_shapes(tmp_path, capsys):
+    first = _config(tmp_path / "a", algo="maddpg")
+    first.episodes = 8
+    policy = train(first, TINY).run_dir / "policy.safetensors"
+    elsewhere = _config(tmp_path / "b", algo="maddpg")
+    elsewhere.scenario = "4v4"  # MADDPG's per-agent actors fit only their scenario
+    with pytest.raises(ValueError, match="fit only that scenario"):
+        train(elsewhere, TINY, init_from=policy)
+    wide = _config(tmp_path / "c", algo="maddpg")
+    with pytest.raises(ValueError, match="hidden=.*the same shape"):
+        train(wide, {**TINY, "hidden": TINY["hidden"] * 2}, init_from=policy)
+    other = _config(tmp_path / "d", algo="bicnet")
+    with pytest.raises(ValueError, match="algo='maddpg'"):
+        train(other, TINY, init_from=policy)
+    with pytest.raises(ValueError, match="critic_warmup must be"):
+        TrainConfig(critic_warmup=-1)
+    bic = _config(tmp_path / "f", algo="bicnet")
+    bic.episodes = 8
+    bic_policy = train(bic, TINY).run_dir / "policy.safetensors"
+    grown = _config(tmp_path / "g", algo="bicnet")
+    grown.scenario = "4v4"  # the observation size depends on N
+    with pytest.raises(ValueError, match="fit only that scenario"):
+        train(grown, TINY, init_from=bic_policy)
+    # on the command line
+    parser = __import__("argparse").ArgumentParser()
+    add_train_arguments(parser)
+    args = parser.parse_args(["--algo", "bicnet", "--reward", "ipf-time", "--scenario", "3v3",
+                              "--episodes", "8", "--run-dir", str(tmp_path / "h"),
+                              "--init-from", str(bic_policy), "--critic-warmup", "5",
+                              "--eval-every", "8", "--eval-episodes", "4", "--no-progress",
+                              "--set", f"hidden={TINY['hidden']}"])
+    assert run_train(args) == 0
+    assert read_metadata(tmp_path / "h" / "checkpoint.safetensors")["train_config"][
+        "critic_warmup"] == 5
