@@ -133,7 +133,8 @@ class TrainConfig:
     """Stop early once an evaluation reaches this task response rate (None: never)."""
     critic_warmup: int = 0
     """Gradient updates at the start of the run during which only the critic(s) learn: the
-    actors' learning rate is zero, and their Adam moments start afresh when it is restored.
+    actors' learning rate is zero (their Adam moments go on gathering, so that the first real
+    steps are not full-size).
     Meant for a run started from a deployed policy (``init_from`` a ``kind="policy"`` file,
     which carries no critic): the new critic first learns the values of that policy, so that
     the policy is not pulled around by an untrained critic."""
@@ -743,16 +744,15 @@ shield) may change, e.g. to fine-tune on another floor."""
 
 
 def _freeze_actor(learner: ActorCritic, frozen: bool) -> None:
-    """Set the actor optimizer's learning rate to 0 (``frozen``) or back to the config's; on
-    unfreezing, drop the Adam moments gathered from the warming-up critic."""
-    opt = learner.actor_optimizer
+    """Set the actor optimizer's learning rate to 0 (``frozen``) or back to the config's.
+
+    Adam keeps gathering its moments while the rate is 0, so that its first real steps are
+    scaled by the gradients' history: moments started afresh make the first step of every
+    weight a full ``actor_lr`` in the sign of one noisy gradient, which threw a fine-tuned
+    6v6 policy from 99.9% to 51% response in one evaluation (docs/learners.md)."""
     lr = 0.0 if frozen else learner.config.actor_lr
-    if opt.param_groups[0]["lr"] == lr:
-        return
-    for group in opt.param_groups:
+    for group in learner.actor_optimizer.param_groups:
         group["lr"] = lr
-    if not frozen:
-        opt.state.clear()
 
 
 def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
