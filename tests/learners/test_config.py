@@ -58,6 +58,7 @@ TRAIN = {
     "checkpoint_every": ([0, -1, 1.5], ">= 1"),
     "stop_response": ([NAN, -0.1, 1.5, INF, "0.9"], "[0, 1]"),
     "fastest_min_response": ([NAN, -0.1, 1.5, INF, "0.9", None], "[0, 1]"),
+    "critic_warmup": ([-1, 2.5, "10", None, True], ">= 0"),
     "threads": ([0, -1, 1.5], ">= 1"),
     "progress": (["no", None], "True or False"),
     "tensorboard": (["no", 0], "True or False"),
