@@ -747,9 +747,8 @@ def _freeze_actor(learner: ActorCritic, frozen: bool) -> None:
     """Set the actor optimizer's learning rate to 0 (``frozen``) or back to the config's.
 
     Adam keeps gathering its moments while the rate is 0, so that its first real steps are
-    scaled by the gradients' history: moments started afresh make the first step of every
-    weight a full ``actor_lr`` in the sign of one noisy gradient, which threw a fine-tuned
-    6v6 policy from 99.9% to 51% response in one evaluation (docs/learners.md)."""
+    scaled by the gradients' history rather than being a full ``actor_lr`` in the sign of
+    one gradient, as with moments started afresh."""
     lr = 0.0 if frozen else learner.config.actor_lr
     for group in learner.actor_optimizer.param_groups:
         group["lr"] = lr
