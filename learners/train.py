@@ -449,8 +449,10 @@ def train(
                        not isinstance(learner_config, dict)
                        else make_config(config.algo, learner_config))
     init: dict[str, Tensor] | None = None
+    init_kind = ""
     if init_from is not None:
-        init = _init_tensors(init_from, config, learner_cfg, resume, init_other_reward)
+        init, init_kind = _init_tensors(init_from, config, learner_cfg, resume,
+                                        init_other_reward)
     cfg = learner_cfg
     config_class = ALGORITHMS[config.algo][1]
     if not isinstance(cfg, config_class):
@@ -505,7 +507,7 @@ def train(
             best_throughput = float(counters["last_eval"].get("best_throughput", -1.0))
     elif init is not None:
         try:
-            if any(k.startswith("critic.") for k in init):  # a training checkpoint
+            if init_kind == "training":
                 learner.load_training_tensors(init)
             else:
                 learner.load_policy_tensors(init)
@@ -666,7 +668,8 @@ def train(
             # 3. sample, update critics and actors, soft-update the targets
             if len(buffer) >= cfg.learning_starts:
                 for _ in range(cfg.updates_per_step):
-                    _freeze_actor(learner, learner.updates < config.critic_warmup)
+                    if learner.updates <= config.critic_warmup:  # only around the warm-up
+                        _freeze_actor(learner, learner.updates < config.critic_warmup)
                     losses = learner.update(buffer.sample(cfg.batch_size, sample_gen))
             counters["updates"] = learner.updates
             counters["seconds"] = time.perf_counter() - start
@@ -755,9 +758,10 @@ def _freeze_actor(learner: ActorCritic, frozen: bool) -> None:
 
 
 def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
-                  resume: bool, other_reward: bool = False) -> dict[str, Tensor]:
+                  resume: bool, other_reward: bool = False) -> tuple[dict[str, Tensor], str]:
     """The learner tensors that start a new run (``init_from``): every tensor of an entity
-    learner's training checkpoint, or the actor of a deployed policy (``kind="policy"``).
+    learner's training checkpoint, or the actor of a deployed policy, with the checkpoint's
+    kind (``"training"`` or ``"policy"``).
 
     Raises
     ------
@@ -800,7 +804,7 @@ def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg
             raise ValueError(f"init_from {path} has networks of {key}={meta['config'].get(key)!r}"
                              f", this run asks for {key}={getattr(learner_cfg, key)!r}; the "
                              "networks must have the same shape")
-    return tensors
+    return tensors, meta["kind"]
 
 
 def load_run_config(run_dir: str | os.PathLike[str]) -> tuple[TrainConfig, dict[str, Any]]:
