@@ -199,12 +199,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "'3v3:2000,6v6:2000,10v10:1000,20v20:500' (replaces --scenario "
                              "and --episodes; see docs/learners.md)")
     parser.add_argument("--init-from", metavar="CHECKPOINT", default=None,
-                        help="start a new entity run (maddpg-e, bicnet-e) from another run's "
-                             "training checkpoint (its folder, a curriculum run's folder "
-                             "for its last stage, or checkpoint.safetensors): "
-                             "networks, targets and Adam moments carry over, e.g. to go on "
-                             "from warehouse-20 to warehouse-50; the network width (hidden) "
-                             "must match, the other settings may change. Or a deployed "
+                        help="start a new run from another run's training checkpoint (its "
+                             "folder, a curriculum run's folder for its last stage, "
+                             "checkpoint.safetensors, or a --portable-copy): networks, "
+                             "targets and Adam moments carry over; the network width (hidden) "
+                             "must match, the other settings may change; the scenario too for "
+                             "the entity learners (maddpg-e, bicnet-e), e.g. to go on from "
+                             "warehouse-20 to warehouse-50. Or a deployed "
                              "policy (best.safetensors, a shipped weight file) of any "
                              "algorithm and reward: only its actor carries over (see "
                              "--critic-warmup)")
@@ -217,6 +218,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --init-from: the checkpoint may have been trained on another "
                              "reward (e.g. an ipf run fine-tuned with ipf-time); the critic "
                              "starts from the old reward's values")
+    parser.add_argument("--portable-copy", nargs=2, metavar=("RUN_DIR", "TARGET"), default=None,
+                        help="train nothing: copy RUN_DIR to TARGET without its replay buffer "
+                             "(a few MB: networks, optimizers, counters, progress.csv, the "
+                             "policies), to commit or move a long run; `--resume TARGET` "
+                             "continues it with an empty buffer")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -260,6 +266,8 @@ def run_train(args: argparse.Namespace) -> int:
     from learners.checkpoint import resolve_checkpoint_path
     from learners.train import TrainConfig, load_run_config, train
 
+    if getattr(args, "portable_copy", None):
+        return _portable_copy(*args.portable_copy)
     curriculum = getattr(args, "curriculum", None)
     if curriculum is not None or (args.resume and _is_curriculum(args.resume)):
         return _run_curriculum(args)
@@ -310,6 +318,21 @@ def run_train(args: argparse.Namespace) -> int:
           f"{result.updates} updates, {result.seconds:.0f} s; "
           f"{_score(result, config.lifelong)}; checkpoints in {result.run_dir}")
     return 130 if result.interrupted else 0
+
+
+def _portable_copy(run_dir: str, target: str) -> int:
+    """``agv train --portable-copy RUN_DIR TARGET``."""
+    from learners.train import portable_copy
+
+    try:
+        path = portable_copy(run_dir, target)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"agv train: error: {err}", file=sys.stderr)
+        return 2
+    size = sum(f.stat().st_size for f in Path(target).iterdir() if f.is_file())
+    print(f"copied {run_dir} without its replay buffer to {target} ({size / 1e6:.1f} MB); "
+          f"continue it with `agv train --resume {target}`; slim checkpoint {path.name}")
+    return 0
 
 
 def _set_run_flags(config: Any, args: argparse.Namespace, with_episodes: bool) -> None:

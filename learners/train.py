@@ -47,6 +47,7 @@ import os
 import signal
 import threading
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -77,8 +78,8 @@ from learners.common import ActorCritic, check_bool, check_int, check_real
 from learners.policy import build_learner, is_lifelong
 from sim.io import atomic_write_bytes, atomic_write_text, clean_stale_temporaries
 
-__all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "CSV_COLUMNS",
-           "LIFELONG_CSV_COLUMNS"]
+__all__ = ["TrainConfig", "TrainResult", "train", "default_run_dir", "portable_copy",
+           "CSV_COLUMNS", "LIFELONG_CSV_COLUMNS"]
 
 CSV_COLUMNS = [
     "episode", "env_steps", "updates", "seconds", "noise_std",
@@ -382,17 +383,21 @@ def train(
         Hyperparameters (a dict overrides the defaults); ignored-but-checked when resuming.
     resume : bool
         Continue the run in ``config.run_dir`` from its last checkpoint, up to
-        ``config.episodes``.
+        ``config.episodes``. A checkpoint without its replay buffer (:func:`portable_copy`)
+        resumes too, with an empty buffer that refills from the restored policy: the run goes
+        on from its networks, optimizers, counters and schedules, but no longer bit for bit
+        like an uninterrupted one (a warning says so).
     on_checkpoint : callable, optional
         Called with the checkpoint's counters after every periodic checkpoint (used by tests to
         simulate a crash).
     init_from : path-like, optional
-        A training checkpoint of the same algorithm, reward and network width (possibly on
-        another scenario, e.g. the previous stage of a curriculum, :mod:`learners.curriculum`,
-        and with other learning rates, noise or batch) whose networks, targets, Adam moments
-        and update count start this new run; the replay
-        buffer, environments and counters start afresh. Only for the entity learners
-        (``learners.algorithms.ENTITY_ALGORITHMS``), whose weights do not depend on N.
+        A training checkpoint of the same algorithm, reward and network width (with other
+        learning rates, noise or batch) whose networks, targets, Adam moments and update
+        count start this new run; the replay buffer, environments and counters start afresh.
+        For the entity learners (``learners.algorithms.ENTITY_ALGORITHMS``), whose weights do
+        not depend on N, possibly of another scenario (e.g. the previous stage of a
+        curriculum, :mod:`learners.curriculum`); for the others, of the same scenario (e.g. a
+        long run's checkpoint, to fine-tune with its critic).
         Or a deployed policy (``kind="policy"``, e.g. a shipped ``best.safetensors``) of any
         algorithm, on the same scenario unless it is an entity learner's: only its actor
         carries over (the critic starts fresh, see ``TrainConfig.critic_warmup``), and its
@@ -489,7 +494,12 @@ def train(
     recent_terms: dict[str, deque[float]] = {t: deque(maxlen=_RECENT) for t in terms}
     if saved is not None:
         learner.load_training_tensors(saved)
-        buffer.load_state_dict(saved)
+        if "buffer.obs" in saved:
+            buffer.load_state_dict(saved)
+        else:  # a portable copy: the buffer refills from the restored policy
+            warnings.warn(f"{ckpt_path} holds no replay buffer (a portable copy): the run "
+                          "resumes with an empty one, so it no longer follows an "
+                          "uninterrupted run bit for bit", stacklevel=2)
         _load_env(env, saved)
         noise_gen.set_state(saved["rng.noise"])
         sample_gen.set_state(saved["rng.sample"])
@@ -759,14 +769,15 @@ def _freeze_actor(learner: ActorCritic, frozen: bool) -> None:
 
 def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
                   resume: bool, other_reward: bool = False) -> tuple[dict[str, Tensor], str]:
-    """The learner tensors that start a new run (``init_from``): every tensor of an entity
-    learner's training checkpoint, or the actor of a deployed policy, with the checkpoint's
+    """The learner tensors that start a new run (``init_from``): every tensor of a training
+    checkpoint, or the actor of a deployed policy, with the checkpoint's
     kind (``"training"`` or ``"policy"``).
 
     Raises
     ------
     ValueError
-        When resuming; for a training checkpoint of a non-entity algorithm; for a checkpoint
+        When resuming; for a training checkpoint of a non-entity algorithm on another
+        scenario; for a checkpoint
         of another algorithm, reward (unless ``other_reward``; a policy may always have
         another reward), mode (lifelong or episodic), network width
         (:data:`INIT_FROM_SHAPES`), or, for a policy whose weights depend on N, scenario.
@@ -785,11 +796,12 @@ def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg
                              f"{meta['scenario']!r}; its weights (their observation size, "
                              "and MADDPG's per-agent actors) fit only that scenario, this run "
                              f"is on {config.scenario!r}")
-    elif config.algo not in ENTITY_ALGORITHMS:
-        raise ValueError(f"init_from a training checkpoint needs an algorithm whose weights "
-                         f"do not depend on N ({list(ENTITY_ALGORITHMS)}), got "
-                         f"{config.algo!r}; a deployed policy (best.safetensors) of the "
-                         "same scenario may start any algorithm")
+    elif config.algo not in ENTITY_ALGORITHMS and meta["scenario"] != config.scenario:
+        raise ValueError(f"init_from {path} is a {meta['algo']} training checkpoint for "
+                         f"{meta['scenario']!r}; {config.algo}'s networks depend on N, so it "
+                         f"can start only a run on the same scenario, this run is on "
+                         f"{config.scenario!r} (only {list(ENTITY_ALGORITHMS)} move between "
+                         "scenarios)")
     if is_lifelong(meta["scenario"]) != config.lifelong:
         modes = {True: "a lifelong floor", False: "episodic scenes"}
         raise ValueError(f"init_from {path} was trained on {modes[is_lifelong(meta['scenario'])]}"
@@ -805,6 +817,61 @@ def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg
                              f", this run asks for {key}={getattr(learner_cfg, key)!r}; the "
                              "networks must have the same shape")
     return tensors, meta["kind"]
+
+
+PORTABLE_POLICIES = ("policy", "best", "fastest")
+"""The policy files of a run folder that :func:`portable_copy` carries (each with its sidecar)."""
+
+
+def portable_copy(run_dir: str | os.PathLike[str], target: str | os.PathLike[str]) -> Path:
+    """Copy a run folder without its replay buffer: a few MB that resume anywhere.
+
+    The replay buffer is nearly all of a checkpoint (about 70 MB per 25k joint transitions on
+    6v6, up to ``buffer_size``); the networks, targets, Adam moments, environments, random
+    generators and counters are a few MB. The copy holds that slim ``checkpoint.safetensors``,
+    the policy files (``policy``, ``best``, ``fastest``, with their sidecars),
+    ``progress.csv`` and ``config.json``, so a long run can be committed or moved to another
+    machine and continued there with ``train(resume=True)`` / ``agv train --resume TARGET``
+    (its buffer refills from the restored policy), or a fine-tune can start from it with
+    ``init_from``.
+
+    Parameters
+    ----------
+    run_dir : path-like
+        A run folder holding ``checkpoint.safetensors``.
+    target : path-like
+        The new folder (created); it must not hold a run already.
+
+    Returns
+    -------
+    Path
+        The slim checkpoint written.
+
+    Raises
+    ------
+    ValueError
+        If ``run_dir`` holds no training checkpoint (or a bad one), or ``target`` is
+        ``run_dir`` or already holds a checkpoint.
+    """
+    src, dest = Path(run_dir), Path(target)
+    ckpt = src / "checkpoint.safetensors"
+    if not ckpt.is_file():
+        raise ValueError(f"portable_copy: no run to copy, expected a checkpoint at {ckpt}")
+    if dest.exists() and dest.resolve() == src.resolve():
+        raise ValueError(f"portable_copy: the target {dest} is the run folder itself")
+    if (dest / "checkpoint.safetensors").exists():
+        raise ValueError(f"portable_copy: {dest} already holds a run (checkpoint.safetensors)")
+    tensors, meta = load_checkpoint(ckpt, kind="training")
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in ("progress.csv", "config.json"):
+        if (src / name).is_file():
+            atomic_write_bytes(dest / name, (src / name).read_bytes())
+    for name in PORTABLE_POLICIES:
+        if (src / f"{name}.safetensors").is_file():
+            policy, policy_meta = load_checkpoint(src / f"{name}.safetensors", kind="policy")
+            save_checkpoint(dest / f"{name}.safetensors", policy, policy_meta)
+    slim = {k: v for k, v in tensors.items() if not k.startswith("buffer.")}
+    return save_checkpoint(dest / "checkpoint.safetensors", slim, meta)
 
 
 def load_run_config(run_dir: str | os.PathLike[str]) -> tuple[TrainConfig, dict[str, Any]]:

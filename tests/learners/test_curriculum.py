@@ -115,8 +115,7 @@ def test_init_from_checks_what_it_starts_from(tmp_path):
         train(other, TINY, init_from=ckpt)
     plain = _config(tmp_path / "c")
     plain.algo = "maddpg"
-    with pytest.raises(ValueError, match="training checkpoint needs an algorithm whose "
-                                         "weights do not depend on N"):
+    with pytest.raises(ValueError, match="algo='maddpg-e'"):
         train(plain, TINY, init_from=ckpt)
     started = _config(tmp_path / "d")
     started.scenario, started.episodes = "4v4", 8
@@ -369,6 +368,31 @@ def test_init_from_a_deployed_policy_with_a_critic_warmup(tmp_path, algo):
     assert not torch.equal(moved.learner.critic.state_dict()[next(iter(
         moved.learner.critic.state_dict()))], base.learner.critic.state_dict()[next(iter(
             base.learner.critic.state_dict()))])
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "bicnet"])
+def test_init_from_a_training_checkpoint_of_the_same_scenario(tmp_path, algo):
+    """The paper's learners start from a long run's checkpoint (critic, targets, Adam moments
+    and update count included) on the same scenario, and refuse another N by name."""
+    first = _config(tmp_path / "a", algo=algo)
+    first.episodes = 8
+    base = train(first, TINY)
+    ckpt = base.run_dir / "checkpoint.safetensors"
+    frozen = _config(tmp_path / "b", algo=algo)
+    frozen.episodes, frozen.critic_warmup = 1, 10**6
+    frozen.eval_every = 0
+    started = train(frozen, {**TINY, "learning_starts": TINY["buffer_size"]},
+                    init_from=ckpt)  # one short episode: no update
+    assert started.updates == base.updates  # the update count carried over
+    for key, value in base.learner.training_tensors().items():
+        if key.split(".", 1)[0] in ("actor", "critic", "target_actor", "target_critic"):
+            torch.testing.assert_close(started.learner.training_tensors()[key], value,
+                                       rtol=0, atol=0)
+    elsewhere = _config(tmp_path / "c", algo=algo)
+    elsewhere.scenario = "4v4"
+    with pytest.raises(ValueError, match="networks depend on N.*same scenario"):
+        train(elsewhere, TINY, init_from=ckpt)
+    assert not (tmp_path / "c" / "checkpoint.safetensors").exists()
 
 
 def test_init_from_a_policy_checks_its_scenario_and_shapes(tmp_path, capsys):

@@ -169,3 +169,50 @@ def test_fastest_keeps_the_least_time_at_the_response_floor(tmp_path):
     assert meta["response_rate"] >= floor
     assert meta["avg_time"] == pytest.approx(min(qualifying), abs=1e-3)
     assert not math.isnan(meta["avg_time"])
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "bicnet"])
+def test_portable_copy_drops_the_buffer_and_resumes(tmp_path, algo, capsys):
+    """A run copied without its replay buffer is small, keeps everything else, and goes on
+    from where it stopped with an empty buffer (and a warning that it is no longer bit for
+    bit)."""
+    from learners.checkpoint import load_checkpoint
+    from learners.train import portable_copy
+
+    run = train(_tiny_config(algo, tmp_path / "run", 32), TINY)
+    target = tmp_path / "moved"
+    assert _cli(add_train_arguments, run_train,
+                ["--portable-copy", str(run.run_dir), str(target)]) == 0
+    assert "without its replay buffer" in capsys.readouterr().out
+    full, _ = load_checkpoint(run.run_dir / "checkpoint.safetensors")
+    slim, meta = load_checkpoint(target / "checkpoint.safetensors", kind="training")
+    assert any(k.startswith("buffer.") for k in full)
+    assert not any(k.startswith("buffer.") for k in slim)
+    assert set(slim) == {k for k in full if not k.startswith("buffer.")}
+    for k, v in slim.items():
+        assert torch.equal(v, full[k]), k
+    assert meta["episodes"] == run.episodes
+    for name in ("progress.csv", "config.json", "policy.safetensors", "policy.json",
+                 "best.safetensors", "best.json"):
+        assert (target / name).is_file(), name
+    assert ((target / "checkpoint.safetensors").stat().st_size
+            < (run.run_dir / "checkpoint.safetensors").stat().st_size)
+    with pytest.warns(UserWarning, match="holds no replay buffer"):
+        resumed = train(_tiny_config(algo, target, 48), resume=True)
+    assert resumed.episodes >= 48 and resumed.updates > run.updates
+    with (target / "progress.csv").open() as f:
+        episodes = [int(r["episode"]) for r in csv.DictReader(f)]
+    assert episodes == sorted(episodes) and episodes[-1] >= 48
+    # it can also start a fine-tune (same scenario), critic and all
+    tuned = _tiny_config(algo, tmp_path / "tuned", 8)
+    assert train(tuned, TINY, init_from=target).updates > run.updates
+    # bad input
+    with pytest.raises(ValueError, match="no run to copy"):
+        portable_copy(tmp_path / "nothing", tmp_path / "x")
+    with pytest.raises(ValueError, match="already holds a run"):
+        portable_copy(run.run_dir, target)
+    with pytest.raises(ValueError, match="the run folder itself"):
+        portable_copy(run.run_dir, run.run_dir)
+    assert _cli(add_train_arguments, run_train,
+                ["--portable-copy", str(tmp_path / "nothing"), str(tmp_path / "y")]) == 2
+    assert "no run to copy" in capsys.readouterr().err
