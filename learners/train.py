@@ -770,17 +770,16 @@ def _freeze_actor(learner: ActorCritic, frozen: bool) -> None:
 def _init_tensors(path: str | os.PathLike[str], config: TrainConfig, learner_cfg: Any,
                   resume: bool, other_reward: bool = False) -> tuple[dict[str, Tensor], str]:
     """The learner tensors that start a new run (``init_from``): every tensor of a training
-    checkpoint, or the actor of a deployed policy, with the checkpoint's
-    kind (``"training"`` or ``"policy"``).
+    checkpoint, or the actor of a deployed policy, with the checkpoint's kind (``"training"``
+    or ``"policy"``).
 
     Raises
     ------
     ValueError
-        When resuming; for a training checkpoint of a non-entity algorithm on another
-        scenario; for a checkpoint
-        of another algorithm, reward (unless ``other_reward``; a policy may always have
-        another reward), mode (lifelong or episodic), network width
-        (:data:`INIT_FROM_SHAPES`), or, for a policy whose weights depend on N, scenario.
+        When resuming; for a checkpoint of another algorithm, reward (unless
+        ``other_reward``; a policy may always have another reward), mode (lifelong or
+        episodic), network width (:data:`INIT_FROM_SHAPES`), or, for weights that depend on N
+        (MADDPG's and BiCNet's, training or policy), scenario.
     """
     from learners.algorithms import ENTITY_ALGORITHMS
 
