@@ -170,6 +170,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "window of the continuing run (default 100)")
     parser.add_argument("--eval-steps", type=positive_int, default=None,
                         help="lifelong floors: steps of each evaluation run (default 500)")
+    parser.add_argument("--eval-runs", type=positive_int, default=None,
+                        help="lifelong floors: independent runs per evaluation, their "
+                             "throughput averaged (default 1)")
     parser.add_argument("--checkpoint-every", type=positive_int, default=None,
                         help="write a resumable checkpoint every this many episodes "
                              "(default 1000)")
@@ -339,7 +342,8 @@ def _set_run_flags(config: Any, args: argparse.Namespace, with_episodes: bool) -
     """Copy the run flags given on the command line into the ``TrainConfig``."""
     keys = ("episodes",) * with_episodes + ("eval_every", "eval_episodes", "eval_seed",
                                             "checkpoint_every", "stop_response", "threads",
-                                            "window", "eval_steps", "fastest_min_response",
+                                            "window", "eval_steps", "eval_runs",
+                                            "fastest_min_response",
                                             "critic_warmup")
     for key in keys:
         if getattr(args, key) is not None:

@@ -19,8 +19,9 @@ fixed-length window of ``TrainConfig.window`` steps of a lifelong run in each of
 environments; the run goes on across windows (no transition is terminal: every target
 bootstraps), and the floor restarts from the depot with a new order stream at the scenario's
 ``max_steps``. The running score is the windows' throughput (deliveries per 1000 steps); an
-evaluation is one ``sim.evaluate_lifelong`` run of ``TrainConfig.eval_steps`` steps on
-``eval_seed``, and ``best.safetensors`` keeps the policy of the highest evaluated throughput.
+evaluation is ``TrainConfig.eval_runs`` (default 1) ``sim.evaluate_lifelong`` runs of
+``TrainConfig.eval_steps`` steps on ``eval_seed`` (their throughput averaged), and
+``best.safetensors`` keeps the policy of the highest evaluated throughput.
 
 At episode milestones it writes a CSV row (``progress.csv``: the curves of the paper's Fig. 9;
 mirrored to TensorBoard when it is installed),
@@ -154,6 +155,11 @@ class TrainConfig:
     """Lifelong floors only: steps per training episode (a window of a lifelong run)."""
     eval_steps: int = 500
     """Lifelong floors only: steps of each evaluation run (``sim.evaluate_lifelong``)."""
+    eval_runs: int = 1
+    """Lifelong floors only: independent runs per evaluation (all on ``eval_seed``, batched),
+    whose throughput is averaged. One run's throughput swings from one evaluation to the next
+    (on warehouse-50 between 88 and 200 deliveries per 1000 steps), so that
+    ``best.safetensors``, the best of many one-run evaluations, tends to be a lucky run."""
 
     @property
     def lifelong(self) -> bool:
@@ -189,7 +195,7 @@ class TrainConfig:
                              f"'warehouse'); the entity learners {list(ENTITY_ALGORITHMS)} "
                              "train on lifelong floors too")
         for name in ("episodes", "eval_episodes", "log_every", "checkpoint_every", "threads",
-                     "window", "eval_steps"):
+                     "window", "eval_steps", "eval_runs"):
             setattr(self, name, check_int(name, getattr(self, name), 1))
         self.critic_warmup = check_int("critic_warmup", self.critic_warmup, 0)
         self.eval_every = check_int("eval_every", self.eval_every, 0)
@@ -592,7 +598,8 @@ def train(
     def evaluate_lifelong() -> dict[str, float]:
         nonlocal best_throughput
         m = sim.evaluate_lifelong(deployed(), config.scenario, steps=config.eval_steps,
-                                  seed=config.eval_seed)
+                                  seed=config.eval_seed, runs=config.eval_runs,
+                                  batch_size=config.eval_runs)
         learner.reset(env)  # back to the training floor's layout (the same floor)
         out = {f.name: float(getattr(m, f.name)) for f in dataclasses.fields(m)
                if isinstance(getattr(m, f.name), (int, float))

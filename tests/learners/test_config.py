@@ -64,6 +64,7 @@ TRAIN = {
     "tensorboard": (["no", 0], "True or False"),
     "window": ([0, -1, 1.5, "100"], ">= 1"),
     "eval_steps": ([0, -2, 2.5, None], ">= 1"),
+    "eval_runs": ([0, -1, 1.5, "2", None, True], ">= 1"),
 }
 
 

@@ -70,7 +70,7 @@ def test_lifelong_run_windows_checkpoints_and_resumes_bit_for_bit(tmp_path, algo
 def test_lifelong_refusals(tmp_path):
     with pytest.raises(ValueError, match="'warehouse-20' is lifelong; 'maddpg' trains"):
         TrainConfig(scenario="warehouse-20")
-    for field in ("window", "eval_steps"):
+    for field in ("window", "eval_steps", "eval_runs"):
         with pytest.raises(ValueError, match=field):
             TrainConfig(algo="maddpg-e", scenario="warehouse-20", **{field: 0})
     episodic = train(TrainConfig(algo="maddpg-e", scenario="3v3", episodes=2, eval_every=0,
@@ -79,6 +79,21 @@ def test_lifelong_refusals(tmp_path):
     with pytest.raises(ValueError, match="trained on episodic scenes"):
         train(_config(tmp_path / "life"), SMALL,
               init_from=episodic.run_dir / "checkpoint.safetensors")
+
+
+def test_an_evaluation_averages_eval_runs_runs(tmp_path):
+    """``eval_runs`` runs per lifelong evaluation, batched on ``eval_seed``: the logged
+    throughput is the one ``sim.evaluate_lifelong`` gives the final policy over that many."""
+    config = _config(tmp_path / "runs")
+    config.episodes, config.eval_every, config.eval_runs = 4, 0, 3
+    result = train(config, SMALL)
+    assert result.last_eval["runs"] == 3
+    policy = LearnedPolicy.load(tmp_path / "runs" / "policy.safetensors")
+    m = sim.evaluate_lifelong(policy, "warehouse-20", steps=config.eval_steps,
+                              seed=config.eval_seed, runs=3)
+    assert result.last_eval["throughput"] == pytest.approx(m.throughput, abs=1e-9)
+    rows = _rows(tmp_path / "runs" / "progress.csv")
+    assert float(rows[-1]["eval_throughput"]) == pytest.approx(m.throughput, abs=1e-6)
 
 
 def test_agv_train_cli_on_a_lifelong_floor(tmp_path, capsys):
@@ -100,11 +115,13 @@ def test_agv_train_cli_on_a_lifelong_floor(tmp_path, capsys):
     # --window and --eval-steps reach the run
     run_dir = tmp_path / "cli-window"
     args[args.index("--run-dir") + 1] = str(run_dir)
-    assert run_train(parser.parse_args([*args, "--window", "30", "--eval-steps", "40"])) == 0
+    assert run_train(parser.parse_args([*args, "--window", "30", "--eval-steps", "40",
+                                        "--eval-runs", "2"])) == 0
     rows = _rows(run_dir / "progress.csv")
     assert int(rows[-1]["env_steps"]) == 2 * 30
     config = json.loads((run_dir / "config.json").read_text())
     assert config["train"]["window"] == 30 and config["train"]["eval_steps"] == 40
+    assert config["train"]["eval_runs"] == 2
     with pytest.raises(SystemExit):
         parser.parse_args([*args, "--window", "0"])
 
