@@ -15,6 +15,7 @@ import json
 import math
 import os
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -310,9 +311,11 @@ def run_train(args: argparse.Namespace) -> int:
             init_from = resolve_checkpoint_path(init_from)
             if not init_from.is_file():
                 raise ValueError(f"--init-from: no checkpoint at {init_from}")
-        result = train(config, learner_config, resume=bool(args.resume), init_from=init_from,
-                       make_shield=getattr(args, "make_shield", None),
-                       init_other_reward=getattr(args, "init_other_reward", False))
+        with warnings.catch_warnings():  # one plain line, not a source location
+            warnings.showwarning = _show_warning
+            result = train(config, learner_config, resume=bool(args.resume),
+                           init_from=init_from, make_shield=getattr(args, "make_shield", None),
+                           init_other_reward=getattr(args, "init_other_reward", False))
         _export_best(args, result, "the best policy")
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)
@@ -321,6 +324,11 @@ def run_train(args: argparse.Namespace) -> int:
           f"{result.updates} updates, {result.seconds:.0f} s; "
           f"{_score(result, config.lifelong)}; checkpoints in {result.run_dir}")
     return 130 if result.interrupted else 0
+
+
+def _show_warning(message: Warning | str, *args: Any, **kwargs: Any) -> None:
+    """Print a warning of ``agv train`` as one line on stderr."""
+    print(f"agv train: warning: {message}", file=sys.stderr)
 
 
 def _portable_copy(run_dir: str, target: str) -> int:

@@ -197,10 +197,15 @@ def test_portable_copy_drops_the_buffer_and_resumes(tmp_path, algo, capsys):
         assert (target / name).is_file(), name
     assert ((target / "checkpoint.safetensors").stat().st_size
             < (run.run_dir / "checkpoint.safetensors").stat().st_size)
+    assert _cli(add_train_arguments, run_train,
+                ["--resume", str(target), "--episodes", "40", "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "agv train: warning:" in err and "holds no replay buffer" in err
+    again = portable_copy(run.run_dir, tmp_path / "again").parent
     with pytest.warns(UserWarning, match="holds no replay buffer"):
-        resumed = train(_tiny_config(algo, target, 48), resume=True)
+        resumed = train(_tiny_config(algo, again, 48), resume=True)
     assert resumed.episodes >= 48 and resumed.updates > run.updates
-    with (target / "progress.csv").open() as f:
+    with (again / "progress.csv").open() as f:
         episodes = [int(r["episode"]) for r in csv.DictReader(f)]
     assert episodes == sorted(episodes) and episodes[-1] >= 48
     # it can also start a fine-tune (same scenario), critic and all
