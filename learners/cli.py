@@ -336,13 +336,13 @@ def _portable_copy(run_dir: str, target: str) -> int:
     from learners.train import portable_copy
 
     try:
-        path = portable_copy(run_dir, target)
+        folder = portable_copy(run_dir, target).parent
     except (ValueError, FileNotFoundError) as err:
         print(f"agv train: error: {err}", file=sys.stderr)
         return 2
-    size = sum(f.stat().st_size for f in Path(target).iterdir() if f.is_file())
-    print(f"copied {run_dir} without its replay buffer to {target} ({size / 1e6:.1f} MB); "
-          f"continue it with `agv train --resume {target}`; slim checkpoint {path.name}")
+    size = sum(f.stat().st_size for f in folder.iterdir() if f.is_file())
+    print(f"copied {run_dir} without its replay buffer to {folder} ({size / 1e6:.1f} MB); "
+          f"continue it with `agv train --resume {folder}`")
     return 0
 
 
