@@ -286,6 +286,12 @@ class ActorCritic(nn.Module):
         """The actor's weights only: what a deployed policy needs."""
         return {f"actor.{k}": v.detach().contiguous() for k, v in self.actor.state_dict().items()}
 
+    def adapt_init_tensors(self, tensors: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Tensors of another run (``train(init_from=...)``) made to fit these networks where
+        a setting that widens an input layer differs (the entity learners' ``parked_token``);
+        here: unchanged."""
+        return tensors
+
     def load_policy_tensors(self, tensors: dict[str, Tensor]) -> None:
         """Load :meth:`policy_tensors` output (strict: every key must match)."""
         sd = {k[len("actor."):]: v for k, v in tensors.items() if k.startswith("actor.")}

@@ -63,7 +63,8 @@ TASK_TOKEN_FEATURES = 5
 distance to the task minus this AGV's, clipped to [-MARGIN_CLIP, MARGIN_CLIP]; +MARGIN_CLIP
 when no other AGV is visible) and whether another AGV is visible at all."""
 AGENT_TOKEN_FEATURES = 5
-"""AGV token: relative position (2), velocity (2), distance."""
+"""AGV token: relative position (2), velocity (2), distance; with
+:attr:`EntityConfig.parked_token` a sixth feature, the parked bit."""
 MARGIN_CLIP = 1.0
 """Clip of the task tokens' margin feature (world units)."""
 LIFELONG_SELF_FEATURES = 7
@@ -167,7 +168,8 @@ def _slots(obs: Tensor, tasks: slice, agents: slice, kt: int,
     return t_rel, t_mask, torch.linalg.vector_norm(t_rel, dim=-1), a_rel, a_mask, a_vel
 
 
-def tokens(obs: Tensor, layout: ObsLayout, margin_moving: bool = False) -> Tokens:
+def tokens(obs: Tensor, layout: ObsLayout, margin_moving: bool = False,
+           parked_token: bool = False) -> Tokens:
     """Split observations into masked tokens and derive the token features.
 
     Parameters
@@ -178,6 +180,9 @@ def tokens(obs: Tensor, layout: ObsLayout, margin_moving: bool = False) -> Token
         The task tokens' margin and "another AGV visible" features count only the visible
         AGVs with a nonzero velocity (parked AGVs stand exactly still), see
         :attr:`EntityConfig.margin_moving`; False: every visible AGV.
+    parked_token : bool
+        The AGV tokens get a sixth feature, 1.0 for a visible AGV that stands exactly still
+        (parked), see :attr:`EntityConfig.parked_token`.
 
     Returns
     -------
@@ -188,11 +193,14 @@ def tokens(obs: Tensor, layout: ObsLayout, margin_moving: bool = False) -> Token
     t_rel, t_mask, t_dist, a_rel, a_mask, a_vel = _slots(obs, layout.tasks, layout.agents,
                                                           kt, ka)
     # margin: distance of the nearest visible other AGV to each task slot minus this AGV's
-    rivals = a_mask & (a_vel != 0).any(-1) if margin_moving else a_mask
+    moving = (a_vel != 0).any(-1)
+    rivals = a_mask & moving if margin_moving else a_mask
     margin, seen = _margin(t_rel, t_dist, a_rel, rivals)
     task = torch.stack([t_rel[..., 0], t_rel[..., 1], t_dist, margin, seen], dim=-1)
-    agent = torch.cat([a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)],
-                      dim=-1)
+    parts = [a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)]
+    if parked_token:
+        parts.append((a_mask & ~moving).unsqueeze(-1).to(obs.dtype))
+    agent = torch.cat(parts, dim=-1)
     return Tokens(own, task * t_mask.unsqueeze(-1), t_mask, agent * a_mask.unsqueeze(-1),
                   a_mask)
 
@@ -327,15 +335,16 @@ class EntityEncoder(nn.Module):
     Token encoders are shared by all slots (and all AGVs); each kind of token is pooled by
     masked attention with the own-state embedding as the query. With ``lifelong`` the tokens
     are :func:`lifelong_tokens`' (pickup tokens for task tokens) and two more kinds are pooled
-    the same way: the AGV's target (one slot) and the obstacle points.
+    the same way: the AGV's target (one slot) and the obstacle points. ``parked_token``: the
+    AGV tokens carry the parked bit (:attr:`EntityConfig.parked_token`).
     """
 
-    def __init__(self, hidden: int, lifelong: bool = False) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False) -> None:
         super().__init__()
         self.lifelong = lifelong
         self.own = _mlp([LIFELONG_SELF_FEATURES if lifelong else SELF_FEATURES, hidden])
         self.task = _mlp([PICKUP_TOKEN_FEATURES if lifelong else TASK_TOKEN_FEATURES, hidden])
-        self.agent = _mlp([AGENT_TOKEN_FEATURES, hidden])
+        self.agent = _mlp([AGENT_TOKEN_FEATURES + int(parked_token), hidden])
         self.task_pool = _AttentionPool(hidden)
         self.agent_pool = _AttentionPool(hidden)
         kinds = 3
@@ -420,9 +429,9 @@ class EntityActor(nn.Module):
     Episodic: an MLP head on the encoder's embedding. Lifelong: :class:`WaypointHead`.
     """
 
-    def __init__(self, hidden: int, lifelong: bool = False) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden, lifelong)
+        self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.lifelong = lifelong
         if lifelong:
             self.steer = WaypointHead(hidden)
@@ -446,9 +455,9 @@ class PooledCritic(nn.Module):
     do not depend on N (Lowe et al. concatenate all N observations and actions instead).
     """
 
-    def __init__(self, hidden: int, lifelong: bool = False) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden, lifelong)
+        self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.joint = _mlp([hidden + 2, hidden])
         self.head = _mlp([2 * hidden, hidden, 1], last_relu=False)
 
@@ -488,12 +497,14 @@ class SortedBiRNN(nn.Module):
         Whether the AGV's action joins its embedding before the recurrence (critic).
     lifelong : bool
         Read lifelong tokens (:func:`lifelong_tokens`).
+    parked_token : bool
+        AGV tokens with the parked bit (:attr:`EntityConfig.parked_token`).
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
-                 lifelong: bool = False) -> None:
+                 lifelong: bool = False, parked_token: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden, lifelong)
+        self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
         self.inp = _mlp([hidden + (2 if action_input else 0), hidden])
         self.rnn = nn.GRU(hidden, hidden, batch_first=True, bidirectional=True)
@@ -547,15 +558,24 @@ class EntityConfig(OffPolicyConfig):
     visible AGVs that move (nonzero velocity in the observation), so that a parked AGV, which
     stands still and will never claim another task, does not make an open task look taken.
     False (the default, and what every run before this field did): every visible AGV counts."""
+    parked_token: bool = False
+    """Episodic AGV tokens get a sixth feature, the parked bit: 1.0 for a visible AGV that
+    stands exactly still (a parked AGV; an idle one never does), so that the policy can tell
+    a parked AGV, which it has to go around, from a slow one. It widens the AGV token layer,
+    so the weights differ from those without it; a run with it may still start
+    (``init_from``) from a checkpoint without it: the new input column starts at zero, which
+    gives the checkpoint's actions and Q values (:meth:`EntityLearner.adapt_init_tensors`).
+    False (the default, and what every run before this field did): five features."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
-        ``shield_keep_right`` and ``margin_moving`` too."""
+        ``shield_keep_right``, ``margin_moving`` and ``parked_token`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
                                             math.pi / 2, high_open=True)
         self.margin_moving = check_bool("margin_moving", self.margin_moving)
+        self.parked_token = check_bool("parked_token", self.parked_token)
 
 
 @dataclass
@@ -596,9 +616,10 @@ class EntityLearner(ActorCritic):
         if lifelong is None:
             lifelong = sizes_look_lifelong(obs_dim, state_dim, num_agents)
         self.lifelong = check_bool("lifelong", lifelong)
-        if self.lifelong and self.config.margin_moving:
-            raise ValueError("margin_moving is for episodic scenarios (parked AGVs); on a "
-                             "lifelong floor no AGV parks: leave it False")
+        for key in ("margin_moving", "parked_token"):
+            if self.lifelong and getattr(self.config, key):
+                raise ValueError(f"{key} is for episodic scenarios (parked AGVs); on a "
+                                 "lifelong floor no AGV parks: leave it False")
         self.layout: ObsLayout | LifelongObsLayout | None = None
         self.floor: FloorWaypoints | None = None
 
@@ -658,7 +679,8 @@ class EntityLearner(ActorCritic):
         if isinstance(layout, LifelongObsLayout):
             assert self.floor is not None  # set_layout checks it
             return lifelong_tokens(obs, layout, self.floor), agent_order(obs, layout)
-        return tokens(obs, layout, self.config.margin_moving), agent_order(obs, layout)
+        return (tokens(obs, layout, self.config.margin_moving, self.config.parked_token),
+                agent_order(obs, layout))
 
     def _movable(self, obs: Tensor) -> Tensor:
         """1.0 for AGVs whose action moves them, (B, N, 1): episodic, all but parked ones
@@ -672,6 +694,48 @@ class EntityLearner(ActorCritic):
         if self.config.mask_parked:
             return movable_mask(obs)
         return torch.ones_like(obs[..., :1])
+
+    _AGENT_LAYER = "encoder.agent.0.weight"
+
+    def adapt_init_tensors(self, tensors: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Training or policy tensors of a run without ``parked_token`` widened for networks
+        with it: a zero column for the parked bit in every AGV token layer (actor, critic and
+        their targets), so the networks compute what the checkpoint's did; in the Adam moments
+        of that layer, a zero first moment and, as second moment, the mean of the row's other
+        columns (the new weights then take steps of the size the others take). Tensors whose
+        AGV token layer already fits are returned unchanged.
+
+        Raises
+        ------
+        ValueError
+            For tensors with the parked bit into networks without it (the bit's weights would
+            be dropped).
+        """
+        key = f"actor.{self._AGENT_LAYER}"
+        if key not in tensors:
+            return tensors
+        have, want = tensors[key].shape[-1], AGENT_TOKEN_FEATURES + int(self.config.parked_token)
+        if have == want:
+            return tensors
+        if have != AGENT_TOKEN_FEATURES or want != AGENT_TOKEN_FEATURES + 1:
+            raise ValueError(f"these tensors' AGV tokens have {have} features, the networks "
+                             f"read {want} (parked_token={self.config.parked_token}); a run "
+                             "without parked_token cannot start from one with it")
+        out = dict(tensors)
+
+        def widen(name: str, fill: str) -> None:
+            if name in out:
+                w = out[name]
+                col = w.mean(-1, keepdim=True) if fill == "mean" else torch.zeros_like(w[..., :1])
+                out[name] = torch.cat([w, col], dim=-1).contiguous()
+
+        for prefix, module in (("actor", self.actor), ("critic", self.critic)):
+            for net in (prefix, f"target_{prefix}"):
+                widen(f"{net}.{self._AGENT_LAYER}", "zero")
+            index = [n for n, _ in module.named_parameters()].index(self._AGENT_LAYER)
+            widen(f"{prefix}_optimizer.{index}.exp_avg", "zero")
+            widen(f"{prefix}_optimizer.{index}.exp_avg_sq", "mean")
+        return out
 
     @torch.no_grad()
     def explore(self, obs: Tensor, noise_std: float, generator: torch.Generator) -> Tensor:
@@ -731,8 +795,8 @@ class MADDPGE(EntityLearner):
                  config: MADDPGEConfig | None = None, lifelong: bool | None = None) -> None:
         config = config or MADDPGEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
-        self.actor = EntityActor(config.hidden, self.lifelong)
-        self.critic = PooledCritic(config.hidden, self.lifelong)
+        self.actor = EntityActor(config.hidden, self.lifelong, config.parked_token)
+        self.critic = PooledCritic(config.hidden, self.lifelong, config.parked_token)
         self._finish_init()
 
     def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:
@@ -780,8 +844,10 @@ class BiCNetE(EntityLearner):
                  config: BiCNetEConfig | None = None, lifelong: bool | None = None) -> None:
         config = config or BiCNetEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
-        self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong)
-        self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong)
+        self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong,
+                                 parked_token=config.parked_token)
+        self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
+                                  parked_token=config.parked_token)
         self._finish_init()
 
     def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:

@@ -523,6 +523,7 @@ def train(
             best_throughput = float(counters["last_eval"].get("best_throughput", -1.0))
     elif init is not None:
         try:
+            init = learner.adapt_init_tensors(init)
             if init_kind == "training":
                 learner.load_training_tensors(init)
             else:

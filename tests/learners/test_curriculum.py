@@ -133,6 +133,22 @@ def test_init_from_checks_what_it_starts_from(tmp_path):
         train(other, TINY, init_from=ckpt, init_other_reward=True)
 
 
+def test_init_from_widens_a_checkpoint_for_the_parked_token(tmp_path):
+    first = _config(tmp_path / "a", algo="bicnet-e")
+    first.episodes = 8
+    base = train(first, TINY)
+    ckpt = base.run_dir / "checkpoint.safetensors"
+    wide = _config(tmp_path / "b", algo="bicnet-e")
+    wide.episodes = 8
+    result = train(wide, {**TINY, "parked_token": True}, init_from=ckpt)
+    assert result.updates > base.updates
+    assert read_metadata(result.run_dir / "checkpoint.safetensors")["config"]["parked_token"]
+    back = _config(tmp_path / "c", algo="bicnet-e")
+    back.episodes = 8
+    with pytest.raises(ValueError, match="without parked_token cannot start from one with it"):
+        train(back, TINY, init_from=result.run_dir / "checkpoint.safetensors")
+
+
 def test_init_from_a_curriculum_folder_takes_its_last_stage(tmp_path):
     from learners.curriculum import last_stage_checkpoint
 

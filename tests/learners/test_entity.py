@@ -197,6 +197,52 @@ def test_the_learner_reads_tokens_with_its_margin_setting(algo):
         _learner(algo, env, margin_moving="yes")
 
 
+def test_parked_token_marks_the_visible_agvs_that_stand_still():
+    layout = ObsLayout(1, 3)
+    obs = torch.zeros(1, 1, layout.size)
+    obs[0, 0, layout.agent_rel(0)] = torch.tensor([0.3, 0.0])  # visible, still: parked
+    obs[0, 0, layout.agent_rel(1)] = torch.tensor([0.0, 0.4])  # visible, moving
+    obs[0, 0, layout.agent_vel(1)] = torch.tensor([0.1, 0.0])
+    for i in (0, 1):
+        obs[0, 0, layout.agent_mask(i)] = 1.0  # slot 2 stays padding (mask 0)
+    plain, flagged = tokens(obs, layout), tokens(obs, layout, parked_token=True)
+    assert plain.agent.shape[-1] == AGENT_TOKEN_FEATURES
+    assert flagged.agent.shape[-1] == AGENT_TOKEN_FEATURES + 1
+    assert flagged.agent[0, 0, :, -1].tolist() == [1.0, 0.0, 0.0]
+    assert torch.equal(flagged.agent[..., :-1], plain.agent)
+    assert torch.equal(flagged.task, plain.task) and torch.equal(flagged.own, plain.own)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_parked_token_networks_start_from_weights_without_it(algo):
+    env, obs = _obs("6v6", steps=12)  # some AGVs parked by now (velocity exactly 0)
+    assert bool(tokens(obs, env.obs_layout, parked_token=True).agent[..., -1].any())
+    old = _learner(algo, env)
+    a_old = old.act(obs)
+    q_old = old.q_values(obs, a_old)
+    new = _learner(algo, env, parked_token=True)
+    assert new._read(obs)[0].agent.shape[-1] == AGENT_TOKEN_FEATURES + 1
+    new.load_training_tensors(new.adapt_init_tensors(old.training_tensors()))
+    # the parked bit's column starts at zero: the same actions and Q values
+    torch.testing.assert_close(new.act(obs), a_old, rtol=0, atol=1e-6)
+    torch.testing.assert_close(new.q_values(obs, a_old), q_old, rtol=0, atol=1e-5)
+    assert new.updates == old.updates
+    deployed = _learner(algo, env, parked_token=True)
+    deployed.load_policy_tensors(deployed.adapt_init_tensors(old.policy_tensors()))
+    torch.testing.assert_close(deployed.act(obs), a_old, rtol=0, atol=1e-6)
+    # the new column learns, and the Adam moments fit
+    _, batch = make_batch("6v6", num_envs=32, reward="ipf")
+    for _ in range(3):
+        new.update(batch)
+    assert new.critic.encoder.agent[0].weight[:, -1].abs().sum() > 0
+    assert new.adapt_init_tensors(new.training_tensors()).keys() == \
+        new.training_tensors().keys()  # already wide: unchanged
+    with pytest.raises(ValueError, match="without parked_token cannot start from one with it"):
+        old.adapt_init_tensors(new.training_tensors())
+    with pytest.raises(ValueError, match="parked_token"):
+        _learner(algo, env, parked_token=1)
+
+
 def test_agent_order_is_by_x_then_y():
     layout = ObsLayout(0, 0)
     obs = torch.zeros(1, 4, layout.size)

@@ -204,8 +204,9 @@ def test_untrained_lifelong_actor_steers_to_its_waypoint():
 
 
 @pytest.mark.parametrize("algo", ["maddpg-e", "bicnet-e"])
-def test_margin_moving_is_refused_on_a_lifelong_floor(algo):
+@pytest.mark.parametrize("key", ["margin_moving", "parked_token"])
+def test_parked_agv_settings_are_refused_on_a_lifelong_floor(algo, key):
     env = sim.make_env("warehouse-20", num_envs=1, reward="ipf", seed=0)
-    with pytest.raises(ValueError, match="margin_moving is for episodic scenarios"):
+    with pytest.raises(ValueError, match=f"{key} is for episodic scenarios"):
         build_learner(algo, env.obs_dim, env.global_state().shape[-1], env.num_agents,
-                      {"hidden": 16, "margin_moving": True}, lifelong=True)
+                      {"hidden": 16, key: True}, lifelong=True)
