@@ -1,7 +1,7 @@
 """Where a shielded learned policy loses response: the AGVs still idle when episodes end.
 
     python benchmarks/shield_stalls.py --scenario 20v20 --episodes 50 --seed 0 \
-        [--policy bicnet-ipf] [--weights any] [--liveness]
+        [--policy bicnet-ipf] [--weights any | --checkpoint FILE] [--liveness]
 
 Plays the test episodes of :func:`sim.evaluate` (the same scenes for the same seed) with a
 learned allocator behind its safety shield (``shield=True``), then describes every AGV that
@@ -98,6 +98,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--policy", default="bicnet-ipf", help="a learned allocator's name")
     parser.add_argument("--weights", default="any", choices=["scenario", "auto", "any"])
+    parser.add_argument("--checkpoint", default=None, metavar="FILE",
+                        help="a policy file of the --policy's algorithm (e.g. an entity run's "
+                             "best.safetensors) instead of the shipped weights")
     parser.add_argument("--liveness", action="store_true",
                         help="the shield's deadlock rules on (off by default when episodic)")
     args = parser.parse_args(argv)
@@ -106,11 +109,12 @@ def main(argv: list[str] | None = None) -> None:
                          f"batch), got {args.episodes}")
     if not isinstance(get_scenario(args.scenario), Scenario):
         raise ValueError(f"scenario {args.scenario!r} is lifelong; this diagnosis is episodic")
-    print(f"{args.policy} ({args.weights} weights) on {args.scenario}, seed {args.seed}, "
+    source = args.checkpoint or f"{args.weights} weights"
+    print(f"{args.policy} ({source}) on {args.scenario}, seed {args.seed}, "
           f"{args.episodes} episodes")
+    chosen = {"checkpoint": args.checkpoint} if args.checkpoint else {"weights": args.weights}
     for shield in (False, True):
-        alloc = allocator.make(args.policy, scenario=args.scenario, weights=args.weights,
-                               shield=shield)
+        alloc = allocator.make(args.policy, scenario=args.scenario, shield=shield, **chosen)
         if shield and args.liveness:
             alloc.safety.liveness = True
         env, intended = play(alloc, args.scenario, args.episodes, args.seed)

@@ -49,7 +49,8 @@ __all__ = [
     "header_digest", "code_version", "tensor_digest", "write_sidecar", "export_policy",
 ]
 
-ADDED_CONFIG_FIELDS = ("shield_keep_right", "margin_moving", "parked_token")
+ADDED_CONFIG_FIELDS = ("shield_keep_right", "margin_moving", "parked_token",
+                       "shield_penalty")
 """Learner config fields added after checkpoints of this format were first written: a header
 without them is read with the field's default (which is what those runs did)."""
 

@@ -566,16 +566,29 @@ class EntityConfig(OffPolicyConfig):
     (``init_from``) from a checkpoint without it: the new input column starts at zero, which
     gives the checkpoint's actions and Q values (:meth:`EntityLearner.adapt_init_tensors`).
     False (the default, and what every run before this field did): five features."""
+    shield_penalty: float = 0.0
+    """With ``shield=True``: each AGV's stored reward loses ``shield_penalty`` times the
+    length of the shield's change to its action, ``|a_intended - a_executed|`` (0 where the
+    shield lets the action through), so that the policy learns to ask for actions the shield
+    need not change (e.g. around a parked AGV rather than into it) instead of only learning
+    what its intentions lead to. Evaluations report the task metrics, not this reward. 0 (the
+    default, and what every run before this field did): no penalty."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
-        ``shield_keep_right``, ``margin_moving`` and ``parked_token`` too."""
+        ``shield_keep_right``, ``margin_moving``, ``parked_token`` and ``shield_penalty``
+        too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
                                             math.pi / 2, high_open=True)
         self.margin_moving = check_bool("margin_moving", self.margin_moving)
         self.parked_token = check_bool("parked_token", self.parked_token)
+        self.shield_penalty = check_real("shield_penalty", self.shield_penalty, 0.0, math.inf,
+                                         high_open=True)
+        if self.shield_penalty and not self.shield:
+            raise ValueError(f"shield_penalty={self.shield_penalty} charges the shield's "
+                             "changes to the actions; it needs shield=True")
 
 
 @dataclass

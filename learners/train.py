@@ -532,6 +532,7 @@ def train(
             raise ValueError(f"init_from {init_from}: its networks do not fit this run's "
                              f"({str(err).strip().splitlines()[-1].strip()})") from err
     shield = None
+    shield_penalty = float(getattr(cfg, "shield_penalty", 0.0))
     if getattr(cfg, "shield", False):  # the entity learners' option: the shield in the loop
         if make_shield is None:
             raise ValueError("shield=True needs make_shield=allocator.SafetyShield (learners "
@@ -648,6 +649,9 @@ def train(
             # leads to through the shield
             executed = shield.filter(action) if shield is not None else action
             next_obs, reward, done, info = env.step(executed)
+            if shield_penalty:  # what the shield had to change, charged to the intention
+                reward = reward - shield_penalty * torch.linalg.vector_norm(
+                    action - executed, dim=-1)
             next_state = env.global_state()
             # every task claimed: terminal; step limit only: truncated, so bootstrap;
             # lifelong operation has no terminal state

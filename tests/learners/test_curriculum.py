@@ -194,6 +194,33 @@ def test_shield_in_the_loop_executes_the_shields_actions(tmp_path):
     assert out[True][1].abs().max() <= 1.0
 
 
+def test_shield_penalty_charges_what_the_shield_changed(tmp_path):
+    """Same seed, no updates: the same intended actions and executed steps, so the stored
+    rewards differ only by the penalty, which is never positive and is charged somewhere."""
+    from allocator import SafetyShield
+    from learners.checkpoint import load_checkpoint
+
+    out = {}
+    for penalty in (0.0, 3.0):
+        config = _config(tmp_path / f"p{penalty}")
+        config.scenario, config.episodes, config.log_every = "6v6", 16, 16
+        result = train(config, {**TINY, "shield": True, "shield_penalty": penalty,
+                                "learning_starts": 2000}, make_shield=SafetyShield)
+        tensors, meta = load_checkpoint(result.run_dir / "checkpoint.safetensors")
+        assert meta["config"]["shield_penalty"] == penalty
+        out[penalty] = tensors
+    assert torch.equal(out[0.0]["buffer.action"], out[3.0]["buffer.action"])
+    assert torch.equal(out[0.0]["buffer.next_obs"], out[3.0]["buffer.next_obs"])
+    charged = out[0.0]["buffer.reward"] - out[3.0]["buffer.reward"]
+    assert charged.min() >= 0.0 and charged.max() > 0.0
+    assert charged.max() <= 3.0 * 2 * 2 ** 0.5 + 1e-5  # |a - a'| <= 2 sqrt(2)
+    with pytest.raises(ValueError, match="it needs shield=True"):
+        train(_config(tmp_path / "no-shield"), {**TINY, "shield_penalty": 1.0})
+    with pytest.raises(ValueError, match="shield_penalty"):
+        train(_config(tmp_path / "negative"), {**TINY, "shield": True, "shield_penalty": -1.0},
+              make_shield=SafetyShield)
+
+
 def test_agv_train_curriculum_cli(tmp_path, capsys):
     run_dir = tmp_path / "cli"
     args = ["--algo", "maddpg-e", "--reward", "ipf", "--curriculum", "3v3:8,4v4:8",
