@@ -571,7 +571,8 @@ class EntityConfig(OffPolicyConfig):
     length of the shield's change to its action, ``|a_intended - a_executed|`` (0 where the
     shield lets the action through), so that the policy learns to ask for actions the shield
     need not change (e.g. around a parked AGV rather than into it) instead of only learning
-    what its intentions lead to. Evaluations report the task metrics, not this reward. 0 (the
+    what its intentions lead to. The training return (``train_return``) includes it;
+    evaluations report the task metrics and the environment's reward only. 0 (the
     default, and what every run before this field did): no penalty."""
 
     def validate(self) -> None:
