@@ -1,0 +1,104 @@
+"""``benchmarks/local_information.py`` (the coordinating rule at a local view) and
+``benchmarks/dagger_probe.py`` (its full-view teacher taught to an entity policy)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from benchmark_scripts import ROOT, load
+
+import allocator
+import sim
+
+local = load("local_information")
+dagger = load("dagger_probe")
+PARKED = ROOT / "benchmarks/results/scale/entity/bicnet-e-parked/parked.safetensors"
+
+
+def test_own_share_leaves_the_task_a_rival_is_nearer_to() -> None:
+    # the rival at (1, 0) is 0.1 from task 0; taking it myself would cost 0.9 + 1.5
+    tasks = np.array([[0.9, 0.0], [-0.5, 0.0]])
+    assert local.own_share(tasks, np.array([[1.0, 0.0]])) == 1
+    assert local.own_share(tasks, np.zeros((0, 2))) == 1  # alone: the least cost is the nearest
+    # more AGVs than tasks, the others nearer: mine is the nearest task
+    assert local.own_share(tasks[:1], np.array([[1.0, 0.0]])) == 0
+
+
+def test_velocity_action_keeps_the_direction_and_the_box() -> None:
+    ph = sim.World().physics
+    rel = np.array([[3.0, 1.0], [0.01, 0.0]])
+    a = local.velocity_action(rel, np.zeros((2, 2)), ph, 2.0)
+    assert np.abs(a).max() <= 1.0 + 1e-12
+    assert np.allclose(a[0] / np.linalg.norm(a[0]), rel[0] / np.linalg.norm(rel[0]))
+    # close by, from rest: the command arrives in one step (v = rel / dt)
+    v = a[1] * ph.sensitivity * ph.dt / ph.mass
+    assert np.allclose(v * ph.dt, rel[1])
+
+
+def test_full_view_rule_is_the_teachers_assignment() -> None:
+    scen = sim.get_scenario("10v10", k_tasks=10, k_agents=9)
+    env = sim.make_env(scen, num_envs=3, seed=4)
+    obs = env.observe()
+    rule = local.LocalAssignment()
+    rule.reset(env)
+    for _ in range(6):  # every AGV sees the whole scene: each solves the teacher's problem
+        ours, teacher = rule.act(obs), dagger.teacher_actions(env)
+        assert torch.allclose(ours, teacher, atol=1e-5)
+        obs, *_ = env.step(teacher)
+
+
+def test_rule_finishes_small_scenes() -> None:
+    m = sim.evaluate(local.LocalAssignment(), "3v3", episodes=10, seed=0)
+    assert m.response_rate >= 0.9
+
+
+def test_bad_input_is_named() -> None:
+    for spec in ("6", "a:b", "0:3", "3:-1"):
+        with pytest.raises(ValueError, match="view"):
+            local.view(10, spec)
+    assert local.view(10, "full") == (10, 9) and local.view(4, "6:5") == (4, 3)
+    with pytest.raises(ValueError, match="max_speed"):
+        local.LocalAssignment(max_speed=0.0)
+    with pytest.raises(ValueError, match="reset"):
+        local.LocalAssignment().act(torch.zeros(1, 3, 24))
+    with pytest.raises(SystemExit):
+        local.main(["--sizes", "3", "--episodes", "1", "2"])
+    with pytest.raises(SystemExit):
+        local.main(["--views", "x"])
+
+
+def test_main_writes_the_table(tmp_path: Path) -> None:
+    local.main(["--sizes", "3", "--episodes", "2", "--views", "1:1", "full",
+                "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "local.json").read_text())["rows"]
+    assert [(r["method"], r["view"], r["shield"]) for r in rows] == [
+        ("hungarian", "-", False), ("local-assignment", "1:1", False),
+        ("local-assignment", "1:1", True), ("local-assignment", "3:2", False),
+        ("local-assignment", "3:2", True)]
+    assert rows[0]["time_vs_hungarian"] == 1.0
+    assert "| 3v3 | local-assignment | 3:2 | yes |" in (tmp_path / "local.md").read_text()
+
+
+def test_dagger_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
+    dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
+                 "--sizes", "6v6", "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["view"] == "6:5" and "shielded_response" in probe["final"]
+    assert (tmp_path / "progress.csv").read_text().startswith("iteration,loss,seconds")
+    solver = allocator.make("bicnet-ipf", scenario="6v6", shield=True,
+                            checkpoint=tmp_path / "dagger.safetensors")
+    assert sim.evaluate(solver, "6v6", episodes=2, seed=0).response_rate > 0
+
+
+def test_dagger_refuses_what_it_cannot_teach(tmp_path: Path) -> None:
+    paper = ROOT / "allocator/weights/6v6/bicnet-ipf.safetensors"
+    with pytest.raises(SystemExit):  # not an entity policy
+        dagger.main(["--start", str(paper), "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        dagger.main(["--start", str(PARKED), "--lr", "nan", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        dagger.main(["--start", str(tmp_path / "missing.safetensors"), "--out", str(tmp_path)])
