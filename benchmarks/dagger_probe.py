@@ -179,8 +179,7 @@ def main(argv: list[str] | None = None) -> None:
             "config")
     save_checkpoint(args.out / "dagger.safetensors", learner.policy_tensors(),
                     {"kind": "policy", "seed": args.seed, **{k: meta[k] for k in keep}})
-    fields = sorted({k for r in log for k in r}, key=lambda k: list(log[-1]).index(k)
-                    if k in log[-1] else 99)
+    fields = list(log[-1])  # the last iteration always validates: every column
     with open(args.out / "progress.csv.tmp", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()

@@ -287,3 +287,12 @@ def test_layout_inference_and_bad_input():
         EntityConfig(shield="yes")
     with pytest.raises(ValueError, match="hidden"):
         EntityConfig(hidden=0)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0, "1", None, True])
+def test_shield_penalty_is_checked(bad):
+    from learners.entity import BiCNetEConfig
+
+    with pytest.raises(ValueError, match="shield_penalty"):
+        BiCNetEConfig(shield=True, shield_penalty=bad).validate()
+    BiCNetEConfig(shield=True, shield_penalty=1e6).validate()  # huge but finite: allowed
