@@ -1,7 +1,8 @@
 """Imitation probe for issue 17: an entity policy taught by a re-planning Hungarian (DAgger).
 
     python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12]
-        [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--seed 0]
+        [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
+        [--seed 0]
         [--out benchmarks/results/scale/entity/dagger]
 
 The teacher (:func:`teacher_actions`) sees the whole scene: every step it assigns the idle AGVs
@@ -13,7 +14,8 @@ DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix 
 environment driven by the teacher with probability 0.3, else by the student); every state
 visited is labelled with the teacher's action; the last 8 rollouts per size are kept and the
 actor takes ``--steps`` Adam steps on the mean squared error between its action and the
-teacher's over the AGVs that move (a batch of 64 joint states per size and step). No reward
+teacher's over the AGVs that move (a batch of 64 joint states per size and step);
+``--shield`` executes the rollouts' actions through the safety shield. No reward
 and no critic: the file written is a policy (``kind="policy"``) that ``allocator.make(...,
 checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train --init-from FILE``
 take.
@@ -81,12 +83,19 @@ def scenario(name: str, spec: str) -> sim.Scenario:
 
 
 def rollout(learner: Any, scen: sim.Scenario, envs: int, seed: int, teacher_share: float,
-            gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            gen: torch.Generator, shield: bool = False
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One batch of episodes; returns the running states' observations (S, N, O), the
-    teacher's actions (S, N, 2) and which AGVs move (S, N)."""
+    teacher's actions (S, N, 2) and which AGVs move (S, N). ``shield``: the actions are
+    executed through :class:`allocator.shield.SafetyShield` (the labels stay the teacher's
+    own actions)."""
     env = sim.make_env(scen, num_envs=envs, seed=seed)
     obs = env.observe()
     learner.reset(env)
+    safety = None
+    if shield:
+        safety = SafetyShield(learner)
+        safety.reset(env)
     drive = torch.rand(envs, 1, 1, generator=gen) < teacher_share
     out: list[tuple[torch.Tensor, ...]] = []
     while not bool(env.done.all()):
@@ -95,7 +104,8 @@ def rollout(learner: Any, scen: sim.Scenario, envs: int, seed: int, teacher_shar
             student = learner.policy(obs)
         run = ~env.done
         out.append((obs[run], target[run], ((env.agent_task < 0) & run[:, None])[run]))
-        obs, *_ = env.step(torch.where(drive, target, student))
+        act = torch.where(drive, target, student)
+        obs, *_ = env.step(act if safety is None else safety.filter(act))
     o, a, m = (torch.cat(x) for x in zip(*out, strict=True))
     return o, a, m
 
@@ -119,6 +129,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--sizes", nargs="+", default=["10v10", "20v20", "50v50"])
     parser.add_argument("--view", default="6:5", help="'KT:KA' slots or 'full'")
+    parser.add_argument("--shield", action="store_true",
+                        help="roll out through the safety shield (the states a shielded "
+                             "policy visits)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -151,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
         for k, (name, scen) in enumerate(scens.items()):
             seed = args.seed * 100_000 + it * 100 + k
             data[name] = (data[name] + [rollout(learner, scen, BATCH.get(name, 16), seed,
-                                                share, gen)])[-KEEP:]
+                                                share, gen, args.shield)])[-KEEP:]
         pooled = {s: [torch.cat(x) for x in zip(*d, strict=True)] for s, d in data.items()}
         total = 0.0
         for _ in range(args.steps):
@@ -190,7 +203,8 @@ def main(argv: list[str] | None = None) -> None:
     atomic_write_text(args.out / "dagger.probe.json", json.dumps(
         {"command": command.strip(), "seed": args.seed, "start": str(args.start),
          "iterations": args.iterations, "steps": args.steps, "lr": args.lr,
-         "sizes": args.sizes, "view": args.view, "teacher_share": TEACHER_SHARE,
+         "sizes": args.sizes, "view": args.view, "shield": args.shield,
+         "teacher_share": TEACHER_SHARE,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")
 

@@ -87,7 +87,8 @@ def test_dagger_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
                  "--sizes", "6v6", "--out", str(tmp_path)])
     probe = json.loads((tmp_path / "dagger.probe.json").read_text())
-    assert probe["view"] == "6:5" and "shielded_response" in probe["final"]
+    assert probe["view"] == "6:5" and not probe["shield"]
+    assert "shielded_response" in probe["final"]
     assert (tmp_path / "progress.csv").read_text().startswith("iteration,loss,seconds")
     solver = allocator.make("bicnet-ipf", scenario="6v6", shield=True,
                             checkpoint=tmp_path / "dagger.safetensors")
@@ -102,3 +103,13 @@ def test_dagger_refuses_what_it_cannot_teach(tmp_path: Path) -> None:
         dagger.main(["--start", str(PARKED), "--lr", "nan", "--out", str(tmp_path)])
     with pytest.raises(SystemExit):
         dagger.main(["--start", str(tmp_path / "missing.safetensors"), "--out", str(tmp_path)])
+
+
+def test_dagger_rolls_out_through_the_shield(tmp_path: Path) -> None:
+    env = sim.make_env("6v6", num_envs=2, seed=0)
+    learner = allocator.make("bicnet-ipf", scenario="6v6", checkpoint=PARKED).policy.learner
+    gen = torch.Generator().manual_seed(0)
+    obs, target, moving = dagger.rollout(learner, sim.get_scenario("6v6"), 2, 0, 0.5, gen,
+                                         shield=True)
+    assert obs.shape[1:] == (6, env.obs_dim) and target.shape == (len(obs), 6, 2)
+    assert moving.shape == (len(obs), 6) and target.abs().max() <= 1.0 + 1e-6
