@@ -4,7 +4,7 @@
         [--floors warehouse-20 warehouse-50 warehouse-100] [--lifelong-steps 1000]
         [--seed 0] [--quick] [--out benchmarks/results/scale]
         [--methods hungarian maddpg-ipf ...] [--no-any-n] [--entity POLICY.safetensors ...]
-        [--lifelong-weights RUN_DIR_OR_FILE ...] [--dispatchers hungarian fifo ...]
+        [--lifelong-weights RUN_DIR_OR_FILE ...] [--dispatchers hungarian fifo ...] [--view KT:KA]
 
 Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
 ``fifo`` and ``auction`` (its radio range equal to the scenario's sensing range, so that the
@@ -123,7 +123,11 @@ class OverlapCounter:
 
 def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
                   methods: list[str] | None = None, any_n: bool = False,
-                  entity: list[str] | None = None) -> list[dict]:
+                  entity: list[str] | None = None,
+                  view: tuple[int, int] | None = None) -> list[dict]:
+    """The episodic rows; ``view`` (K_t, K_a): the task and AGV slots every row observes
+    (capped at M and N - 1), except the paper's weights (``LEARNED``), whose input size is
+    fixed; None: the scenarios' own (6 and 5)."""
     rows = []
     learned = list(LEARNED)
     if any_n:  # the families whose any-N weights ship
@@ -135,7 +139,10 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
     keep = None if methods is None else set(methods) | {"hungarian"}
     for n, eps in zip(sizes, episodes, strict=True):
         scenario = f"{n}v{n}"
-        rng = float(sim.get_scenario(scenario).sensing_range)
+        base = sim.get_scenario(scenario)
+        rng = float(base.sensing_range)
+        viewed = base if view is None else sim.get_scenario(
+            scenario, k_tasks=min(view[0], n), k_agents=min(view[1], n - 1))
         hung_time = None
         variants = [(m, False) for m in CLASSICAL] + [(m, s) for m in learned
                                                       for s in (False, True)]
@@ -146,12 +153,14 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
         for name, shield in variants:
             ctl = episodic_method(name, n, shield, rng)
             t = time.perf_counter()
-            m = sim.evaluate(ctl, scenario, episodes=eps, seed=seed, batch_size=eps)
+            scen = base if name in LEARNED else viewed
+            m = sim.evaluate(ctl, scen, episodes=eps, seed=seed, batch_size=eps)
             seconds = time.perf_counter() - t
             safety = getattr(ctl, "safety", None)
             if name == "hungarian":
                 hung_time = m.avg_time
             row = dict(kind="episodic", scenario=scenario, n=n, method=name, shield=shield,
+                       view=f"{scen.k_tasks}:{scen.k_agents}",
                        episodes=eps, response=m.response_rate, avg_time=m.avg_time,
                        time_vs_hungarian=m.avg_time / hung_time if hung_time else math.nan,
                        overlaps=m.collisions,
@@ -346,6 +355,10 @@ def main(argv: list[str] | None = None) -> None:
                         "(default on; --no-any-n leaves them out)")
     p.add_argument("--entity", nargs="+", default=[], metavar="FILE",
                    help="add rows for these entity-learner policy files")
+    p.add_argument("--view", default=None, metavar="KT:KA",
+                   help="episodic rows observe KT task and KA AGV slots (capped at M and "
+                        "N - 1; not the paper's weights, whose input is fixed; default the "
+                        "scenario's 6:5)")
     p.add_argument("--lifelong-weights", nargs="+", default=[], metavar="RUN_OR_FILE",
                    help="add lifelong rows for these lifelong entity runs or policy files")
     p.add_argument("--dispatchers", nargs="+", default=None, choices=BASELINES,
@@ -363,10 +376,19 @@ def main(argv: list[str] | None = None) -> None:
         p.error("--sizes and --episodes must be positive integers")
     if args.lifelong_steps < 1:
         p.error("--lifelong-steps must be a positive integer")
+    view = None
+    if args.view is not None:
+        try:
+            view = tuple(int(x) for x in args.view.split(":"))
+        except ValueError:
+            view = ()
+        if len(view) != 2 or view[0] < 1 or view[1] < 0:
+            p.error(f"--view must be KT:KA with KT >= 1 and KA >= 0 (e.g. 10:10), got "
+                    f"{args.view!r}")
     torch.set_num_threads(1)
     np.seterr(all="ignore")
     rows = episodic_rows(args.sizes, episodes, args.seed, args.methods, args.any_n,
-                         args.entity)
+                         args.entity, view)
     for w in args.lifelong_weights:
         if not policy_file(w).is_file():
             p.error(f"--lifelong-weights {w}: no policy file there")

@@ -56,7 +56,20 @@ def test_no_any_n_leaves_the_any_n_rows_out(tmp_path: Path) -> None:
         ("hungarian", False), ("maddpg-ipf", False), ("maddpg-ipf", True)]
 
 
+def test_view_widens_every_row_but_the_papers_weights(tmp_path: Path) -> None:
+    bench.main(["--sizes", "6", "--episodes", "2", "--floors", "--no-any-n", "--view", "10:3",
+                "--methods", "hungarian", "bicnet-ipf", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
+    # capped at M = 6 tasks; the paper's 6v6 weights keep their 6:5 input
+    assert [(r["method"], r["view"]) for r in rows] == [
+        ("hungarian", "6:3"), ("bicnet-ipf", "6:5"), ("bicnet-ipf", "6:5")]
+
+
 def test_bad_arguments(tmp_path: Path) -> None:
+    for view in ("10", "a:b", "0:3", "3:-1"):
+        with pytest.raises(SystemExit):
+            bench.main(["--sizes", "3", "--episodes", "1", "--floors", "--view", view,
+                        "--out", str(tmp_path)])
     with pytest.raises(SystemExit):
         bench.main(["--sizes", "3", "6", "--episodes", "4", "--out", str(tmp_path)])
     with pytest.raises(SystemExit):
