@@ -5,6 +5,10 @@ each AGV wants to go next: its action is an intended velocity, ``(1 - damping) v
 simulator's physics. :class:`SafetyShield` changes that intention as little as it can so that
 no two AGVs overlap:
 
+0. **Detours** (episodic scenes, ``detour=True``; off by default): an idle AGV whose
+   intention drives straight at an open task through a parked AGV turns toward a shortest
+   path round the parked AGVs (:class:`~allocator.detour.ParkedDetour`). Without it the
+   braking filter holds such an AGV against the parked one until the step limit.
 1. **Liveness** (on lifelong floors by default): the intended velocities go through
    :class:`~allocator.avoidance.liveness.DeadlockResolver`, as in the lifelong
    :class:`~allocator.traffic.SafeDriver`: symmetry-breaking perturbation, stall detection,
@@ -46,6 +50,7 @@ from torch import Tensor
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, braking_velocity
 from allocator.avoidance.liveness import DeadlockResolver
+from allocator.detour import ParkedDetour
 
 __all__ = ["SafetyShield", "movable_agents"]
 
@@ -114,13 +119,18 @@ class SafetyShield:
         Where the liveness rules run: turn the intended velocities this many radians to the
         right first, SafeDriver's lane discipline (in [0, pi/2); default 0, the policy's
         direction).
+    detour : bool
+        Episodic scenes: turn intentions that drive at an open task through a parked AGV round
+        it first (:class:`~allocator.detour.ParkedDetour`; default False). A lifelong env
+        refuses it at :meth:`reset`.
 
     Attributes
     ----------
     interventions : dict
-        ``{"any": n, "qp": n, "brake": n, "liveness": n}``: AGV-steps changed at all, before
-        braking (by the liveness rules or the QP), certified only by braking (or a blend with
-        it), and changed by the liveness rules, since :meth:`reset`.
+        ``{"any": n, "qp": n, "brake": n, "liveness": n, "detour": n}``: AGV-steps changed at
+        all, before braking (by the liveness rules or the QP), certified only by braking (or a
+        blend with it), changed by the liveness rules, and turned by a detour, since
+        :meth:`reset`.
     live : bool
         Whether the liveness rules run on the env given to :meth:`reset`.
     resolver : DeadlockResolver or None
@@ -140,7 +150,7 @@ class SafetyShield:
     def __init__(self, controller: Any, qp: bool = True, margin: float = 0.01,
                  tolerance: float = 1e-3, avoidance_options: dict[str, Any] | None = None,
                  liveness: bool | None = None, seed: int = 0, cruise_speed: float = 1.2,
-                 keep_right: float = 0.0) -> None:
+                 keep_right: float = 0.0, detour: bool = False) -> None:
         if not (callable(getattr(controller, "reset", None))
                 and callable(getattr(controller, "act", None))):
             raise ValueError(f"controller must have reset(env) and act(obs) methods, got "
@@ -166,6 +176,8 @@ class SafetyShield:
                 or not np.isfinite(keep_right) or not 0 <= keep_right < np.pi / 2:
             raise ValueError(f"keep_right must be an angle in [0, pi/2) radians, got "
                              f"{keep_right!r}")
+        if not isinstance(detour, (bool, np.bool_)):
+            raise ValueError(f"detour must be True or False, got {detour!r}")
         if avoidance_options is not None and not isinstance(avoidance_options, dict):
             raise ValueError(f"avoidance_options must be a dict of AvoidanceConfig fields, "
                              f"got {type(avoidance_options).__name__}")
@@ -178,17 +190,20 @@ class SafetyShield:
         self.seed = int(seed)
         self.cruise_speed = float(cruise_speed)
         self.keep_right = float(keep_right)
+        self.detour = bool(detour)
+        self._detour: ParkedDetour | None = None
         self.live = False
         self.resolver: DeadlockResolver | None = None
         self.env: Any = None
         self._avoid: VelocityAvoidance | None = None
         self._brake: BrakingShield | None = None
-        self.interventions = {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
+        self.interventions = {"any": 0, "qp": 0, "brake": 0, "liveness": 0, "detour": 0}
         self.agent_steps = 0
         self.last_changed = np.zeros((0, 0), dtype=bool)
 
     def __repr__(self) -> str:
-        return f"SafetyShield({self.controller!r}, qp={self.qp}, liveness={self.liveness})"
+        return (f"SafetyShield({self.controller!r}, qp={self.qp}, liveness={self.liveness}, "
+                f"detour={self.detour})")
 
     @property
     def name(self) -> str:
@@ -198,6 +213,11 @@ class SafetyShield:
     def reset(self, env: Any) -> None:
         """Reset the wrapped controller and the counters; build the QP for ``env``'s world
         and, where the liveness rules run (see ``liveness``), a fresh resolver."""
+        if self.detour:  # first: a lifelong env is refused before anything is bound
+            self._detour = ParkedDetour()
+            self._detour.reset(env)
+        else:
+            self._detour = None
         self.controller.reset(env)
         self.env = env
         world = env.world
@@ -221,7 +241,7 @@ class SafetyShield:
             else getattr(env, "fleet", None) is not None
         self.resolver = DeadlockResolver(env.num_envs, env.num_agents, world.agent_radius,
                                          seed=self.seed) if self.live else None
-        self.interventions = {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
+        self.interventions = {"any": 0, "qp": 0, "brake": 0, "liveness": 0, "detour": 0}
         self.agent_steps = 0
         self.last_changed = np.zeros((env.num_envs, env.num_agents), dtype=bool)
 
@@ -271,6 +291,14 @@ class SafetyShield:
         brake = self._brake
         assert brake is not None
         intended = brake.realised(vel, a)
+        turned = np.zeros_like(movable)
+        if self._detour is not None:
+            turn, turned = self._detour.redirect(intended, movable)
+            # the action toward the turned velocity, scaled (not clipped per axis) into the
+            # box so that it keeps the detour's direction
+            push = (turn - (1.0 - brake.damping) * vel) / brake.gain
+            push /= np.maximum(1.0, np.abs(push).max(-1, keepdims=True))
+            intended = np.where(turned[..., None], brake.realised(vel, push), intended)
         planned = intended
         ahead = pos + vel * env.world.physics.dt * movable[..., None]
         by_rules = np.zeros_like(movable)
@@ -310,6 +338,7 @@ class SafetyShield:
         self.interventions["qp"] += int(by_qp.sum())
         self.interventions["brake"] += int(braked.sum())
         self.interventions["liveness"] += int(by_rules.sum())
+        self.interventions["detour"] += int(turned.sum())
         self.agent_steps += int(movable.sum())
         self.last_changed = changed
         return torch.as_tensor(safe, dtype=env.dtype, device=env.device)

@@ -5,6 +5,7 @@
         [--seed 0] [--quick] [--out benchmarks/results/scale]
         [--methods hungarian maddpg-ipf ...] [--no-any-n] [--entity POLICY.safetensors ...]
         [--lifelong-weights RUN_DIR_OR_FILE ...] [--dispatchers hungarian fifo ...] [--view KT:KA]
+        [--detour]
 
 Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
 ``fifo`` and ``auction`` (its radio range equal to the scenario's sensing range, so that the
@@ -21,7 +22,9 @@ Any-N rows (issue 17): ``maddpg-ipf`` / ``bicnet-ipf`` with the shipped any-N we
 where they ship (``--no-any-n`` leaves them out), and ``--entity FILE`` the policy file of an
 entity learner run (e.g. ``runs/.../best.safetensors``), plain and shielded, named
 ``<algo>-<reward> any-N`` and ``FILE's algo-reward (FILE)``. ``--methods`` keeps only the
-named rows (``hungarian`` is always run: the time column is relative to it).
+named rows (``hungarian`` is always run: the time column is relative to it). ``--detour``
+adds a third row for every learned method: shielded, with the shield's detours round parked
+AGVs (``allocator.make(..., shield=True, detour=True)``, :mod:`allocator.detour`).
 
 Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
 ``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) with their default
@@ -77,11 +80,13 @@ ALL_LEARNED = tuple(f"{a}-{r}" for a in ("maddpg", "bicnet")
 LIFELONG_COMM_RANGE = 3.0
 
 
-def episodic_method(name: str, n: int, shield: bool, sensing_range: float) -> Any:
-    """The controller for one episodic row."""
+def episodic_method(name: str, n: int, shield: bool, sensing_range: float,
+                    detour: bool = False) -> Any:
+    """The controller for one episodic row (``detour``: the shield's detours round parked
+    AGVs, learned rows with ``shield`` only)."""
+    guard = dict(shield=shield, detour=True) if detour else dict(shield=shield)
     if name.endswith(" any-N"):
-        return allocator.make(name.split()[0], scenario=f"{n}v{n}", shield=shield,
-                              weights="any")
+        return allocator.make(name.split()[0], scenario=f"{n}v{n}", weights="any", **guard)
     if name.startswith("entity:"):
         from learners.checkpoint import read_metadata
 
@@ -89,10 +94,10 @@ def episodic_method(name: str, n: int, shield: bool, sensing_range: float) -> An
         meta = read_metadata(path)
         family = meta["algo"].removesuffix("-e")
         return allocator.make(f"{family}-{meta['reward']}", scenario=f"{n}v{n}",
-                              shield=shield, checkpoint=path)
+                              checkpoint=path, **guard)
     if name in LEARNED:
         weights = "3v3" if n <= 3 else "6v6"
-        return allocator.make(name, scenario=weights, shield=shield)
+        return allocator.make(name, scenario=weights, **guard)
     if name == "auction":
         return allocator.make("auction", comm_range=sensing_range)
     return allocator.make(name)
@@ -124,10 +129,11 @@ class OverlapCounter:
 def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
                   methods: list[str] | None = None, any_n: bool = False,
                   entity: list[str] | None = None,
-                  view: tuple[int, int] | None = None) -> list[dict]:
+                  view: tuple[int, int] | None = None, detour: bool = False) -> list[dict]:
     """The episodic rows; ``view`` (K_t, K_a): the task and AGV slots every row observes
     (capped at M and N - 1), except the paper's weights (``LEARNED``), whose input size is
-    fixed; None: the scenarios' own (6 and 5)."""
+    fixed; None: the scenarios' own (6 and 5). ``detour``: every learned row also runs
+    shielded with the shield's detours round parked AGVs (``detour=True``)."""
     rows = []
     learned = list(LEARNED)
     if any_n:  # the families whose any-N weights ship
@@ -144,14 +150,15 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
         viewed = base if view is None else sim.get_scenario(
             scenario, k_tasks=min(view[0], n), k_agents=min(view[1], n - 1))
         hung_time = None
-        variants = [(m, False) for m in CLASSICAL] + [(m, s) for m in learned
-                                                      for s in (False, True)]
+        guards = [(False, False), (True, False)] + ([(True, True)] if detour else [])
+        variants = [(m, False, False) for m in CLASSICAL] + [(m, s, d) for m in learned
+                                                             for s, d in guards]
         if keep is not None:
-            variants = [(m, s) for m, s in variants
+            variants = [(m, s, d) for m, s, d in variants
                         if m in keep or m.split()[0] in keep and m.endswith("any-N")
                         or m.startswith("entity:")]
-        for name, shield in variants:
-            ctl = episodic_method(name, n, shield, rng)
+        for name, shield, det in variants:
+            ctl = episodic_method(name, n, shield, rng, det)
             t = time.perf_counter()
             scen = base if name in LEARNED else viewed
             m = sim.evaluate(ctl, scen, episodes=eps, seed=seed, batch_size=eps)
@@ -160,7 +167,7 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
             if name == "hungarian":
                 hung_time = m.avg_time
             row = dict(kind="episodic", scenario=scenario, n=n, method=name, shield=shield,
-                       view=f"{scen.k_tasks}:{scen.k_agents}",
+                       detour=det, view=f"{scen.k_tasks}:{scen.k_agents}",
                        episodes=eps, response=m.response_rate, avg_time=m.avg_time,
                        time_vs_hungarian=m.avg_time / hung_time if hung_time else math.nan,
                        overlaps=m.collisions,
@@ -261,7 +268,8 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
         f"`{command}` on {platform.machine()}, Python {platform.python_version()}, torch "
         f"{torch.__version__}, {stamp}; seed {seed} (the same episodes and orders for every "
         "method). Learned rows: the shipped weights (3v3 at N = 3, 6v6 zero-shot above), "
-        "plain and shielded (`shield=True`); `any-N` rows: the shipped any-N weights "
+        "plain and shielded (`shield=True`; `yes + detour`: with the shield's detours round "
+        "parked AGVs, `detour=True`); `any-N` rows: the shipped any-N weights "
         "(`allocator/weights/any`), `entity:FILE` rows: an entity learner's policy file, "
         "both run zero-shot at every N. Auction: radio range = the scenario's sensing "
         "range (episodic), 3.0 (lifelong `auction`), unlimited (lifelong `auction+safe`, as "
@@ -277,8 +285,9 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
             "|---|---|---|---|---|---|---|---|---|---|",
         ]
     for r in (r for r in rows if r["kind"] == "episodic"):
+        guard = "yes + detour" if r.get("detour") else "yes" if r["shield"] else "no"
         lines.append(
-            f"| {r['scenario']} | {r['method']} | {'yes' if r['shield'] else 'no'} | "
+            f"| {r['scenario']} | {r['method']} | {guard} | "
             f"{r['episodes']} | {_fmt(r['response'])} | {_fmt(r['avg_time'], '.2f')} | "
             f"{_fmt(r['time_vs_hungarian'], '.2f')} | {_fmt(r['overlaps'], '.2f')} | "
             f"{_fmt(r['interventions'])} | {r['seconds']:.0f} |")
@@ -315,14 +324,15 @@ def plot(rows: list[dict], path: Path) -> None:
     if not ep:
         return
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-    keys = sorted({(r["method"], r["shield"]) for r in ep},
+    keys = sorted({(r["method"], r["shield"], bool(r.get("detour"))) for r in ep},
                   key=lambda k: (k[0] not in CLASSICAL, k))
-    for method, shield in keys:
+    for method, shield, detour in keys:
         pts = sorted((r["n"], r["response"], r["time_vs_hungarian"]) for r in ep
-                     if r["method"] == method and r["shield"] == shield)
+                     if r["method"] == method and r["shield"] == shield
+                     and bool(r.get("detour")) == detour)
         n = [p[0] for p in pts]
-        label = method + (" + shield" if shield else "")
-        style = "--" if shield else "-"
+        label = method + (" + shield + detour" if detour else " + shield" if shield else "")
+        style = ":" if detour else "--" if shield else "-"
         ax1.plot(n, [p[1] for p in pts], style, marker="o", label=label)
         ax2.plot(n, [p[2] for p in pts], style, marker="o", label=label)
     for ax, name in ((ax1, "task response"), (ax2, "avg time / Hungarian's")):
@@ -359,6 +369,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="episodic rows observe KT task and KA AGV slots (capped at M and "
                         "N - 1; not the paper's weights, whose input is fixed; default the "
                         "scenario's 6:5)")
+    p.add_argument("--detour", action="store_true",
+                   help="learned episodic rows also run shielded with detours round parked "
+                        "AGVs (SafetyShield(detour=True))")
     p.add_argument("--lifelong-weights", nargs="+", default=[], metavar="RUN_OR_FILE",
                    help="add lifelong rows for these lifelong entity runs or policy files")
     p.add_argument("--dispatchers", nargs="+", default=None, choices=BASELINES,
@@ -388,7 +401,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     np.seterr(all="ignore")
     rows = episodic_rows(args.sizes, episodes, args.seed, args.methods, args.any_n,
-                         args.entity, view)
+                         args.entity, view, args.detour)
     for w in args.lifelong_weights:
         if not policy_file(w).is_file():
             p.error(f"--lifelong-weights {w}: no policy file there")

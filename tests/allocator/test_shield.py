@@ -70,7 +70,7 @@ def test_a_lone_agv_far_from_everything_is_left_alone() -> None:
     action = torch.tensor([[[0.3, -0.2]]])
     out = shield.filter(action)
     assert torch.allclose(out, action, atol=1e-6)
-    assert shield.interventions == {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
+    assert shield.interventions == {"any": 0, "qp": 0, "brake": 0, "liveness": 0, "detour": 0}
     assert shield.agent_steps == 1
 
 

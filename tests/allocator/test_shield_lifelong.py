@@ -84,7 +84,7 @@ def test_default_is_on_for_lifelong_floors_and_the_learned_allocator_gets_it() -
     shield = SafetyShield(NearestTaskController(), seed=5)
     shield.reset(env)
     assert shield.live and isinstance(shield.resolver, DeadlockResolver)
-    assert shield.interventions == {"any": 0, "qp": 0, "brake": 0, "liveness": 0}
+    assert shield.interventions == {"any": 0, "qp": 0, "brake": 0, "liveness": 0, "detour": 0}
     off = SafetyShield(NearestTaskController(), liveness=False)
     off.reset(env)
     assert not off.live and off.resolver is None

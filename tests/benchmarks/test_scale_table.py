@@ -65,6 +65,17 @@ def test_view_widens_every_row_but_the_papers_weights(tmp_path: Path) -> None:
         ("hungarian", "6:3"), ("bicnet-ipf", "6:5"), ("bicnet-ipf", "6:5")]
 
 
+def test_detour_adds_a_shielded_detour_row_per_learned_method(tmp_path: Path) -> None:
+    bench.main(["--sizes", "6", "--episodes", "2", "--floors", "--no-any-n", "--detour",
+                "--methods", "hungarian", "bicnet-ipf", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
+    assert [(r["method"], r["shield"], r["detour"]) for r in rows] == [
+        ("hungarian", False, False), ("bicnet-ipf", False, False), ("bicnet-ipf", True, False),
+        ("bicnet-ipf", True, True)]
+    assert rows[-1]["overlaps"] == 0
+    assert "| 6v6 | bicnet-ipf | yes + detour |" in (tmp_path / "scale.md").read_text()
+
+
 def test_bad_arguments(tmp_path: Path) -> None:
     for view in ("10", "a:b", "0:3", "3:-1"):
         with pytest.raises(SystemExit):
