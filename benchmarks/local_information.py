@@ -1,7 +1,8 @@
 """How fast can AGVs that see only their K nearest tasks and AGVs finish an episode? (issue 17)
 
     python benchmarks/local_information.py [--sizes 20 50] [--episodes 100 20]
-        [--views 6:5 10:10 16:15 full] [--seed 0] [--out benchmarks/results/scale/local]
+        [--views 6:5 10:10 16:15 full] [--seed 0] [--detour]
+        [--out benchmarks/results/scale/local]
 
 The learned policies read the paper's observation: the K_t = 6 nearest open tasks and the
 K_a = 5 nearest AGVs. This script measures what that view allows a *coordinating* rule, with
@@ -15,7 +16,8 @@ row of the scale table, planned once, OMPL paths and ORCA), on the same seeded e
 
 Columns: response, average time (steps until every task is claimed, the step limit where
 not), that time over ``hungarian``'s, overlapping pairs per episode (no avoidance here: the
-rule drives straight), plain and with :class:`allocator.shield.SafetyShield`.
+rule drives straight), plain and with :class:`allocator.shield.SafetyShield` (``--detour``:
+also with the shield's detours round parked AGVs, :mod:`allocator.detour`).
 
 Writes ``local.md`` and ``local.json`` to ``--out`` with the command, seed and machine.
 The assignment loop runs once per idle AGV and step in Python: a measuring tool, not a
@@ -141,32 +143,41 @@ def view(n: int, spec: str) -> tuple[int, int]:
     return min(kt, n), min(ka, n - 1)
 
 
-def rows_for(n: int, episodes: int, views: list[str], seed: int) -> list[dict]:
+def rows_for(n: int, episodes: int, views: list[str], seed: int,
+             detour: bool = False) -> list[dict]:
     """The rows of one NvN scene: ``hungarian``, then the rule at every view, plain and
-    shielded."""
+    shielded (``detour``: also shielded with the shield's detours round parked AGVs)."""
     name = f"{n}v{n}"
     rows: list[dict] = []
     hung = None
-    runs: list[tuple[str, str, bool, Any, Any]] = [
-        ("hungarian", "-", False, allocator.make("hungarian"), sim.get_scenario(name))]
+    runs: list[tuple[str, str, bool, bool, Any, Any]] = [
+        ("hungarian", "-", False, False, allocator.make("hungarian"), sim.get_scenario(name))]
+    guards = [(False, False), (True, False)] + ([(True, True)] if detour else [])
     for spec in views:
         kt, ka = view(n, spec)
         scenario = sim.get_scenario(name, k_tasks=kt, k_agents=ka)
-        for shield in (False, True):
+        for shield, det in guards:
             ctl: Any = LocalAssignment()
-            runs.append((LocalAssignment.name, f"{kt}:{ka}", shield,
-                         SafetyShield(ctl) if shield else ctl, scenario))
-    for method, seen, shield, ctl, scenario in runs:
+            if shield:
+                ctl = SafetyShield(ctl, detour=det)
+            runs.append((LocalAssignment.name, f"{kt}:{ka}", shield, det, ctl, scenario))
+    for method, seen, shield, det, ctl, scenario in runs:
         t = time.perf_counter()
         m = sim.evaluate(ctl, scenario, episodes=episodes, seed=seed, batch_size=episodes)
         hung = m.avg_time if hung is None else hung
-        row = dict(scenario=name, method=method, view=seen, shield=shield, episodes=episodes,
+        row = dict(scenario=name, method=method, view=seen, shield=shield, detour=det,
+                   episodes=episodes,
                    response=m.response_rate, avg_time=m.avg_time,
                    time_vs_hungarian=m.avg_time / hung, finished=m.finished_rate,
                    overlaps=m.collisions, seconds=time.perf_counter() - t)
         rows.append(row)
         print(json.dumps(row), flush=True)
     return rows
+
+
+def guard(row: dict) -> str:
+    """The shield column of a row: ``no``, ``yes`` or ``yes + detour``."""
+    return "yes + detour" if row.get("detour") else "yes" if row["shield"] else "no"
 
 
 def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
@@ -182,7 +193,7 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['scenario']} | {r['method']} | {r['view']} | "
-                     f"{'yes' if r['shield'] else 'no'} | {r['episodes']} | "
+                     f"{guard(r)} | {r['episodes']} | "
                      f"{r['response']:.3f} | {r['avg_time']:.2f} | "
                      f"{r['time_vs_hungarian']:.2f} | {r['finished']:.2f} | "
                      f"{r['overlaps']:.2f} | {r['seconds']:.0f} |")
@@ -198,6 +209,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--views", nargs="+", default=["6:5", "10:10", "16:15", "full"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--detour", action="store_true",
+                        help="also run the rule shielded with detours round parked AGVs "
+                             "(SafetyShield(detour=True))")
     args = parser.parse_args(argv)
     if len(args.sizes) != len(args.episodes):
         parser.error("--sizes and --episodes need one value each per size")
@@ -212,7 +226,7 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(str(err))
     torch.set_num_threads(1)
     rows = [r for n, e in zip(args.sizes, args.episodes, strict=True)
-            for r in rows_for(n, e, args.views, args.seed)]
+            for r in rows_for(n, e, args.views, args.seed, args.detour)]
     command = "python benchmarks/local_information.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
     write(rows, args.out, command.strip(), args.seed)

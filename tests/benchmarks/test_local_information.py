@@ -83,6 +83,16 @@ def test_main_writes_the_table(tmp_path: Path) -> None:
     assert "| 3v3 | local-assignment | 3:2 | yes |" in (tmp_path / "local.md").read_text()
 
 
+def test_detour_adds_a_shielded_detour_row_per_view(tmp_path: Path) -> None:
+    local.main(["--sizes", "3", "--episodes", "2", "--views", "full", "--detour",
+                "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "local.json").read_text())["rows"]
+    assert [(r["shield"], r["detour"]) for r in rows] == [
+        (False, False), (False, False), (True, False), (True, True)]
+    assert rows[-1]["overlaps"] == 0
+    assert "| 3:2 | yes + detour |" in (tmp_path / "local.md").read_text()
+
+
 def test_dagger_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
                  "--sizes", "6v6", "--out", str(tmp_path)])
