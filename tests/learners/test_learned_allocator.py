@@ -123,8 +123,8 @@ def test_unknown_option_of_a_learned_allocator_lists_the_valid_ones(tmp_path):
     path = _checkpoint(tmp_path, "bicnet-ipf")
     for make in (lambda **kw: allocator.make("bicnet-ipf", **kw), LEARNED["bicnet-ipf"]):
         with pytest.raises(ValueError, match="unknown option 'max_step' for allocator "
-                                             "'bicnet-ipf'; valid options: checkpoint, keep_right, "
-                                             "max_steps, scenario"):
+                                             "'bicnet-ipf'; valid options: checkpoint, detour, "
+                                             "keep_right, max_steps, scenario"):
             make(scenario="3v3", checkpoint=path, max_step=10)
     with pytest.raises(ValueError, match="checkpoint must be a path"):
         LEARNED["bicnet-ipf"](scenario="3v3", checkpoint=3)
