@@ -20,10 +20,14 @@ Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floors 
   folder loads its ``policy.safetensors``, the last policy; pass ``RUN/best.safetensors`` for
   the best);
 - for reference, the classical dispatchers driven by :class:`allocator.SafeDriver` (the same
-  resolver, QP and braking filter, on planned paths; ``--baselines``, default all):
+  resolver, QP and braking filter, on planned paths; ``--baselines``, default these four):
   ``hungarian``, ``fifo``, ``auction`` (the decentralized auction with unlimited radio range,
   as the learned policies sense every AGV and order on the floor) and ``auction-3`` (radio
-  range 3.0, the scale table's lifelong auction).
+  range 3.0, the scale table's lifelong auction);
+- ``hungarian-shield`` (asked for by name): Hungarian's choices, each AGV intending
+  ``WaypointDriver``'s command, through :class:`allocator.SafetyShield` with lanes of the first
+  ``--keep-right`` angle (:class:`ShieldedIntent`), the action clipped per axis and scaled
+  with its direction kept: what a learned policy could reach behind the shield.
 
 Columns: deliveries per 1000 steps (mean over the seeds, 95% t-interval, each seed's),
 overlapping AGV pairs summed over the steps and seeds (the simulator's rule), the shield's
@@ -127,6 +131,69 @@ class PathFollower:
         return torch.as_tensor(np.clip(action, -1.0, 1.0), dtype=obs.dtype)
 
 
+class ShieldedIntent:
+    """A dispatcher's driver whose intentions go through :class:`allocator.SafetyShield`.
+
+    Each AGV with a target intends :class:`allocator.WaypointDriver`'s velocity command (the
+    first corner of its path, gain 4, 1.2 units/s); the shield (liveness rules, lanes of
+    ``keep_right``, QP, braking filter) makes it safe. It answers what a learned lifelong
+    policy could reach behind the shield if it made the dispatcher's choices and drove as the
+    path follower does. ``keep_direction``: the command's action is scaled into [-1, 1]^2
+    (its direction kept) instead of clipped per axis, as ``WaypointDriver`` does.
+
+    Attributes
+    ----------
+    shield : allocator.SafetyShield
+        The shield (``interventions``, ``resolver``), reset with the driver.
+    """
+
+    def __init__(self, keep_right: float = 0.0, keep_direction: bool = False) -> None:
+        self.waypoints = allocator.WaypointDriver()
+        self.max_speed = self.waypoints.max_speed
+        self.keep_direction = bool(keep_direction)
+        self.env: Any = None
+        owner = self
+
+        class _Intent:  # the shield's controller: the driver's own intentions
+            def reset(self, env: Any) -> None:
+                pass
+
+            def act(self, obs: Tensor) -> Tensor:
+                return owner.intent(owner.env)
+
+        self.shield = allocator.SafetyShield(_Intent(), keep_right=keep_right)
+
+    def reset(self, env: Any) -> None:
+        """Bind to the env: the waypoint table (which the dispatcher reads) and the shield."""
+        self.env = env
+        self.waypoints.reset(env)
+        self.distances = self.waypoints.distances
+        self.shield.reset(env)
+
+    def intent(self, env: Any) -> Tensor:
+        """The waypoint commands as actions (B, N, 2), clipped or direction-keeping."""
+        if not self.keep_direction:
+            return self.waypoints.act(env)
+        pos = env.agent_pos.double().cpu().numpy()
+        vel = env.agent_vel.double().cpu().numpy()
+        target, has = env.targets()
+        target, has = target.double().cpu().numpy(), has.cpu().numpy()
+        wp = self.waypoints
+        cmd = np.zeros_like(pos)
+        if has.any():
+            cmd[has] = (wp.distances.next_waypoint(pos[has], target[has]) - pos[has]) * wp.gain
+        speed = np.linalg.norm(cmd, axis=-1, keepdims=True)
+        cmd = cmd * (wp.max_speed / np.maximum(speed, wp.max_speed))
+        ph = env.world.physics
+        action = (cmd - vel * (1.0 - ph.damping)) / (ph.sensitivity * ph.dt / ph.mass)
+        action /= np.maximum(1.0, np.abs(action).max(-1, keepdims=True))
+        return torch.as_tensor(action, dtype=torch.float32)
+
+    def act(self, env: Any) -> Tensor:
+        """The shielded actions (B, N, 2)."""
+        return self.shield.filter(self.intent(env))
+
+
 def _learned(weights: str, floor: str, liveness: bool | None, keep_right: float = 0.0) -> Any:
     """The learned policy of ``weights`` with ``shield=True``, its shield's liveness set
     (``None``: no shield at all) and its lane angle ``keep_right``."""
@@ -165,16 +232,31 @@ class _Recorder:
         return self.total / max(self.count, 1)
 
 
-BASELINES = ("path-follower", "hungarian", "fifo", "auction", "auction-3")
-"""The reference rows (``--baselines``): the shielded path follower, and the classical
-dispatchers driven by SafeDriver (``auction``: unlimited radio range, ``auction-3``: 3.0)."""
+BASELINES = ("path-follower", "hungarian", "fifo", "auction", "auction-3", "hungarian-shield")
+"""The reference rows (``--baselines``): the shielded path follower, the classical
+dispatchers driven by SafeDriver (``auction``: unlimited radio range, ``auction-3``: 3.0),
+and ``hungarian-shield``: Hungarian's choices driven by :class:`ShieldedIntent` at the first
+``--keep-right`` angle, with the action clipped and direction-keeping (two rows; not in the
+default set)."""
+DEFAULT_BASELINES = BASELINES[:5]
 
 
-def _baseline(name: str) -> list[tuple[str, str, Any]]:
-    """(label, liveness column, controller) of one reference row (two for the follower)."""
+def _baseline(name: str, keep_right: float = 0.0) -> list[tuple[str, str, Any]]:
+    """(label, liveness column, controller) of one reference row (two for the follower and
+    for ``hungarian-shield``)."""
     if name == "path-follower":
         return [("path follower", "on" if live else "off",
                  allocator.SafetyShield(PathFollower(), liveness=live)) for live in (False, True)]
+    if name == "hungarian-shield":
+        out = []
+        for keep in (False, True):
+            driver = ShieldedIntent(keep_right, keep_direction=keep)
+            ctl = allocator.HungarianDispatcher(driver=driver)
+            ctl.safety = driver.shield  # the counters the rows read
+            action = "direction-keeping" if keep else "clipped"
+            out.append((f"hungarian's choices, waypoint intent ({action}) + shield",
+                        f"on, lanes {keep_right:g} rad", ctl))
+        return out
     if name == "hungarian":
         ctl = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
     elif name == "fifo":
@@ -192,7 +274,7 @@ and on with lanes (the intended velocities turned right by each ``--keep-right``
 
 
 def rows(floor: str, steps: int, seeds: list[int], weights: list[str],
-         baselines: tuple[str, ...] | list[str] = BASELINES,
+         baselines: tuple[str, ...] | list[str] = DEFAULT_BASELINES,
          variants: tuple[str, ...] | list[str] = VARIANTS,
          keep_right: tuple[float, ...] | list[float] = (0.3,)) -> list[dict]:
     """Run every row on every seed; returns one dict per row (also printed as it finishes):
@@ -212,7 +294,7 @@ def rows(floor: str, steps: int, seeds: list[int], weights: list[str],
                              _learned(entry, floor, live)))
     for name in baselines:
         if name != "path-follower":
-            runs += _baseline(name)
+            runs += _baseline(name, keep_right[0])
     out = []
     for label, live, ctl in runs:
         shield = ctl if isinstance(ctl, allocator.SafetyShield) else getattr(ctl, "safety", None)
@@ -321,9 +403,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
                    metavar="V", help=f"learned rows, any of {' '.join(VARIANTS)} (default all)")
     p.add_argument("--keep-right", type=float, nargs="+", default=[0.3], metavar="RAD",
                    help="lane angles of the 'lanes' rows, in [0, pi/2) (default 0.3)")
-    p.add_argument("--baselines", nargs="*", default=list(BASELINES), choices=BASELINES,
-                   metavar="NAME", help=f"reference rows, any of {' '.join(BASELINES)} "
-                                        "(default all)")
+    p.add_argument("--baselines", nargs="*", default=list(DEFAULT_BASELINES),
+                   choices=BASELINES, metavar="NAME",
+                   help=f"reference rows, any of {' '.join(BASELINES)} (default "
+                        f"{' '.join(DEFAULT_BASELINES)})")
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
     if args.steps < 1:

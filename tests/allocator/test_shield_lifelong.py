@@ -207,3 +207,30 @@ class _Const:
 
     def act(self, obs: torch.Tensor) -> torch.Tensor:
         return self.actions
+
+
+def test_hungarians_choices_behind_the_shield_deliver_without_overlaps() -> None:
+    """``ShieldedIntent``: a dispatcher's intentions through the shield, both action forms."""
+    bench = _bench()
+    for keep in (False, True):
+        driver = bench.ShieldedIntent(keep_right=0.5, keep_direction=keep)
+        ctl = allocator.HungarianDispatcher(driver=driver)
+        m = sim.evaluate_lifelong(ctl, "warehouse-20", steps=200, seed=0)
+        assert m.delivered > 0 and m.collisions_per_1000 == 0
+        assert driver.shield.agent_steps > 0 and driver.shield.keep_right == 0.5
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    driver = bench.ShieldedIntent(keep_direction=True)
+    allocator.HungarianDispatcher(driver=driver).reset(env)
+    a = driver.intent(env).numpy()
+    assert np.abs(a).max() <= 1.0 + 1e-6
+    plain = allocator.WaypointDriver()
+    plain.reset(env)
+    b = plain.act(env).numpy()
+    free = np.abs(b).max(-1) < 1.0 - 1e-6  # the clipped action did not saturate: the same
+    np.testing.assert_allclose(a[free], b[free], atol=1e-5)
+    assert (~free).any()  # from rest every AGV with a target saturates
+    # where it saturated, the direction-keeping action keeps the command's direction
+    cmd = np.asarray(a[~free] / np.linalg.norm(a[~free], axis=-1, keepdims=True))
+    clipped = b[~free] / np.linalg.norm(b[~free], axis=-1, keepdims=True)
+    assert np.abs(a[~free]).max(-1).min() == pytest.approx(1.0)  # on the box's edge
+    assert ((cmd * clipped).sum(-1) > 0.5).all()  # close to, not always equal to, the clip
