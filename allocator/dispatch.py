@@ -219,8 +219,9 @@ class WaypointDriver:
         self.distances = FloorDistances(env.world)
         self.physics = env.world.physics
 
-    def act(self, env: Any) -> Tensor:
-        """Actions (B, N, 2) for the env's current targets."""
+    def command(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The velocity commands (B, N, 2) toward each AGV's waypoint (zero without a
+        target), and the unclipped actions (B, N, 2) that reach them in one step."""
         if self.distances is None:
             raise ValueError("WaypointDriver.reset(env) must be called before act")
         pos = env.agent_pos.double().cpu().numpy()
@@ -236,6 +237,12 @@ class WaypointDriver:
         cmd = cmd * (self.max_speed / np.maximum(speed, self.max_speed))
         ph = self.physics
         action = (cmd - vel * (1.0 - ph.damping)) / (ph.sensitivity * ph.dt / ph.mass)
+        return cmd, action
+
+    def act(self, env: Any) -> Tensor:
+        """Actions (B, N, 2) for the env's current targets (:meth:`command`'s, clipped to
+        [-1, 1] per axis)."""
+        _, action = self.command(env)
         return torch.as_tensor(np.clip(action, -1.0, 1.0), dtype=torch.float32)
 
 

@@ -84,7 +84,7 @@ def episodic_method(name: str, n: int, shield: bool, sensing_range: float,
                     detour: bool = False) -> Any:
     """The controller for one episodic row (``detour``: the shield's detours round parked
     AGVs, learned rows with ``shield`` only)."""
-    guard = dict(shield=shield, detour=True) if detour else dict(shield=shield)
+    guard = dict(shield=shield, detour=detour)
     if name.endswith(" any-N"):
         return allocator.make(name.split()[0], scenario=f"{n}v{n}", weights="any", **guard)
     if name.startswith("entity:"):

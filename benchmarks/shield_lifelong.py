@@ -174,18 +174,7 @@ class ShieldedIntent:
         """The waypoint commands as actions (B, N, 2), clipped or direction-keeping."""
         if not self.keep_direction:
             return self.waypoints.act(env)
-        pos = env.agent_pos.double().cpu().numpy()
-        vel = env.agent_vel.double().cpu().numpy()
-        target, has = env.targets()
-        target, has = target.double().cpu().numpy(), has.cpu().numpy()
-        wp = self.waypoints
-        cmd = np.zeros_like(pos)
-        if has.any():
-            cmd[has] = (wp.distances.next_waypoint(pos[has], target[has]) - pos[has]) * wp.gain
-        speed = np.linalg.norm(cmd, axis=-1, keepdims=True)
-        cmd = cmd * (wp.max_speed / np.maximum(speed, wp.max_speed))
-        ph = env.world.physics
-        action = (cmd - vel * (1.0 - ph.damping)) / (ph.sensitivity * ph.dt / ph.mass)
+        _, action = self.waypoints.command(env)
         action /= np.maximum(1.0, np.abs(action).max(-1, keepdims=True))
         return torch.as_tensor(action, dtype=torch.float32)
 
