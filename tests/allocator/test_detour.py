@@ -106,3 +106,17 @@ def test_learned_allocator_passes_detour_to_its_shield() -> None:
     assert allocator.make("bicnet-ipf", scenario="6v6", shield=True).safety.detour is False
     m = sim.evaluate(ctl, "6v6", episodes=4, seed=0)
     assert m.collisions == 0 and 0.0 < m.response_rate <= 1.0
+
+
+@pytest.mark.parametrize("value", [None, float("nan"), 1e300, "", 1])
+def test_detour_flag_takes_only_a_bool(value) -> None:
+    with pytest.raises(ValueError, match="detour must be True or False"):
+        SafetyShield(NearestTaskController(), detour=value)
+
+
+@pytest.mark.parametrize("name,value", [("cone", float("nan")), ("cone", 1e300), ("cone", None),
+                                        ("distance_weight", float("inf")), ("speed", "fast"),
+                                        ("speed", float("inf")), ("lookahead", 2.5)])
+def test_detour_settings_refuse_nan_huge_empty_and_wrong_types(name, value) -> None:
+    with pytest.raises(ValueError, match=name):
+        ParkedDetour(**{name: value})
