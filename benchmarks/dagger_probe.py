@@ -2,7 +2,7 @@
 
     python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12]
         [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
-        [--seed 0]
+        [--choice-head] [--choice-weight 1.0] [--seed 0]
         [--out benchmarks/results/scale/entity/dagger]
 
 The teacher (:func:`teacher_actions`) sees the whole scene: every step it assigns the idle AGVs
@@ -15,7 +15,11 @@ environment driven by the teacher with probability 0.3, else by the student); ev
 visited is labelled with the teacher's action; the last 8 rollouts per size are kept and the
 actor takes ``--steps`` Adam steps on the mean squared error between its action and the
 teacher's over the AGVs that move (a batch of 64 joint states per size and step);
-``--shield`` executes the rollouts' actions through the safety shield. No reward
+``--shield`` executes the rollouts' actions through the safety shield. ``--choice-head``: the
+student's last layers are a :class:`learners.entity.TaskChoiceHead` (a pointer over the task
+tokens), fresh, on the start file's encoder (and recurrence), and the loss adds
+``--choice-weight`` times the cross-entropy of the pointer against the slot of the teacher's
+task (:func:`choice_slots`; AGVs whose teacher task is out of view add nothing). No reward
 and no critic: the file written is a policy (``kind="policy"``) that ``allocator.make(...,
 checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train --init-from FILE``
 take.
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import sys
 import time
@@ -61,19 +66,65 @@ def teacher_actions(env: Any, max_speed: float = 2.0) -> torch.Tensor:
     """The re-planning Hungarian's actions (B, N, 2) from the env's state: the idle AGVs of
     each running scene assigned to its open tasks (least total distance), each driven at its
     task (:func:`local_information.velocity_action`); AGVs without a task brake."""
+    return teacher(env, max_speed)[0]
+
+
+def teacher(env: Any, max_speed: float = 2.0) -> tuple[torch.Tensor, np.ndarray]:
+    """:func:`teacher_actions` and the teacher's goals relative to each AGV (B, N, 2), NaN
+    for the AGVs it assigns no task."""
     pos = env.agent_pos.detach().cpu().double().numpy()
     vel = env.agent_vel.detach().cpu().double().numpy()
     tasks = env.task_pos.detach().cpu().double().numpy()
     idle = (env.agent_task < 0).cpu().numpy() & ~env.done.cpu().numpy()[:, None]
     open_ = ~env.task_claimed.cpu().numpy()
     goal = pos.copy()
+    chosen = np.full(pos.shape, np.nan)
     for b in np.nonzero(idle.any(1) & open_.any(1))[0]:
         agents, free = np.nonzero(idle[b])[0], np.nonzero(open_[b])[0]
         cost = np.linalg.norm(pos[b][agents][:, None] - tasks[b][free][None], axis=-1)
         rows, cols = linear_sum_assignment(cost)
         goal[b, agents[rows]] = tasks[b, free[cols]]
+        chosen[b, agents[rows]] = tasks[b, free[cols]] - pos[b, agents[rows]]
     act = velocity_action(goal - pos, vel, env.world.physics, max_speed)
-    return torch.as_tensor(act, dtype=env.dtype)
+    return torch.as_tensor(act, dtype=env.dtype), chosen
+
+
+def choice_slots(obs: torch.Tensor, layout: ObsLayout, chosen: np.ndarray) -> torch.Tensor:
+    """The observation's task slot holding the teacher's goal, (B, N) int64: the visible slot
+    within 1e-4 of ``chosen`` (the goals relative to the AGVs, (B, N, 2), NaN for none), -1
+    where there is none (no goal, or the goal outside the AGV's view)."""
+    B, N, _ = obs.shape
+    t = obs[..., layout.tasks].reshape(B, N, layout.k_tasks, 3).double()
+    gap = torch.linalg.vector_norm(t[..., :2] - torch.as_tensor(chosen).unsqueeze(-2), dim=-1)
+    gap = gap.masked_fill(~(t[..., 2] > 0.5), np.inf).nan_to_num(nan=np.inf)
+    best, slot = gap.min(-1)
+    return torch.where(best < 1e-4, slot, torch.full_like(slot, -1))
+
+
+def fitting_tensors(learner: Any, tensors: dict[str, torch.Tensor]
+                    ) -> tuple[dict[str, torch.Tensor], list[str]]:
+    """The learner's policy tensors with every one the file has at the same name and shape
+    taken from ``tensors``; returns them and the names that start fresh (sorted)."""
+    own = learner.policy_tensors()
+    out, fresh = {}, []
+    for name, value in own.items():
+        theirs = tensors.get(name)
+        if theirs is not None and theirs.shape == value.shape:
+            out[name] = theirs
+        else:
+            out[name] = value
+            fresh.append(name)
+    return out, sorted(fresh)
+
+
+def save_policy(learner: Any, meta: dict[str, Any], path: Path, seed: int) -> None:
+    """Write the student as a policy file (atomic): the start file's scenario and sizes, the
+    student's own config (with ``--choice-head``, ``choice_head=True``)."""
+    learner.target_actor.load_state_dict(learner.actor.state_dict())
+    keep = ("algo", "reward", "scenario", "num_agents", "num_tasks", "obs_dim", "state_dim")
+    save_checkpoint(path, learner.policy_tensors(),
+                    {"kind": "policy", "seed": seed, **{k: meta[k] for k in keep},
+                     "config": dataclasses.asdict(learner.config)})
 
 
 def scenario(name: str, spec: str) -> sim.Scenario:
@@ -84,9 +135,10 @@ def scenario(name: str, spec: str) -> sim.Scenario:
 
 def rollout(learner: Any, scen: sim.Scenario, envs: int, seed: int, teacher_share: float,
             gen: torch.Generator, shield: bool = False
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """One batch of episodes; returns the running states' observations (S, N, O), the
-    teacher's actions (S, N, 2) and which AGVs move (S, N). ``shield``: the actions are
+    teacher's actions (S, N, 2), which AGVs move (S, N) and the task slot the teacher sends
+    each to (S, N; -1: none, see :func:`choice_slots`). ``shield``: the actions are
     executed through :class:`allocator.shield.SafetyShield` (the labels stay the teacher's
     own actions)."""
     env = sim.make_env(scen, num_envs=envs, seed=seed)
@@ -99,15 +151,17 @@ def rollout(learner: Any, scen: sim.Scenario, envs: int, seed: int, teacher_shar
     drive = torch.rand(envs, 1, 1, generator=gen) < teacher_share
     out: list[tuple[torch.Tensor, ...]] = []
     while not bool(env.done.all()):
-        target = teacher_actions(env)
+        target, chosen = teacher(env)
+        slots = choice_slots(obs, env.obs_layout, chosen)
         with torch.no_grad():
             student = learner.policy(obs)
         run = ~env.done
-        out.append((obs[run], target[run], ((env.agent_task < 0) & run[:, None])[run]))
+        out.append((obs[run], target[run], ((env.agent_task < 0) & run[:, None])[run],
+                    slots[run]))
         act = torch.where(drive, target, student)
         obs, *_ = env.step(act if safety is None else safety.filter(act))
-    o, a, m = (torch.cat(x) for x in zip(*out, strict=True))
-    return o, a, m
+    o, a, m, c = (torch.cat(x) for x in zip(*out, strict=True))
+    return o, a, m, c
 
 
 def validate(learner: Any, scen: sim.Scenario, episodes: int = 100) -> list[dict]:
@@ -132,6 +186,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--shield", action="store_true",
                         help="roll out through the safety shield (the states a shielded "
                              "policy visits)")
+    parser.add_argument("--choice-head", action="store_true",
+                        help="the student ends in a TaskChoiceHead (EntityConfig.choice_head): "
+                             "the --start file's other layers are loaded, the head starts "
+                             "fresh, and the loss adds --choice-weight x the cross-entropy "
+                             "of its pointer against the teacher's task")
+    parser.add_argument("--choice-weight", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -139,6 +199,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--iterations and --steps must be >= 1, --seed >= 0")
     if not (np.isfinite(args.lr) and args.lr > 0):
         parser.error(f"--lr must be a finite number > 0, got {args.lr}")
+    if not (np.isfinite(args.choice_weight) and args.choice_weight >= 0):
+        parser.error(f"--choice-weight must be a finite number >= 0, got {args.choice_weight}")
     try:
         scens = {s: scenario(s, args.view) for s in args.sizes}
         val = scenario("20v20", args.view)
@@ -151,8 +213,18 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
-    learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
-                           meta["num_agents"], meta["config"])
+    config = dict(meta["config"])
+    fresh: list[str] = []
+    if args.choice_head and not config.get("choice_head", False):
+        config["choice_head"] = True
+        learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
+                               meta["num_agents"], config)
+        tensors, fresh = fitting_tensors(learner, tensors)
+        print(f"--choice-head: fresh {', '.join(fresh)}", flush=True)
+    else:
+        learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
+                               meta["num_agents"], config)
+    choice = bool(learner.config.choice_head)
     learner.load_policy_tensors(tensors)
     opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -169,11 +241,21 @@ def main(argv: list[str] | None = None) -> None:
         total = 0.0
         for _ in range(args.steps):
             loss = torch.zeros(())
-            for name, (o, a, m) in pooled.items():
+            for name, (o, a, m, c) in pooled.items():
                 learner.set_layout(ObsLayout(scens[name].k_tasks, scens[name].k_agents))
                 idx = torch.randint(len(o), (64,), generator=gen)
-                err = ((learner.policy(o[idx]) - a[idx]) ** 2).sum(-1) * m[idx]
+                if choice:
+                    act, w = learner.policy_and_choice(o[idx])
+                else:
+                    act, w = learner.policy(o[idx]), None
+                err = ((act - a[idx]) ** 2).sum(-1) * m[idx]
                 loss = loss + err.sum() / m[idx].sum().clamp_min(1)
+                if w is not None and args.choice_weight > 0:
+                    lab = c[idx]
+                    has = lab >= 0
+                    picked = w.gather(-1, lab.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+                    ce = -torch.log(picked.clamp_min(1e-9)) * has
+                    loss = loss + args.choice_weight * ce.sum() / has.sum().clamp_min(1)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(learner.actor.parameters(), 1.0)
@@ -185,13 +267,10 @@ def main(argv: list[str] | None = None) -> None:
             plain, shielded = validate(learner, val)
             row.update({f"{k}": v for k, v in plain.items() if k != "shield"})
             row.update({f"shielded_{k}": v for k, v in shielded.items() if k != "shield"})
+            save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
         log.append(row)
         print(json.dumps(row), flush=True)
-    learner.target_actor.load_state_dict(learner.actor.state_dict())
-    keep = ("algo", "reward", "scenario", "num_agents", "num_tasks", "obs_dim", "state_dim",
-            "config")
-    save_checkpoint(args.out / "dagger.safetensors", learner.policy_tensors(),
-                    {"kind": "policy", "seed": args.seed, **{k: meta[k] for k in keep}})
+    save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
     fields = list(log[-1])  # the last iteration always validates: every column
     with open(args.out / "progress.csv.tmp", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields)
@@ -204,6 +283,7 @@ def main(argv: list[str] | None = None) -> None:
         {"command": command.strip(), "seed": args.seed, "start": str(args.start),
          "iterations": args.iterations, "steps": args.steps, "lr": args.lr,
          "sizes": args.sizes, "view": args.view, "shield": args.shield,
+         "choice_head": choice, "choice_weight": args.choice_weight, "fresh": fresh,
          "teacher_share": TEACHER_SHARE,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")

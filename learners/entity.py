@@ -45,10 +45,12 @@ from learners.buffer import Batch
 from learners.common import ActorCritic, OffPolicyConfig, check_bool, check_real, movable_mask
 from learners.floor import FloorWaypoints, obstacle_points
 from sim.observations import AGENT_FEATURES, TASK_FEATURES, LifelongObsLayout, ObsLayout
+from sim.world import Physics
 
 __all__ = [
     "EntityConfig", "MADDPGEConfig", "BiCNetEConfig", "MADDPGE", "BiCNetE", "EntityEncoder",
-    "EntityActor", "WaypointHead", "PooledCritic", "SortedBiRNN", "Tokens", "tokens",
+    "EntityActor", "WaypointHead", "TaskChoiceHead", "arrive_action", "PooledCritic",
+    "SortedBiRNN", "Tokens", "tokens",
     "infer_layout", "agent_order", "SELF_FEATURES", "TASK_TOKEN_FEATURES", "AGENT_TOKEN_FEATURES",
     "MARGIN_CLIP", "lifelong_tokens", "LIFELONG_SELF_FEATURES", "PICKUP_TOKEN_FEATURES",
     "TARGET_TOKEN_FEATURES", "OBSTACLE_TOKEN_FEATURES", "PATH_CLIP", "sizes_look_lifelong",
@@ -89,6 +91,14 @@ HEAD_TARGET_BIAS = 4.0
 """Initial score bonus of the AGV's own target in :class:`WaypointHead`."""
 HEAD_PATH_WEIGHT = 1.0
 """Initial score penalty per unit of path length to an open pickup in :class:`WaypointHead`."""
+CHOICE_DIST_WEIGHT = 2.0
+"""Initial score penalty per unit of distance to a task in :class:`TaskChoiceHead` (the
+untrained head drives mostly at the nearest visible task)."""
+CHOICE_SPEED = 2.0
+"""Speed cap of :func:`arrive_action` (the terminal speed of a unit action along a diagonal)."""
+EPISODIC_PHYSICS = Physics()
+"""The physics :func:`arrive_action` is computed for: the episodic scenarios' (the default);
+:meth:`EntityLearner.reset` refuses a choice-head learner an env with other physics."""
 
 
 # ---------------------------------------------------------------------- tokens
@@ -423,28 +433,102 @@ class WaypointHead(nn.Module):
         return self.gain * (w.unsqueeze(-1) * unit).sum(-2) + self.residual(h)
 
 
+def arrive_action(rel: Tensor, vel: Tensor, physics: Physics = EPISODIC_PHYSICS,
+                  max_speed: float = CHOICE_SPEED) -> Tensor:
+    """The action that drives an AGV at an offset and stops on it.
+
+    Velocity command ``rel / dt`` (arrive in one step) capped at ``max_speed``, turned into
+    the MPE acceleration for the AGV's velocity and scaled (not clipped: the direction is
+    kept) into [-1, 1]^2.
+
+    Parameters
+    ----------
+    rel : Tensor, shape (..., 2)
+        The goal relative to the AGV.
+    vel : Tensor, shape (..., 2)
+        The AGV's velocity (broadcast against ``rel``).
+
+    Returns
+    -------
+    Tensor, shape (..., 2)
+    """
+    v = rel / physics.dt
+    speed = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    v = v * (max_speed / speed.clamp_min(1e-12)).clamp_max(1.0)
+    a = (v - (1.0 - physics.damping) * vel) / (physics.sensitivity * physics.dt / physics.mass)
+    return a / a.abs().amax(-1, keepdim=True).clamp_min(1.0)
+
+
+class TaskChoiceHead(nn.Module):
+    """The episodic actors' choice head (:attr:`EntityConfig.choice_head`): point at a task.
+
+    action = box(sum_k w_k arrive_k + residual(h)), where k runs over the AGV's visible task
+    slots, ``arrive_k`` is :func:`arrive_action` toward task k (drive at it and stop on it),
+    w = softmax over the visible slots of ``score([h, e_k]) - dist_weight * d_k`` (e_k: the
+    task's token embedding, d_k its distance, h: the AGV's embedding) and ``box`` scales a
+    vector into [-1, 1]^2 keeping its direction. The output is the action itself, not a
+    pre-tanh value. ``dist_weight`` starts at :data:`CHOICE_DIST_WEIGHT`
+    and the residual's last layer at a tenth of its usual scale, so that the untrained head
+    drives mostly at the nearest task; training changes which task (the softmax is a pointer
+    over the task tokens, which an imitation loss can train by cross-entropy, see
+    :meth:`EntityLearner.policy_and_choice`) and how to pass the others. With no task visible
+    the action is the residual's.
+    """
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.score = _mlp([2 * hidden, hidden, 1], last_relu=False)
+        self.residual = _mlp([hidden, hidden, 2], last_relu=False)
+        with torch.no_grad():
+            self.residual[-1].weight.mul_(0.1)
+            self.residual[-1].bias.zero_()
+        self.dist_weight = nn.Parameter(torch.tensor(CHOICE_DIST_WEIGHT))
+
+    def forward(self, h: Tensor, task_emb: Tensor, tok: Tokens) -> tuple[Tensor, Tensor]:
+        """(B, N, H), (B, N, Kt, H), episodic tokens -> the action (B, N, 2) in [-1, 1] and
+        the choice weights w (B, N, Kt), zero in masked slots."""
+        logits = self.score(torch.cat([h.unsqueeze(-2).expand_as(task_emb), task_emb], dim=-1))
+        w = _masked_softmax(logits.squeeze(-1) - self.dist_weight * tok.task[..., 2],
+                            tok.task_mask)
+        drive = arrive_action(tok.task[..., 0:2], tok.own[..., 0:2].unsqueeze(-2))
+        a = (w.unsqueeze(-1) * drive).sum(-2) + self.residual(h)
+        return a / a.abs().amax(-1, keepdim=True).clamp_min(1.0), w
+
+
 class EntityActor(nn.Module):
     """Decentralized actor: AGV i's tokens -> its pre-tanh action, (B, N, 2).
 
-    Episodic: an MLP head on the encoder's embedding. Lifelong: :class:`WaypointHead`.
+    Episodic: an MLP head on the encoder's embedding, or with ``choice_head`` a
+    :class:`TaskChoiceHead` (whose output is the action itself). Lifelong:
+    :class:`WaypointHead`.
     """
 
-    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False,
+                 choice_head: bool = False) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.lifelong = lifelong
+        self.choose = TaskChoiceHead(hidden) if choice_head and not lifelong else None
         if lifelong:
             self.steer = WaypointHead(hidden)
-        else:
+        elif self.choose is None:
             self.head = _mlp([hidden, hidden, 2], last_relu=False)
 
     def forward(self, tok: Tokens, order: Tensor | None = None) -> Tensor:
         """Tokens -> (B, N, 2) (``order`` unused: no communication)."""
+        return self.forward_choice(tok, order)[0]
+
+    def forward_choice(self, tok: Tokens, order: Tensor | None = None
+                       ) -> tuple[Tensor, Tensor | None]:
+        """Tokens -> (B, N, 2) and, with a choice head, its weights (B, N, Kt) (else None)."""
+        if self.choose is not None:
+            h, task_emb, _ = self.encoder.encode(tok)
+            return self.choose(h, task_emb, tok)
         if not self.lifelong:
-            return self.head(self.encoder(tok))
+            return self.head(self.encoder(tok)), None
         h, task_emb, target_emb = self.encoder.encode(tok)
         assert target_emb is not None
-        return self.steer(h, task_emb, target_emb, tok)
+        return self.steer(h, task_emb, target_emb, tok), None
 
 
 class PooledCritic(nn.Module):
@@ -499,23 +583,36 @@ class SortedBiRNN(nn.Module):
         Read lifelong tokens (:func:`lifelong_tokens`).
     parked_token : bool
         AGV tokens with the parked bit (:attr:`EntityConfig.parked_token`).
+    choice_head : bool
+        The episodic actor ends in a :class:`TaskChoiceHead` on the recurrence's output
+        (:attr:`EntityConfig.choice_head`); its output is then the action itself.
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
-                 lifelong: bool = False, parked_token: bool = False) -> None:
+                 lifelong: bool = False, parked_token: bool = False,
+                 choice_head: bool = False) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
         self.inp = _mlp([hidden + (2 if action_input else 0), hidden])
         self.rnn = nn.GRU(hidden, hidden, batch_first=True, bidirectional=True)
-        # the lifelong actor steers with a WaypointHead on the recurrence's output
-        self.steer = WaypointHead(hidden) if lifelong and not action_input \
-            and out_features == 2 else None
-        self.head = _mlp([2 * hidden, hidden] if self.steer is not None
+        actor = not action_input and out_features == 2
+        # the lifelong actor steers with a WaypointHead on the recurrence's output, an
+        # episodic one with choice_head points with a TaskChoiceHead
+        self.steer = WaypointHead(hidden) if lifelong and actor else None
+        self.choose = TaskChoiceHead(hidden) if choice_head and actor and not lifelong \
+            else None
+        self.head = _mlp([2 * hidden, hidden]
+                         if self.steer is not None or self.choose is not None
                          else [2 * hidden, hidden, out_features], last_relu=False)
 
     def forward(self, tok: Tokens, order: Tensor, action: Tensor | None = None) -> Tensor:
         """(B, N, out): the AGVs' outputs in their own (index) order."""
+        return self.forward_choice(tok, order, action)[0]
+
+    def forward_choice(self, tok: Tokens, order: Tensor, action: Tensor | None = None
+                       ) -> tuple[Tensor, Tensor | None]:
+        """:meth:`forward` and, with a choice head, its weights (B, N, Kt) (else None)."""
         h, task_emb, target_emb = self.encoder.encode(tok)
         if self.action_input:
             if action is None:
@@ -526,10 +623,12 @@ class SortedBiRNN(nn.Module):
         h, _ = self.rnn(h.gather(1, at))
         out = self.head(h)
         out = torch.empty_like(out).scatter_(1, order.unsqueeze(-1).expand_as(out), out)
+        if self.choose is not None:
+            return self.choose(torch.relu(out), task_emb, tok)
         if self.steer is None:
-            return out
+            return out, None
         assert target_emb is not None
-        return self.steer(torch.relu(out), task_emb, target_emb, tok)
+        return self.steer(torch.relu(out), task_emb, target_emb, tok), None
 
 
 # ---------------------------------------------------------------------- learners
@@ -575,16 +674,25 @@ class EntityConfig(OffPolicyConfig):
     evaluations report the task metrics and the environment's reward only. 0 (the
     default, and what every run before this field did): no penalty."""
 
+    choice_head: bool = False
+    """Episodic actors end in a :class:`TaskChoiceHead`: a softmax pointer over the visible
+    task tokens mixes the actions that drive at each task and stop on it, plus a small
+    learned residual; the actor's output is then the action itself (no tanh). The actions
+    are those of the default physics (:data:`EPISODIC_PHYSICS`; an env with other physics
+    is refused). The weights differ from those without it. False (the default, and what
+    every run before this field did): an MLP head and a tanh."""
+
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
-        ``shield_keep_right``, ``margin_moving``, ``parked_token`` and ``shield_penalty``
-        too."""
+        ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
+        ``choice_head`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
                                             math.pi / 2, high_open=True)
         self.margin_moving = check_bool("margin_moving", self.margin_moving)
         self.parked_token = check_bool("parked_token", self.parked_token)
+        self.choice_head = check_bool("choice_head", self.choice_head)
         self.shield_penalty = check_real("shield_penalty", self.shield_penalty, 0.0, math.inf,
                                          high_open=True)
         if self.shield_penalty and not self.shield:
@@ -634,6 +742,9 @@ class EntityLearner(ActorCritic):
             if self.lifelong and getattr(self.config, key):
                 raise ValueError(f"{key} is for episodic scenarios (parked AGVs); on a "
                                  "lifelong floor no AGV parks: leave it False")
+        if self.lifelong and self.config.choice_head:
+            raise ValueError("choice_head is for episodic scenarios; lifelong actors steer "
+                             "with their own WaypointHead: leave it False")
         self.layout: ObsLayout | LifelongObsLayout | None = None
         self.floor: FloorWaypoints | None = None
 
@@ -671,6 +782,10 @@ class EntityLearner(ActorCritic):
             For an env of the other mode than the networks' (see :meth:`set_layout`).
         """
         layout = getattr(env, "obs_layout", None)
+        physics = getattr(getattr(env, "world", None), "physics", EPISODIC_PHYSICS)
+        if self.config.choice_head and physics != EPISODIC_PHYSICS:
+            raise ValueError(f"a choice-head actor drives with the default physics "
+                             f"({EPISODIC_PHYSICS}); this env has {physics}")
         floor = None
         if isinstance(layout, LifelongObsLayout) and self.lifelong:
             world = env.world
@@ -765,11 +880,44 @@ class EntityLearner(ActorCritic):
         """Deterministic actions, (B, N, O) -> (B, N, 2), zero for parked AGVs."""
         return self._policy(obs, *self._read(obs), target)
 
+    def policy_and_choice(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`policy` with the choice head's weights over the task slots.
+
+        Parameters
+        ----------
+        obs : Tensor, shape (B, N, O)
+
+        Returns
+        -------
+        action : Tensor, shape (B, N, 2)
+        weights : Tensor, shape (B, N, Kt)
+            The softmax pointer of :class:`TaskChoiceHead` (zero in masked slots), with the
+            gradient attached: what an imitation loss trains by cross-entropy.
+
+        Raises
+        ------
+        ValueError
+            For networks without a choice head (``config.choice_head`` False).
+        """
+        if not self.config.choice_head:
+            raise ValueError("policy_and_choice needs a choice-head actor "
+                             "(config.choice_head=True)")
+        tok, order = self._read(obs)
+        a, w = self.actor.forward_choice(tok, order)
+        assert w is not None
+        return self._masked(obs, a), w
+
+    def _squash(self, out: Tensor) -> Tensor:
+        """The actor's raw output -> the action: tanh, or nothing for a choice head (whose
+        output already is the action)."""
+        return out if self.config.choice_head else torch.tanh(out)
+
+    def _masked(self, obs: Tensor, a: Tensor) -> Tensor:
+        return a * self._movable(obs) if self.config.mask_parked or self.lifelong else a
+
     def _policy(self, obs: Tensor, tok: Tokens, order: Tensor, target: bool) -> Tensor:
         net = self.target_actor if target else self.actor
-        a = torch.tanh(net(tok, order))
-        return a * self._movable(obs) if self.config.mask_parked or self.lifelong \
-            else a
+        return self._masked(obs, self._squash(net(tok, order)))
 
     def _clip_step(self, params: list[Tensor], grads: tuple[Tensor, ...],
                    optimizer: torch.optim.Optimizer) -> None:
@@ -809,7 +957,8 @@ class MADDPGE(EntityLearner):
                  config: MADDPGEConfig | None = None, lifelong: bool | None = None) -> None:
         config = config or MADDPGEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
-        self.actor = EntityActor(config.hidden, self.lifelong, config.parked_token)
+        self.actor = EntityActor(config.hidden, self.lifelong, config.parked_token,
+                                 config.choice_head)
         self.critic = PooledCritic(config.hidden, self.lifelong, config.parked_token)
         self._finish_init()
 
@@ -835,7 +984,7 @@ class MADDPGE(EntityLearner):
         movable = self._movable(batch.obs).squeeze(-1) \
             if cfg.mask_parked or self.lifelong else torch.ones_like(q)
         pre = self.actor(tok, order)
-        mu = torch.tanh(pre) * movable.unsqueeze(-1)
+        mu = self._squash(pre) * movable.unsqueeze(-1)
         with torch.no_grad():  # the critic's side does not depend on the actor's weights
             encoded = self.critic.encoder(tok)
             others = self.critic.others(self.critic.embed(tok, batch.action, encoded))
@@ -859,7 +1008,8 @@ class BiCNetE(EntityLearner):
         config = config or BiCNetEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
         self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong,
-                                 parked_token=config.parked_token)
+                                 parked_token=config.parked_token,
+                                 choice_head=config.choice_head)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
                                   parked_token=config.parked_token)
         self._finish_init()
@@ -885,7 +1035,7 @@ class BiCNetE(EntityLearner):
                         self.critic_optimizer)
 
         pre = self.actor(tok, order)
-        mu = torch.tanh(pre) * (self._movable(batch.obs) if cfg.mask_parked or self.lifelong
-                                else 1.0)
+        mu = self._squash(pre) * (self._movable(batch.obs) if cfg.mask_parked or self.lifelong
+                                  else 1.0)
         actor_loss = -self.critic(tok, order, mu).mean()
         return self._actor_step(actor_loss, pre, critic_loss, q)

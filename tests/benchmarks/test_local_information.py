@@ -119,7 +119,45 @@ def test_dagger_rolls_out_through_the_shield(tmp_path: Path) -> None:
     env = sim.make_env("6v6", num_envs=2, seed=0)
     learner = allocator.make("bicnet-ipf", scenario="6v6", checkpoint=PARKED).policy.learner
     gen = torch.Generator().manual_seed(0)
-    obs, target, moving = dagger.rollout(learner, sim.get_scenario("6v6"), 2, 0, 0.5, gen,
-                                         shield=True)
+    obs, target, moving, slots = dagger.rollout(learner, sim.get_scenario("6v6"), 2, 0, 0.5,
+                                                gen, shield=True)
     assert obs.shape[1:] == (6, env.obs_dim) and target.shape == (len(obs), 6, 2)
     assert moving.shape == (len(obs), 6) and target.abs().max() <= 1.0 + 1e-6
+    assert slots.shape == (len(obs), 6) and slots.dtype == torch.int64
+    assert not (slots[~moving] >= 0).any()  # only idle AGVs get a task from the teacher
+
+
+def test_choice_slots_name_the_slot_of_the_teachers_task() -> None:
+    env = sim.make_env("6v6", num_envs=4, seed=3)
+    obs = env.observe()
+    actions, chosen = dagger.teacher(env)
+    slots = dagger.choice_slots(obs, env.obs_layout, chosen)
+    layout = env.obs_layout
+    t = obs[..., layout.tasks].reshape(4, 6, layout.k_tasks, 3)
+    has = slots >= 0
+    assert has.all()  # at the start every AGV is idle and sees every task (6 slots, 6 tasks)
+    picked = t.gather(2, slots.clamp_min(0)[..., None, None].expand(4, 6, 1, 3)).squeeze(2)
+    assert np.allclose(picked[..., :2].numpy(), chosen, atol=1e-5)
+    # every AGV is sent to a different task: the teacher's assignment is one-to-one
+    goals = (obs[..., layout.pos] + picked[..., :2]).numpy()
+    for b in range(4):
+        assert len({tuple(np.round(g, 5)) for g in goals[b]}) == 6
+    # a goal out of view (NaN: no goal) names no slot
+    chosen[0, 0] = np.nan
+    assert dagger.choice_slots(obs, layout, chosen)[0, 0] == -1
+    torch.testing.assert_close(actions, dagger.teacher_actions(env))
+
+
+def test_dagger_trains_a_choice_head_student(tmp_path: Path) -> None:
+    dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "3",
+                 "--sizes", "6v6", "--choice-head", "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["choice_head"] and probe["choice_weight"] == 1.0
+    assert probe["fresh"] and all(n.startswith("actor.choose.") for n in probe["fresh"])
+    solver = allocator.make("bicnet-ipf", scenario="10v10", shield=True,
+                            checkpoint=tmp_path / "dagger.safetensors")
+    assert solver.policy.learner.config.choice_head
+    assert sim.evaluate(solver, "10v10", episodes=2, seed=0).collisions == 0
+    with pytest.raises(SystemExit):
+        dagger.main(["--start", str(PARKED), "--choice-head", "--choice-weight", "-1",
+                     "--out", str(tmp_path)])

@@ -22,6 +22,9 @@ from sim.observations import AGENT_FEATURES, TASK_FEATURES, ObsLayout
 from tests.learners.conftest import TINY, make_batch
 
 ALGOS = list(ENTITY_ALGORITHMS)
+VARIANTS = [pytest.param(a, {}, id=a) for a in ALGOS] + [
+    pytest.param(a, {"choice_head": True}, id=f"{a}-choice") for a in ALGOS]
+"""Every learner, with its MLP head and with the choice head (EntityConfig.choice_head)."""
 
 
 def _obs(scenario: str, num_envs: int = 8, seed: int = 0, steps: int = 3) -> tuple:
@@ -50,10 +53,10 @@ def _permute_slots(obs: torch.Tensor, layout: ObsLayout, perm_t: torch.Tensor,
     return out
 
 
-@pytest.mark.parametrize("algo", ALGOS)
-def test_shapes_and_any_n_forward_with_one_set_of_weights(algo):
+@pytest.mark.parametrize(("algo", "over"), VARIANTS)
+def test_shapes_and_any_n_forward_with_one_set_of_weights(algo, over):
     env, obs = _obs("6v6")
-    learner = _learner(algo, env)
+    learner = _learner(algo, env, **over)
     n_params = sum(p.numel() for p in learner.parameters())
     for scenario in ("1v1", "2v3", "3v3", "6v6", "10v10", "20v20", "50v50"):
         e, o = _obs(scenario, num_envs=2, steps=1)
@@ -65,14 +68,14 @@ def test_shapes_and_any_n_forward_with_one_set_of_weights(algo):
         assert q.shape == (2, e.num_agents) and torch.isfinite(q).all()
     # the weights do not depend on N
     other, _ = _obs("20v20", num_envs=1, steps=0)
-    assert sum(p.numel() for p in _learner(algo, other).parameters()) == n_params
+    assert sum(p.numel() for p in _learner(algo, other, **over).parameters()) == n_params
 
 
-@pytest.mark.parametrize("algo", ALGOS)
-def test_padded_slots_do_not_change_the_output(algo):
+@pytest.mark.parametrize(("algo", "over"), VARIANTS)
+def test_padded_slots_do_not_change_the_output(algo, over):
     env, obs = _obs("3v3", num_envs=16, steps=6)  # some tasks claimed: masked task slots
     layout = env.obs_layout
-    learner = _learner(algo, env)
+    learner = _learner(algo, env, **over)
     base = learner.act(obs)
     q_base = learner.q_values(obs, base)
     masked_t = obs[..., layout.tasks].reshape(16, 3, layout.k_tasks, 3)[..., 2] < 0.5
@@ -101,11 +104,11 @@ def test_padded_slots_do_not_change_the_output(algo):
     torch.testing.assert_close(learner.q_values(padded, base), q_base, rtol=0, atol=1e-5)
 
 
-@pytest.mark.parametrize("algo", ALGOS)
-def test_the_order_of_the_token_slots_does_not_matter(algo):
+@pytest.mark.parametrize(("algo", "over"), VARIANTS)
+def test_the_order_of_the_token_slots_does_not_matter(algo, over):
     env, obs = _obs("6v6", num_envs=16, steps=4)
     layout = env.obs_layout
-    learner = _learner(algo, env)
+    learner = _learner(algo, env, **over)
     a = learner.act(obs)
     q = learner.q_values(obs, a)
     for seed in range(3):
@@ -118,12 +121,12 @@ def test_the_order_of_the_token_slots_does_not_matter(algo):
         torch.testing.assert_close(learner.q_values(shuffled, a), q, rtol=0, atol=1e-5)
 
 
-@pytest.mark.parametrize("algo", ALGOS)
-def test_renumbering_the_agvs_renumbers_the_actions(algo):
+@pytest.mark.parametrize(("algo", "over"), VARIANTS)
+def test_renumbering_the_agvs_renumbers_the_actions(algo, over):
     """Equivariance over AGV indices: MADDPG-E trivially, BiCNet-E because its recurrence
     orders the AGVs by position, not by index."""
     env, obs = _obs("10v10", num_envs=4, steps=2)
-    learner = _learner(algo, env)
+    learner = _learner(algo, env, **over)
     a = learner.act(obs)
     q = learner.q_values(obs, a)
     perm = torch.randperm(10, generator=torch.Generator().manual_seed(1))
@@ -250,10 +253,10 @@ def test_agent_order_is_by_x_then_y():
     assert agent_order(obs, layout).tolist() == [[2, 1, 3, 0]]
 
 
-@pytest.mark.parametrize("algo", ALGOS)
-def test_updates_change_the_weights_and_keep_them_finite(algo):
+@pytest.mark.parametrize(("algo", "over"), VARIANTS)
+def test_updates_change_the_weights_and_keep_them_finite(algo, over):
     env, batch = make_batch("6v6", num_envs=32, reward="ipf")
-    learner = _learner(algo, env)
+    learner = _learner(algo, env, **over)
     before = {k: v.clone() for k, v in learner.training_tensors().items()}
     for _ in range(3):
         out = learner.update(batch)
@@ -296,3 +299,67 @@ def test_shield_penalty_is_checked(bad):
     with pytest.raises(ValueError, match="shield_penalty"):
         BiCNetEConfig(shield=True, shield_penalty=bad).validate()
     BiCNetEConfig(shield=True, shield_penalty=1e6).validate()  # huge but finite: allowed
+
+
+# ---------------------------------------------------------------------- the choice head
+def test_arrive_action_reaches_a_near_goal_in_one_step_and_keeps_direction_far_away():
+    from learners.entity import EPISODIC_PHYSICS, arrive_action
+
+    ph = EPISODIC_PHYSICS
+    gain = ph.sensitivity * ph.dt / ph.mass
+    vel = torch.tensor([[0.3, -0.2]], dtype=torch.float64)
+    near = torch.tensor([[0.05, 0.02]], dtype=torch.float64)
+    a = arrive_action(near, vel)
+    assert a.abs().max() < 1.0  # not scaled: the command is met exactly
+    new_vel = vel * (1 - ph.damping) + a * gain
+    torch.testing.assert_close(new_vel * ph.dt, near)  # on the goal after one step
+    far = torch.tensor([[3.0, 4.0]], dtype=torch.float64)
+    a = arrive_action(far, torch.zeros(1, 2, dtype=torch.float64))
+    assert a.abs().max() == 1.0
+    torch.testing.assert_close(a / a.norm(), far / far.norm())  # scaled, not clipped
+    assert torch.equal(arrive_action(torch.zeros(1, 2), torch.zeros(1, 2)), torch.zeros(1, 2))
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_choice_head_points_at_the_visible_tasks_and_starts_near_first(algo):
+    env, obs = _obs("6v6", num_envs=16, steps=6)  # some tasks claimed: masked slots
+    learner = _learner(algo, env, choice_head=True)
+    act, w = learner.policy_and_choice(obs)
+    assert act.shape == (16, 6, 2) and w.shape == (16, 6, env.obs_layout.k_tasks)
+    assert act.abs().max() <= 1.0
+    torch.testing.assert_close(learner.act(obs), act.detach())
+    tok = tokens(obs, env.obs_layout)
+    assert torch.equal(w[~tok.task_mask], torch.zeros_like(w[~tok.task_mask]))
+    seen = tok.task_mask.any(-1)
+    torch.testing.assert_close(w.sum(-1)[seen], torch.ones(int(seen.sum())))
+    # untrained, the pointer prefers the nearest visible task for most AGVs
+    dist = tok.task[..., 2].masked_fill(~tok.task_mask, float("inf"))
+    agree = (w.argmax(-1) == dist.argmin(-1))[seen].float().mean()
+    assert agree > 0.7
+    # the pointer carries the gradient to the encoder (what a cross-entropy trains)
+    torch.log(w[seen].amax(-1)).sum().backward()
+    assert learner.actor.encoder.task[0].weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_choice_head_bad_uses_are_clear_errors(algo):
+    env, obs = _obs("3v3", num_envs=2, steps=0)
+    with pytest.raises(ValueError, match="needs a choice-head actor"):
+        _learner(algo, env).policy_and_choice(obs)
+    with pytest.raises(ValueError, match="choice_head"):
+        EntityConfig(choice_head="yes")
+    floor = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    with pytest.raises(ValueError, match="choice_head is for episodic"):
+        make_learner(algo, floor.obs_dim, floor.state_dim, floor.num_agents,
+                     {**TINY, "choice_head": True})
+    import dataclasses
+
+    from sim.world import Physics
+
+    learner = _learner(algo, env, choice_head=True)
+    learner.reset(env)  # the default physics: accepted
+    scen = sim.get_scenario("3v3")
+    slow = dataclasses.replace(scen, world=dataclasses.replace(
+        scen.world, physics=Physics(damping=0.5)))
+    with pytest.raises(ValueError, match="default physics"):
+        learner.reset(sim.make_env(slow, num_envs=1, seed=0))
