@@ -303,7 +303,25 @@ class LifelongDispatcher:
         return self.driver.act(env)
 
     def _replan(self, floors: np.ndarray) -> None:
+        self.env.assign(torch.as_tensor(self.plan_floors(floors)))
+        self.replans += int(floors.sum())
+
+    def plan_floors(self, floors: np.ndarray) -> np.ndarray:
+        """The plan of the bound env's floors where ``floors`` (B,) holds, without giving it.
+
+        The other floors' rows keep each AGV's current order (a loaded AGV's as -1). Updates
+        :attr:`next_order` (and a matching dispatcher's solver state) as a re-plan does;
+        :meth:`act` gives the plan with ``env.assign``. A caller that keeps the plan to itself
+        (an imitation teacher whose student claims orders by reaching them) reads it here.
+
+        Returns
+        -------
+        np.ndarray of int64, shape (B, N)
+            The order slot each AGV serves next (-1: none, or keep a loaded one).
+        """
         env = self.env
+        if env is None:
+            raise ValueError("reset(env) must be called before plan_floors")
         fleet, o = env.fleet, env.orders
         current = fleet.order.cpu().numpy()
         status = env.agent_status.cpu().numpy()
@@ -331,8 +349,7 @@ class LifelongDispatcher:
             plan[b] = row
             self.next_order[b] = nxt
         self._floor = -1
-        env.assign(torch.as_tensor(plan))
-        self.replans += int(floors.sum())
+        return plan
 
     def plan(self, pos: np.ndarray, status: np.ndarray, current: np.ndarray,
              order_status: np.ndarray, pickup: np.ndarray, order_id: np.ndarray,

@@ -417,8 +417,11 @@ class WaypointHead(nn.Module):
         self.target_bias = nn.Parameter(torch.tensor(HEAD_TARGET_BIAS))
         self.path_weight = nn.Parameter(torch.tensor(HEAD_PATH_WEIGHT))
 
-    def forward(self, h: Tensor, task_emb: Tensor, target_emb: Tensor, tok: Tokens) -> Tensor:
-        """(B, N, H), (B, N, Kt, H), (B, N, 1, H), lifelong tokens -> (B, N, 2) pre-tanh."""
+    def forward(self, h: Tensor, task_emb: Tensor, target_emb: Tensor, tok: Tokens
+                ) -> tuple[Tensor, Tensor]:
+        """(B, N, H), (B, N, Kt, H), (B, N, 1, H), lifelong tokens -> (B, N, 2) pre-tanh and
+        the weights w (B, N, 1 + Kt) over the candidates (the own target first), zero where
+        masked."""
         assert tok.target is not None and tok.target_mask is not None
         emb = torch.cat([target_emb, task_emb], dim=-2)  # (B, N, 1 + Kt, H)
         mask = torch.cat([tok.target_mask, tok.task_mask], dim=-1)
@@ -430,7 +433,7 @@ class WaypointHead(nn.Module):
         logits = self.score(torch.cat([h.unsqueeze(-2).expand_as(emb), emb], dim=-1))
         w = _masked_softmax(logits.squeeze(-1) + prior, mask)
         unit = wp / torch.linalg.vector_norm(wp, dim=-1, keepdim=True).clamp_min(1e-6)
-        return self.gain * (w.unsqueeze(-1) * unit).sum(-2) + self.residual(h)
+        return self.gain * (w.unsqueeze(-1) * unit).sum(-2) + self.residual(h), w
 
 
 def arrive_action(rel: Tensor, vel: Tensor, physics: Physics = EPISODIC_PHYSICS,
@@ -520,7 +523,8 @@ class EntityActor(nn.Module):
 
     def forward_choice(self, tok: Tokens, order: Tensor | None = None
                        ) -> tuple[Tensor, Tensor | None]:
-        """Tokens -> (B, N, 2) and, with a choice head, its weights (B, N, Kt) (else None)."""
+        """Tokens -> (B, N, 2) and, with a choice head, its weights (B, N, Kt); lifelong, the
+        :class:`WaypointHead`'s (B, N, 1 + Kt); else None."""
         if self.choose is not None:
             h, task_emb, _ = self.encoder.encode(tok)
             return self.choose(h, task_emb, tok)
@@ -528,7 +532,7 @@ class EntityActor(nn.Module):
             return self.head(self.encoder(tok)), None
         h, task_emb, target_emb = self.encoder.encode(tok)
         assert target_emb is not None
-        return self.steer(h, task_emb, target_emb, tok), None
+        return self.steer(h, task_emb, target_emb, tok)
 
 
 class PooledCritic(nn.Module):
@@ -612,7 +616,8 @@ class SortedBiRNN(nn.Module):
 
     def forward_choice(self, tok: Tokens, order: Tensor, action: Tensor | None = None
                        ) -> tuple[Tensor, Tensor | None]:
-        """:meth:`forward` and, with a choice head, its weights (B, N, Kt) (else None)."""
+        """:meth:`forward` and the actor's choice weights (:meth:`EntityActor.forward_choice`;
+        None for a critic or an MLP head)."""
         h, task_emb, target_emb = self.encoder.encode(tok)
         if self.action_input:
             if action is None:
@@ -628,7 +633,7 @@ class SortedBiRNN(nn.Module):
         if self.steer is None:
             return out, None
         assert target_emb is not None
-        return self.steer(torch.relu(out), task_emb, target_emb, tok), None
+        return self.steer(torch.relu(out), task_emb, target_emb, tok)
 
 
 # ---------------------------------------------------------------------- learners
@@ -881,7 +886,7 @@ class EntityLearner(ActorCritic):
         return self._policy(obs, *self._read(obs), target)
 
     def policy_and_choice(self, obs: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`policy` with the choice head's weights over the task slots.
+        """:meth:`policy` with the head's weights over the candidates it points at.
 
         Parameters
         ----------
@@ -890,22 +895,24 @@ class EntityLearner(ActorCritic):
         Returns
         -------
         action : Tensor, shape (B, N, 2)
-        weights : Tensor, shape (B, N, Kt)
-            The softmax pointer of :class:`TaskChoiceHead` (zero in masked slots), with the
-            gradient attached: what an imitation loss trains by cross-entropy.
+        weights : Tensor, shape (B, N, Kt) or, lifelong, (B, N, 1 + Kt)
+            The softmax pointer of :class:`TaskChoiceHead` over the task slots, or lifelong
+            of :class:`WaypointHead` over the own target and the pickup slots (zero where
+            masked), with the gradient attached: what an imitation loss trains by
+            cross-entropy.
 
         Raises
         ------
         ValueError
-            For networks without a choice head (``config.choice_head`` False).
+            For episodic networks without a choice head (``config.choice_head`` False).
         """
-        if not self.config.choice_head:
+        if not (self.config.choice_head or self.lifelong):
             raise ValueError("policy_and_choice needs a choice-head actor "
-                             "(config.choice_head=True)")
+                             "(config.choice_head=True) or a lifelong one")
         tok, order = self._read(obs)
         a, w = self.actor.forward_choice(tok, order)
         assert w is not None
-        return self._masked(obs, a), w
+        return self._masked(obs, self._squash(a)), w
 
     def _squash(self, out: Tensor) -> Tensor:
         """The actor's raw output -> the action: tanh, or nothing for a choice head (whose

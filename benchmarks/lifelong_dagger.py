@@ -1,0 +1,278 @@
+"""Lifelong imitation probe for issue 17: a lifelong entity policy taught by Hungarian's plan
+on a warehouse floor (DAgger).
+
+    python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50]
+        [--iterations 8] [--envs 4] [--horizon 300] [--steps 300] [--lr 1e-3]
+        [--choice-weight 1.0] [--keep-right 0.5] [--validation-steps 600] [--seed 0]
+        [--out benchmarks/results/scale/lifelong/dagger]
+
+The teacher (:class:`PlanTeacher`) is :class:`allocator.HungarianDispatcher` whose plans are
+kept, not given: the student claims orders the way every decentralized policy does here, by
+reaching an open pickup, so the teacher only says where each AGV should go. Each step it
+re-plans the floors where something happened (as the dispatcher does), and each AGV's goal is
+its own drop-off when it carries an order, else the pickup of the open order the plan gives it;
+it heads there as ``WaypointDriver`` drives (the first corner of the floor's shortest path,
+gain 4, 1.2 units/s), the action scaled into [-1, 1]^2 with its direction kept. AGVs without a
+goal brake. That is the "hungarian-shield" row of ``shield_lifelong.py`` (202.6 deliveries per
+1000 steps on warehouse-50 behind the shield, 0.97x Hungarian + SafeDriver), minus the
+assignment.
+
+The student is the actor of a lifelong entity policy file (``--start``, e.g. the shipped
+``allocator/weights/lifelong/maddpg-greedy.safetensors``), which ends in a
+:class:`learners.entity.WaypointHead`: a softmax over its own target and its K nearest open
+pickups. DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix (each
+floor driven by the teacher with probability 0.3, else by the student), every rollout through
+``SafetyShield(keep_right=--keep-right)`` (the policy is served shielded); every state is
+labelled with the teacher's action and the teacher's candidate (the own target, or the pickup
+slot of the planned order when it is in view); the last 6 rollouts are kept and the actor takes
+``--steps`` Adam steps on the squared error of the actions of the AGVs that can move plus
+``--choice-weight`` times the cross-entropy of the head's softmax against the teacher's
+candidate (a batch of 16 joint states per step).
+
+Writes ``--out``/``dagger.safetensors`` (a policy file that ``allocator.make(...,
+weights=FILE)`` and ``shield_lifelong.py --weights FILE`` take; written after every
+validation), ``progress.csv`` (loss, and every second iteration the shielded throughput on
+the floor, seed 4242, ``--validation-steps`` steps, 2 runs) and ``dagger.probe.json`` (command, seed, settings).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from dagger_probe import save_policy
+
+import sim
+from allocator.dispatch import HungarianDispatcher
+from allocator.shield import SafetyShield
+from learners.algorithms import ENTITY_ALGORITHMS, make_learner
+from learners.checkpoint import load_checkpoint
+from sim.io import atomic_write_text
+from sim.orders import CARRYING, IDLE, OPEN
+
+OUT = Path(__file__).parent / "results" / "scale" / "lifelong" / "dagger"
+KEEP = 6
+"""Rollouts kept (the oldest are dropped)."""
+TEACHER_SHARE = 0.3
+"""Share of the floors the teacher drives after the first iteration."""
+BATCH = 16
+"""Joint states per Adam step."""
+VALIDATION_SEED = 4242
+
+
+class PlanTeacher(HungarianDispatcher):
+    """Hungarian's plan, kept to itself (see the module docstring).
+
+    Attributes
+    ----------
+    plan : np.ndarray of int64, shape (B, N)
+        The order slot the latest plan gives each AGV (-1: none).
+    """
+
+    def reset(self, env: Any) -> None:
+        """Bind to a lifelong env and plan every floor (nothing is assigned)."""
+        self.plan = np.full((env.num_envs, env.num_agents), -1, dtype=np.int64)
+        super().reset(env)
+
+    def _replan(self, floors: np.ndarray) -> None:
+        self.plan[floors] = self.plan_floors(floors)[floors]
+        self.replans += int(floors.sum())
+
+    def teach(self, env: Any) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+        """Re-plan where events happened; the teacher's actions (B, N, 2), each AGV's goal
+        relative to it (B, N, 2; NaN without one) and the goal's kind (B, N: 0 its own
+        drop-off, 1 a planned pickup, -1 none)."""
+        todo = env.events.any.cpu().numpy()
+        if todo.any():
+            self._replan(todo)
+        pos = env.agent_pos.double().cpu().numpy()
+        vel = env.agent_vel.double().cpu().numpy()
+        target, has = env.targets()
+        status = env.agent_status.cpu().numpy()
+        order_status = env.orders.status.cpu().numpy()
+        pickup = env.orders.pickup.double().cpu().numpy()
+        carrying = has.cpu().numpy() & (status == CARRYING)
+        slot = self.plan.clip(min=0)
+        planned = (status == IDLE) & (self.plan >= 0) \
+            & (np.take_along_axis(order_status, slot, 1) == OPEN)
+        goal = np.full(pos.shape, np.nan)
+        goal[carrying] = target.double().cpu().numpy()[carrying]
+        goal[planned] = np.take_along_axis(pickup, slot[..., None].repeat(2, -1), 1)[planned]
+        kind = np.where(carrying, 0, np.where(planned, 1, -1))
+        aim = kind >= 0
+        cmd = np.zeros_like(pos)
+        if aim.any():
+            a = pos[aim]
+            cmd[aim] = (self.distances.next_waypoint(a, goal[aim]) - a) * self.driver.gain
+        speed = np.linalg.norm(cmd, axis=-1, keepdims=True)
+        cmd *= self.driver.max_speed / np.maximum(speed, self.driver.max_speed)
+        ph = env.world.physics
+        action = (cmd - vel * (1.0 - ph.damping)) / (ph.sensitivity * ph.dt / ph.mass)
+        action /= np.maximum(1.0, np.abs(action).max(-1, keepdims=True))
+        return torch.as_tensor(action, dtype=torch.float32), goal - pos, kind
+
+
+def candidate_labels(obs: torch.Tensor, layout: Any, rel: np.ndarray,
+                     kind: np.ndarray) -> torch.Tensor:
+    """The :class:`learners.entity.WaypointHead` candidate of the teacher's goal, (B, N)
+    int64: 0 for the AGV's own drop-off (kind 0), 1 + the pickup slot within 1e-3 of ``rel``
+    (kind 1), -1 where there is none (no goal, or the pickup out of the AGV's view)."""
+    B, N, _ = obs.shape
+    t = obs[..., layout.pickups].reshape(B, N, layout.k_pickups, 3).double()
+    gap = torch.linalg.vector_norm(t[..., :2] - torch.as_tensor(rel).unsqueeze(-2), dim=-1)
+    gap = gap.masked_fill(~(t[..., 2] > 0.5), np.inf).nan_to_num(nan=np.inf)
+    best, slot = gap.min(-1) if layout.k_pickups else (torch.full((B, N), np.inf), None)
+    kind_t = torch.as_tensor(kind)
+    out = torch.full((B, N), -1, dtype=torch.int64)
+    out[kind_t == 0] = 0
+    seen = (kind_t == 1) & (best < 1e-3)
+    if slot is not None:
+        out[seen] = 1 + slot[seen]
+    return out
+
+
+def rollout(learner: Any, floor: str, envs: int, horizon: int, seed: int, teacher_share: float,
+            keep_right: float, gen: torch.Generator) -> tuple[torch.Tensor, ...]:
+    """One batch of floors for ``horizon`` steps through the shield; returns the
+    observations (S, N, O), the teacher's actions (S, N, 2), which AGVs can move (S, N) and
+    the teacher's candidates (S, N; -1: none), S = envs x horizon."""
+    env = sim.make_env(floor, num_envs=envs, seed=seed)
+    obs = env.observe()
+    teacher = PlanTeacher()
+    teacher.reset(env)
+    learner.reset(env)
+    shield = SafetyShield(learner, keep_right=keep_right)
+    shield.reset(env)
+    drive = torch.rand(envs, 1, 1, generator=gen) < teacher_share
+    out: list[tuple[torch.Tensor, ...]] = []
+    for _ in range(horizon):
+        target, rel, kind = teacher.teach(env)
+        labels = candidate_labels(obs, env.obs_layout, rel, kind)
+        with torch.no_grad():
+            student = learner.policy(obs)
+        movable = learner._movable(obs).squeeze(-1) > 0.5
+        out.append((obs, target, movable, labels))
+        obs, *_ = env.step(shield.filter(torch.where(drive, target, student)))
+    return tuple(torch.cat(x) for x in zip(*out, strict=True))
+
+
+def validate(learner: Any, floor: str, keep_right: float, steps: int = 600) -> float:
+    """Shielded deliveries per 1000 steps on ``floor`` (seed :data:`VALIDATION_SEED`, 2
+    runs)."""
+    shield = SafetyShield(learner, keep_right=keep_right)
+    m = sim.evaluate_lifelong(shield, floor, steps=steps, seed=VALIDATION_SEED, runs=2)
+    return float(m.throughput)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--start", required=True, type=Path,
+                        help="a lifelong entity learner's policy file")
+    parser.add_argument("--floor", default="warehouse-50")
+    parser.add_argument("--iterations", type=int, default=8)
+    parser.add_argument("--envs", type=int, default=4, help="floors per rollout")
+    parser.add_argument("--horizon", type=int, default=300, help="steps per rollout")
+    parser.add_argument("--steps", type=int, default=300, help="Adam steps per iteration")
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--choice-weight", type=float, default=1.0)
+    parser.add_argument("--keep-right", type=float, default=0.5,
+                        help="the shield's lane angle in the rollouts and the validation")
+    parser.add_argument("--validation-steps", type=int, default=600)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=OUT)
+    args = parser.parse_args(argv)
+    for name in ("iterations", "envs", "horizon", "steps", "validation_steps"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.seed < 0:
+        parser.error(f"--seed must be >= 0, got {args.seed}")
+    for name in ("lr", "choice_weight"):
+        value = getattr(args, name)
+        if not (np.isfinite(value) and value >= 0) or (name == "lr" and value == 0):
+            parser.error(f"--{name.replace('_', '-')} must be a finite number "
+                         f"{'> 0' if name == 'lr' else '>= 0'}, got {value}")
+    if not (np.isfinite(args.keep_right) and 0 <= args.keep_right < np.pi / 2):
+        parser.error(f"--keep-right must be in [0, pi/2), got {args.keep_right}")
+    try:
+        scenario = sim.get_scenario(args.floor)
+        tensors, meta = load_checkpoint(args.start, kind="policy")
+    except (ValueError, KeyError, FileNotFoundError) as err:
+        parser.error(str(err))
+    if not getattr(scenario, "lifelong", False):
+        parser.error(f"--floor must be a lifelong floor (warehouse-N), got {args.floor}")
+    if meta["algo"] not in ENTITY_ALGORITHMS or "actor.steer.gain" not in tensors:
+        parser.error(f"--start must be a lifelong entity policy (its actor ends in a "
+                     f"WaypointHead), got {meta['algo']} on {meta['scenario']}")
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
+                           meta["num_agents"], meta["config"])
+    learner.load_policy_tensors(tensors)
+    opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
+    args.out.mkdir(parents=True, exist_ok=True)
+    data: list[tuple[torch.Tensor, ...]] = []
+    log = []
+    t0 = time.perf_counter()
+    start = validate(learner, args.floor, args.keep_right, args.validation_steps)
+    print(json.dumps({"iteration": 0, "throughput": start}), flush=True)
+    for it in range(args.iterations):
+        share = 1.0 if it == 0 else TEACHER_SHARE
+        data = (data + [rollout(learner, args.floor, args.envs, args.horizon,
+                                args.seed * 100_000 + it, share, args.keep_right, gen)])[-KEEP:]
+        o, a, m, c = (torch.cat(x) for x in zip(*data, strict=True))
+        env = sim.make_env(args.floor, num_envs=1, seed=0)
+        learner.reset(env)  # the floor's layout and waypoints for the tokens
+        total = 0.0
+        for _ in range(args.steps):
+            idx = torch.randint(len(o), (BATCH,), generator=gen)
+            act, w = learner.policy_and_choice(o[idx])
+            mv = m[idx]
+            loss = (((act - a[idx]) ** 2).sum(-1) * mv).sum() / mv.sum().clamp_min(1)
+            lab = c[idx]
+            has = (lab >= 0) & mv
+            if args.choice_weight > 0:
+                picked = w.gather(-1, lab.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+                ce = -torch.log(picked.clamp_min(1e-9)) * has
+                loss = loss + args.choice_weight * ce.sum() / has.sum().clamp_min(1)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(learner.actor.parameters(), 1.0)
+            opt.step()
+            total += float(loss.detach())
+        row: dict[str, Any] = dict(iteration=it + 1, loss=total / args.steps,
+                                   labelled=round(float((c >= 0).float().mean()), 3),
+                                   seconds=round(time.perf_counter() - t0, 1))
+        if it % 2 == 1 or it == args.iterations - 1:
+            row["throughput"] = validate(learner, args.floor, args.keep_right, args.validation_steps)
+            save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
+        log.append(row)
+        print(json.dumps(row), flush=True)
+    fields = list(log[-1])  # the last iteration always validates: every column
+    with open(args.out / "progress.csv.tmp", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        w.writerows(log)
+    (args.out / "progress.csv.tmp").replace(args.out / "progress.csv")
+    command = "python benchmarks/lifelong_dagger.py " + " ".join(
+        sys.argv[1:] if argv is None else argv)
+    atomic_write_text(args.out / "dagger.probe.json", json.dumps(
+        {"command": command.strip(), "seed": args.seed, "start": str(args.start),
+         "floor": args.floor, "iterations": args.iterations, "envs": args.envs,
+         "horizon": args.horizon, "steps": args.steps, "lr": args.lr,
+         "choice_weight": args.choice_weight, "keep_right": args.keep_right,
+         "validation_steps": args.validation_steps,
+         "teacher_share": TEACHER_SHARE, "keep": KEEP, "batch": BATCH,
+         "start_throughput": start, "final": log[-1]}, indent=2) + "\n")
+    print(f"wrote {args.out / 'dagger.safetensors'}")
+
+
+if __name__ == "__main__":
+    main()

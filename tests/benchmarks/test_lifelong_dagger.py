@@ -1,0 +1,112 @@
+"""``benchmarks/lifelong_dagger.py``: Hungarian's plan taught to a lifelong entity policy."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from benchmark_scripts import ROOT, load
+
+import allocator
+import sim
+from sim.orders import CARRYING, OPEN, TO_PICKUP
+
+dagger = load("lifelong_dagger")
+SHIPPED = ROOT / "allocator/weights/lifelong/maddpg-greedy.safetensors"
+
+
+def _student():
+    from learners.algorithms import make_learner
+    from learners.checkpoint import load_checkpoint
+
+    tensors, meta = load_checkpoint(SHIPPED, kind="policy")
+    learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
+                           meta["num_agents"], meta["config"])
+    learner.load_policy_tensors(tensors)
+    return learner
+
+
+def test_the_teacher_plans_without_assigning_and_aims_at_open_pickups() -> None:
+    env = sim.make_env("warehouse-20", num_envs=2, seed=1)
+    teacher = dagger.PlanTeacher()
+    teacher.reset(env)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(40):
+        action, rel, kind = teacher.teach(env)
+        assert action.shape == (2, 20, 2) and action.abs().max() <= 1.0 + 1e-6
+        status = env.agent_status.numpy()
+        assert not (status == TO_PICKUP).any()  # nothing is ever assigned
+        assert ((kind == 0) == (status == CARRYING)).all()
+        planned = kind == 1
+        st = env.orders.status.numpy()
+        for b in range(2):
+            slots = teacher.plan[b][planned[b]]
+            assert (st[b][slots] == OPEN).all()
+            assert len(set(slots.tolist())) == len(slots)  # one AGV per order
+        goal = env.agent_pos.double().numpy() + rel
+        pick = env.orders.pickup.double().numpy()
+        for b, i in zip(*np.nonzero(planned), strict=True):
+            assert np.allclose(goal[b, i], pick[b, teacher.plan[b, i]])
+        assert np.isnan(rel[kind < 0]).all()
+        env.step(action + 0.1 * torch.randn(action.shape, generator=gen))
+    assert teacher.replans > 2
+
+
+def test_candidate_labels_point_at_the_planned_pickup_slot() -> None:
+    env = sim.make_env("warehouse-20", num_envs=2, seed=2)
+    teacher = dagger.PlanTeacher()
+    teacher.reset(env)
+    _, rel, kind = teacher.teach(env)
+    obs = env.observe()
+    layout = env.obs_layout
+    labels = dagger.candidate_labels(obs, layout, rel, kind)
+    assert labels.shape == (2, 20) and (labels[torch.as_tensor(kind < 0)] == -1).all()
+    t = obs[..., layout.pickups].reshape(2, 20, layout.k_pickups, 3)
+    hit = labels >= 1
+    assert hit.any()
+    for b, i in zip(*torch.nonzero(hit, as_tuple=True), strict=True):
+        assert np.allclose(t[b, i, labels[b, i] - 1, :2].numpy(), rel[b, i], atol=1e-3)
+    # a planned pickup out of view has no label
+    far = rel.copy()
+    far[kind == 1] += 100.0
+    assert not (dagger.candidate_labels(obs, layout, far, kind) >= 1).any()
+
+
+def test_policy_and_choice_gives_the_waypoint_heads_candidates() -> None:
+    learner = _student()
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    learner.reset(env)
+    obs = env.observe()
+    act, w = learner.policy_and_choice(obs)
+    torch.testing.assert_close(act.detach(), learner.policy(obs))
+    assert w.shape == (1, 20, 1 + env.obs_layout.k_pickups)
+    torch.testing.assert_close(w.sum(-1), torch.ones(1, 20))  # pickups in view at the start
+
+
+def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
+    dagger.main(["--start", str(SHIPPED), "--floor", "warehouse-20", "--iterations", "1",
+                 "--envs", "1", "--horizon", "6", "--steps", "2", "--validation-steps", "5",
+                 "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["floor"] == "warehouse-20" and "throughput" in probe["final"]
+    assert (tmp_path / "progress.csv").read_text().startswith("iteration,loss,labelled")
+    solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
+                            weights=tmp_path / "dagger.safetensors", shield=True)
+    m = sim.evaluate_lifelong(solver, "warehouse-20", steps=20, seed=0)
+    assert m.collisions_per_1000 == 0
+
+
+@pytest.mark.parametrize("bad", [
+    ["--start", str(ROOT / "allocator/weights/6v6/bicnet-ipf.safetensors")],
+    ["--start", str(SHIPPED), "--floor", "6v6"],
+    ["--start", str(SHIPPED), "--keep-right", "2"],
+    ["--start", str(SHIPPED), "--choice-weight", "nan"],
+    ["--start", str(SHIPPED), "--horizon", "0"],
+    ["--start", "missing.safetensors"],
+])
+def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:
+    with pytest.raises(SystemExit):
+        dagger.main([*bad, "--out", str(tmp_path)])
