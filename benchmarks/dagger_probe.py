@@ -35,6 +35,8 @@ import argparse
 import csv
 import dataclasses
 import json
+import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -115,6 +117,21 @@ def fitting_tensors(learner: Any, tensors: dict[str, torch.Tensor]
             out[name] = value
             fresh.append(name)
     return out, sorted(fresh)
+
+
+def recorded_command(script: str, argv: list[str]) -> str:
+    """The command line as it was run, from the repository root.
+
+    Relative paths in ``argv`` are read from the working directory, so a run
+    started elsewhere (``cd benchmarks && python dagger_probe.py ...``) is
+    recorded with its ``cd``, and rerunning the record repeats the run.
+    """
+    root = Path(__file__).resolve().parent.parent
+    cwd = Path.cwd().resolve()
+    line = shlex.join(["python", os.path.relpath(Path(script).resolve(), cwd), *argv])
+    if cwd == root:
+        return line
+    return f"cd {shlex.quote(os.path.relpath(cwd, root))} && {line}"
 
 
 def save_policy(learner: Any, meta: dict[str, Any], path: Path, seed: int) -> None:
@@ -277,10 +294,9 @@ def main(argv: list[str] | None = None) -> None:
         w.writeheader()
         w.writerows(log)
     (args.out / "progress.csv.tmp").replace(args.out / "progress.csv")
-    command = "python benchmarks/dagger_probe.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
+    command = recorded_command(__file__, sys.argv[1:] if argv is None else argv)
     atomic_write_text(args.out / "dagger.probe.json", json.dumps(
-        {"command": command.strip(), "seed": args.seed, "start": str(args.start),
+        {"command": command, "seed": args.seed, "start": str(args.start),
          "iterations": args.iterations, "steps": args.steps, "lr": args.lr,
          "sizes": args.sizes, "view": args.view, "shield": args.shield,
          "choice_head": choice, "choice_weight": args.choice_weight, "fresh": fresh,

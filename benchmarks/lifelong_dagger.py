@@ -32,7 +32,8 @@ candidate (a batch of 16 joint states per step).
 Writes ``--out``/``dagger.safetensors`` (a policy file that ``allocator.make(...,
 weights=FILE)`` and ``shield_lifelong.py --weights FILE`` take; written after every
 validation), ``progress.csv`` (loss, and every second iteration the shielded throughput on
-the floor, seed 4242, ``--validation-steps`` steps, 2 runs) and ``dagger.probe.json`` (command, seed, settings).
+the floor, seed 4242, ``--validation-steps`` steps, 2 runs) and ``dagger.probe.json``
+(command, seed, settings).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from dagger_probe import save_policy
+from dagger_probe import recorded_command, save_policy
 
 import sim
 from allocator.dispatch import HungarianDispatcher
@@ -251,7 +252,8 @@ def main(argv: list[str] | None = None) -> None:
                                    labelled=round(float((c >= 0).float().mean()), 3),
                                    seconds=round(time.perf_counter() - t0, 1))
         if it % 2 == 1 or it == args.iterations - 1:
-            row["throughput"] = validate(learner, args.floor, args.keep_right, args.validation_steps)
+            row["throughput"] = validate(learner, args.floor, args.keep_right,
+                                         args.validation_steps)
             save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
         log.append(row)
         print(json.dumps(row), flush=True)
@@ -261,10 +263,9 @@ def main(argv: list[str] | None = None) -> None:
         w.writeheader()
         w.writerows(log)
     (args.out / "progress.csv.tmp").replace(args.out / "progress.csv")
-    command = "python benchmarks/lifelong_dagger.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
+    command = recorded_command(__file__, sys.argv[1:] if argv is None else argv)
     atomic_write_text(args.out / "dagger.probe.json", json.dumps(
-        {"command": command.strip(), "seed": args.seed, "start": str(args.start),
+        {"command": command, "seed": args.seed, "start": str(args.start),
          "floor": args.floor, "iterations": args.iterations, "envs": args.envs,
          "horizon": args.horizon, "steps": args.steps, "lr": args.lr,
          "choice_weight": args.choice_weight, "keep_right": args.keep_right,

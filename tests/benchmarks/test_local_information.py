@@ -161,3 +161,13 @@ def test_dagger_trains_a_choice_head_student(tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
         dagger.main(["--start", str(PARKED), "--choice-head", "--choice-weight", "-1",
                      "--out", str(tmp_path)])
+
+
+def test_recorded_command_repeats_the_run_from_the_repository_root(monkeypatch):
+    script = str(ROOT / "benchmarks" / "dagger_probe.py")
+    monkeypatch.chdir(ROOT)
+    assert dagger.recorded_command(script, ["--out", "a b"]) == (
+        "python benchmarks/dagger_probe.py --out 'a b'")
+    monkeypatch.chdir(ROOT / "benchmarks")
+    assert dagger.recorded_command(script, ["--start", "results/x"]) == (
+        "cd benchmarks && python dagger_probe.py --start results/x")
