@@ -209,6 +209,10 @@ def main(argv: list[str] | None = None) -> None:
                              "fresh, and the loss adds --choice-weight x the cross-entropy "
                              "of its pointer against the teacher's task")
     parser.add_argument("--choice-weight", type=float, default=1.0)
+    parser.add_argument("--choice-rounds", type=int, default=None,
+                        help="rounds of the choice head's intent exchange "
+                             "(EntityConfig.choice_rounds, bicnet-e); the exchange's layers "
+                             "start fresh (default: the --start file's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -231,16 +235,20 @@ def main(argv: list[str] | None = None) -> None:
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
     config = dict(meta["config"])
+    wanted = dict(config)
+    if args.choice_head:
+        wanted["choice_head"] = True
+    if args.choice_rounds is not None:
+        wanted["choice_rounds"] = args.choice_rounds
     fresh: list[str] = []
-    if args.choice_head and not config.get("choice_head", False):
-        config["choice_head"] = True
+    try:
         learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
-                               meta["num_agents"], config)
+                               meta["num_agents"], wanted)
+    except ValueError as err:
+        parser.error(str(err))
+    if wanted != config:
         tensors, fresh = fitting_tensors(learner, tensors)
-        print(f"--choice-head: fresh {', '.join(fresh)}", flush=True)
-    else:
-        learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
-                               meta["num_agents"], config)
+        print(f"fresh: {', '.join(fresh)}", flush=True)
     choice = bool(learner.config.choice_head)
     learner.load_policy_tensors(tensors)
     opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
@@ -299,7 +307,8 @@ def main(argv: list[str] | None = None) -> None:
         {"command": command, "seed": args.seed, "start": str(args.start),
          "iterations": args.iterations, "steps": args.steps, "lr": args.lr,
          "sizes": args.sizes, "view": args.view, "shield": args.shield,
-         "choice_head": choice, "choice_weight": args.choice_weight, "fresh": fresh,
+         "choice_head": choice, "choice_weight": args.choice_weight,
+         "choice_rounds": learner.config.choice_rounds, "fresh": fresh,
          "teacher_share": TEACHER_SHARE,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")

@@ -42,7 +42,14 @@ import torch
 from torch import Tensor, nn
 
 from learners.buffer import Batch
-from learners.common import ActorCritic, OffPolicyConfig, check_bool, check_real, movable_mask
+from learners.common import (
+    ActorCritic,
+    OffPolicyConfig,
+    check_bool,
+    check_int,
+    check_real,
+    movable_mask,
+)
 from learners.floor import FloorWaypoints, obstacle_points
 from sim.observations import AGENT_FEATURES, TASK_FEATURES, LifelongObsLayout, ObsLayout
 from sim.world import Physics
@@ -157,6 +164,9 @@ class Tokens:
     """Lifelong only: (B, N, OBSTACLE_SLOTS, OBSTACLE_TOKEN_FEATURES), zero when masked"""
     obstacle_mask: Tensor | None = None
     """Lifelong only: (B, N, OBSTACLE_SLOTS) bool"""
+    pos: Tensor | None = None
+    """Episodic only: (B, N, 2) the AGV's own position, which the observation holds (read
+    only by the choice head's intent exchange, :attr:`EntityConfig.choice_rounds`)"""
 
 
 def _slots(obs: Tensor, tasks: slice, agents: slice, kt: int,
@@ -212,7 +222,7 @@ def tokens(obs: Tensor, layout: ObsLayout, margin_moving: bool = False,
         parts.append((a_mask & ~moving).unsqueeze(-1).to(obs.dtype))
     agent = torch.cat(parts, dim=-1)
     return Tokens(own, task * t_mask.unsqueeze(-1), t_mask, agent * a_mask.unsqueeze(-1),
-                  a_mask)
+                  a_mask, pos=obs[..., layout.pos])
 
 
 def _margin(t_rel: Tensor, t_dist: Tensor, a_rel: Tensor, a_mask: Tensor) -> tuple[Tensor, Tensor]:
@@ -462,6 +472,59 @@ def arrive_action(rel: Tensor, vel: Tensor, physics: Physics = EPISODIC_PHYSICS,
     return a / a.abs().amax(-1, keepdim=True).clamp_min(1.0)
 
 
+INTENT_FEATURES = 2
+"""Per task slot, what a round of the intent exchange hears (:class:`_Intents`)."""
+INTENT_MATCH = 1e-4
+"""Two positions closer than this are the same task (or AGV) in :class:`_Intents`."""
+
+
+class _Intents:
+    """The choice head's intent exchange (:attr:`EntityConfig.choice_rounds`): every idle
+    AGV tells the idle AGVs that see it which task its pointer is on and how far it is from
+    it; AGV i hears, for each of its task slots k, how many of the AGVs it sees point at
+    that task (``any``) and how many of them are nearer to it than i (``nearer``).
+
+    Tasks are told apart by position (AGV i's task k is at ``pos_i + rel_ik``, AGV j's
+    pointed task at ``pos_j + rel_j``), AGVs by the relative positions in i's AGV slots,
+    so i hears only the AGVs in its own view. Parked AGVs (the holding bit) point at nothing.
+    Computed for a batch of scenes at once, (B, N, N) pairs; one round costs
+    O(B N^2 (K_t + K_a)).
+    """
+
+    def __init__(self, tok: Tokens) -> None:
+        if tok.pos is None:
+            raise ValueError("the intent exchange needs the AGVs' positions (Tokens.pos)")
+        self.tok = tok
+        pos = tok.pos
+        self.tasks = pos.unsqueeze(-2) + tok.task[..., 0:2]  # (B, N, Kt, 2)
+        idle = tok.own[..., 2] < 0.5
+        # hears[b, i, j]: AGV j (idle, not i) is in one of AGV i's AGV slots
+        offset = pos.unsqueeze(1) - pos.unsqueeze(2)  # (B, i, j, 2): j relative to i
+        near = torch.linalg.vector_norm(
+            offset.unsqueeze(-2) - tok.agent[..., 0:2].unsqueeze(2), dim=-1)  # (B,i,j,Ka)
+        seen = ((near < INTENT_MATCH) & tok.agent_mask.unsqueeze(2)).any(-1)
+        n = pos.shape[1]
+        self.hears = seen & idle.unsqueeze(1) & ~torch.eye(n, dtype=torch.bool,
+                                                            device=pos.device)
+
+    def features(self, w: Tensor) -> Tensor:
+        """The choice weights (B, N, Kt) -> (B, N, Kt, INTENT_FEATURES): ``any`` and
+        ``nearer`` (counts, 0 in masked slots)."""
+        tok = self.tok
+        B, N, K = w.shape
+        top = w.argmax(-1, keepdim=True)  # (B, N, 1)
+        has = tok.task_mask.any(-1)
+        aim = torch.gather(self.tasks, 2, top.unsqueeze(-1).expand(B, N, 1, 2)).squeeze(2)
+        dist = torch.gather(tok.task[..., 2], 2, top).squeeze(-1)  # (B, N)
+        # same[b, i, k, j]: AGV j points at AGV i's task k
+        same = torch.linalg.vector_norm(
+            self.tasks.unsqueeze(3) - aim[:, None, None], dim=-1) < INTENT_MATCH
+        same &= (self.hears & has.unsqueeze(1)).unsqueeze(2)
+        nearer = same & (dist[:, None, None, :] < tok.task[..., 2].unsqueeze(-1))
+        out = torch.stack([same.sum(-1), nearer.sum(-1)], dim=-1).to(w.dtype)
+        return out * tok.task_mask.unsqueeze(-1)
+
+
 class TaskChoiceHead(nn.Module):
     """The episodic actors' choice head (:attr:`EntityConfig.choice_head`): point at a task.
 
@@ -476,9 +539,15 @@ class TaskChoiceHead(nn.Module):
     over the task tokens, which an imitation loss can train by cross-entropy, see
     :meth:`EntityLearner.policy_and_choice`) and how to pass the others. With no task visible
     the action is the residual's.
+
+    With ``rounds`` > 0 (BiCNet-E's :attr:`EntityConfig.choice_rounds`) the pointer goes
+    through that many rounds of an intent exchange (:class:`_Intents`): each round adds
+    ``intent(any_k, nearer_k)`` (an MLP whose last layer starts at zero, so that the untrained
+    exchange changes nothing) to the round-0 logits, the counts heard from the pointers of
+    the round before.
     """
 
-    def __init__(self, hidden: int) -> None:
+    def __init__(self, hidden: int, rounds: int = 0) -> None:
         super().__init__()
         self.score = _mlp([2 * hidden, hidden, 1], last_relu=False)
         self.residual = _mlp([hidden, hidden, 2], last_relu=False)
@@ -486,13 +555,25 @@ class TaskChoiceHead(nn.Module):
             self.residual[-1].weight.mul_(0.1)
             self.residual[-1].bias.zero_()
         self.dist_weight = nn.Parameter(torch.tensor(CHOICE_DIST_WEIGHT))
+        self.rounds = rounds
+        self.intent = None
+        if rounds:
+            self.intent = _mlp([INTENT_FEATURES, hidden, 1], last_relu=False)
+            with torch.no_grad():  # starts as no exchange: the pointer of round 0
+                self.intent[-1].weight.zero_()
+                self.intent[-1].bias.zero_()
 
     def forward(self, h: Tensor, task_emb: Tensor, tok: Tokens) -> tuple[Tensor, Tensor]:
         """(B, N, H), (B, N, Kt, H), episodic tokens -> the action (B, N, 2) in [-1, 1] and
         the choice weights w (B, N, Kt), zero in masked slots."""
         logits = self.score(torch.cat([h.unsqueeze(-2).expand_as(task_emb), task_emb], dim=-1))
-        w = _masked_softmax(logits.squeeze(-1) - self.dist_weight * tok.task[..., 2],
-                            tok.task_mask)
+        logits = logits.squeeze(-1) - self.dist_weight * tok.task[..., 2]
+        w = _masked_softmax(logits, tok.task_mask)
+        if self.intent is not None:
+            heard = _Intents(tok)
+            for _ in range(self.rounds):
+                bias = self.intent(heard.features(w.detach())).squeeze(-1)
+                w = _masked_softmax(logits + bias, tok.task_mask)
         drive = arrive_action(tok.task[..., 0:2], tok.own[..., 0:2].unsqueeze(-2))
         a = (w.unsqueeze(-1) * drive).sum(-2) + self.residual(h)
         return a / a.abs().amax(-1, keepdim=True).clamp_min(1.0), w
@@ -590,11 +671,13 @@ class SortedBiRNN(nn.Module):
     choice_head : bool
         The episodic actor ends in a :class:`TaskChoiceHead` on the recurrence's output
         (:attr:`EntityConfig.choice_head`); its output is then the action itself.
+    choice_rounds : int
+        The choice head's rounds of intent exchange (:attr:`EntityConfig.choice_rounds`).
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
                  lifelong: bool = False, parked_token: bool = False,
-                 choice_head: bool = False) -> None:
+                 choice_head: bool = False, choice_rounds: int = 0) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
@@ -604,8 +687,8 @@ class SortedBiRNN(nn.Module):
         # the lifelong actor steers with a WaypointHead on the recurrence's output, an
         # episodic one with choice_head points with a TaskChoiceHead
         self.steer = WaypointHead(hidden) if lifelong and actor else None
-        self.choose = TaskChoiceHead(hidden) if choice_head and actor and not lifelong \
-            else None
+        self.choose = TaskChoiceHead(hidden, choice_rounds) \
+            if choice_head and actor and not lifelong else None
         self.head = _mlp([2 * hidden, hidden]
                          if self.steer is not None or self.choose is not None
                          else [2 * hidden, hidden, out_features], last_relu=False)
@@ -686,11 +769,18 @@ class EntityConfig(OffPolicyConfig):
     are those of the default physics (:data:`EPISODIC_PHYSICS`; an env with other physics
     is refused). The weights differ from those without it. False (the default, and what
     every run before this field did): an MLP head and a tanh."""
+    choice_rounds: int = 0
+    """BiCNet-E with ``choice_head``: rounds of intent exchange before the pointer settles.
+    Each round every idle AGV tells the AGVs that see it which task its pointer is on and
+    how far it is from it, and each AGV's pointer adds a learned function of how many of
+    them point at each of its tasks, and how many of those are nearer (BiCNet's
+    communication across agents, made explicit; MADDPG-E's actors do not communicate and
+    refuse it). 0 (the default, and what every run before this field did): none."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
         ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
-        ``choice_head`` too."""
+        ``choice_head`` and ``choice_rounds`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
@@ -698,6 +788,10 @@ class EntityConfig(OffPolicyConfig):
         self.margin_moving = check_bool("margin_moving", self.margin_moving)
         self.parked_token = check_bool("parked_token", self.parked_token)
         self.choice_head = check_bool("choice_head", self.choice_head)
+        self.choice_rounds = check_int("choice_rounds", self.choice_rounds, 0, 8)
+        if self.choice_rounds and not self.choice_head:
+            raise ValueError(f"choice_rounds={self.choice_rounds} exchanges the choice head's "
+                             "pointers; it needs choice_head=True")
         self.shield_penalty = check_real("shield_penalty", self.shield_penalty, 0.0, math.inf,
                                          high_open=True)
         if self.shield_penalty and not self.shield:
@@ -964,6 +1058,9 @@ class MADDPGE(EntityLearner):
                  config: MADDPGEConfig | None = None, lifelong: bool | None = None) -> None:
         config = config or MADDPGEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
+        if config.choice_rounds:
+            raise ValueError(f"choice_rounds={config.choice_rounds} is communication between "
+                             "the actors, which MADDPG-E's do not have: use bicnet-e or 0")
         self.actor = EntityActor(config.hidden, self.lifelong, config.parked_token,
                                  config.choice_head)
         self.critic = PooledCritic(config.hidden, self.lifelong, config.parked_token)
@@ -1016,7 +1113,8 @@ class BiCNetE(EntityLearner):
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
         self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong,
                                  parked_token=config.parked_token,
-                                 choice_head=config.choice_head)
+                                 choice_head=config.choice_head,
+                                 choice_rounds=config.choice_rounds)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
                                   parked_token=config.parked_token)
         self._finish_init()

@@ -171,3 +171,19 @@ def test_recorded_command_repeats_the_run_from_the_repository_root(monkeypatch):
     monkeypatch.chdir(ROOT / "benchmarks")
     assert dagger.recorded_command(script, ["--start", "results/x"]) == (
         "cd benchmarks && python dagger_probe.py --start results/x")
+
+
+def test_dagger_adds_an_intent_exchange_to_a_choice_head_student(tmp_path: Path) -> None:
+    dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
+                 "--sizes", "6v6", "--choice-head", "--choice-rounds", "1",
+                 "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["choice_rounds"] == 1
+    assert any(n.startswith("actor.choose.intent.") for n in probe["fresh"])
+    solver = allocator.make("bicnet-ipf", scenario="10v10", shield=True,
+                            checkpoint=tmp_path / "dagger.safetensors")
+    assert solver.policy.learner.config.choice_rounds == 1
+    assert sim.evaluate(solver, "10v10", episodes=2, seed=0).collisions == 0
+    for bad in (["--choice-rounds", "-1", "--choice-head"], ["--choice-rounds", "1"]):
+        with pytest.raises(SystemExit):
+            dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])

@@ -23,8 +23,11 @@ from tests.learners.conftest import TINY, make_batch
 
 ALGOS = list(ENTITY_ALGORITHMS)
 VARIANTS = [pytest.param(a, {}, id=a) for a in ALGOS] + [
-    pytest.param(a, {"choice_head": True}, id=f"{a}-choice") for a in ALGOS]
-"""Every learner, with its MLP head and with the choice head (EntityConfig.choice_head)."""
+    pytest.param(a, {"choice_head": True}, id=f"{a}-choice") for a in ALGOS] + [
+    pytest.param("bicnet-e", {"choice_head": True, "choice_rounds": 2},
+                 id="bicnet-e-intents")]
+"""Every learner, with its MLP head and with the choice head (EntityConfig.choice_head);
+BiCNet-E's also with two rounds of intent exchange (EntityConfig.choice_rounds)."""
 
 
 def _obs(scenario: str, num_envs: int = 8, seed: int = 0, steps: int = 3) -> tuple:
@@ -363,3 +366,130 @@ def test_choice_head_bad_uses_are_clear_errors(algo):
         scen.world, physics=Physics(damping=0.5)))
     with pytest.raises(ValueError, match="default physics"):
         learner.reset(sim.make_env(slow, num_envs=1, seed=0))
+
+
+# ---------------------------------------------------------------------- the intent exchange
+def _stir_intents(learner: torch.nn.Module) -> None:
+    """Give the (zero-started) intent layer weights that change the pointer."""
+    gen = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for p in learner.actor.choose.intent.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * 3)
+
+
+def _scene(agents: list[tuple[float, float]], tasks: list[tuple[float, float]],
+           parked: tuple[int, ...] = (), k_agents: int | None = None):
+    """Observations of one hand-placed episodic scene (AGVs at rest, all tasks open but
+    those the ``parked`` AGVs hold), full view unless ``k_agents``."""
+    n = len(agents)
+    scen = sim.get_scenario(f"{n}v{len(tasks)}", k_tasks=len(tasks),
+                            k_agents=n - 1 if k_agents is None else k_agents)
+    env = sim.make_env(scen, num_envs=1, seed=0)
+    env.reset()
+    env._agent_pos[0] = torch.tensor(agents, dtype=env.dtype)
+    env._agent_vel.zero_()
+    env._task_pos[0] = torch.tensor(tasks, dtype=env.dtype)
+    for i in parked:
+        env._agent_task[0, i] = i
+        env._task_claimed[0, i] = True
+        env._agent_pos[0, i] = env._task_pos[0, i]
+    return env, env.observe()
+
+
+def test_intents_count_who_points_at_each_task_and_who_is_nearer():
+    from learners.entity import _Intents
+
+    # AGVs 0, 1 and 2 on a line; the tasks at x = 0.5 and x = 1.5
+    env, obs = _scene([(0.0, 0.0), (0.4, 0.0), (1.0, 0.0)], [(0.5, 0.0), (1.5, 0.0), (-1, 1)])
+    tok = tokens(obs, env.obs_layout)
+    heard = _Intents(tok)
+    assert heard.hears[0].sum().item() == 6  # every idle AGV hears the two others
+    # every pointer on the task at x = 0.5 (slot order differs per AGV: find it by position)
+    at = heard.tasks[0]  # (N, Kt, 2)
+    target = torch.tensor([0.5, 0.0], dtype=at.dtype)
+    slot = torch.linalg.vector_norm(at - target, dim=-1).argmin(-1)
+    w = torch.nn.functional.one_hot(slot, at.shape[1]).to(obs.dtype).unsqueeze(0)
+    f = heard.features(w)[0]  # (N, Kt, 2): any, nearer
+    got = f[torch.arange(3), slot]
+    # AGV 0 (0.5 away) hears 2 pointers, both nearer (0.1 and 0.5: 0.5 is not < 0.5);
+    torch.testing.assert_close(got, torch.tensor([[2.0, 1.0], [2.0, 0.0], [2.0, 1.0]],
+                                                 dtype=got.dtype))
+    # no pointer on the other tasks
+    other = torch.ones_like(f[..., 0], dtype=torch.bool)
+    other[torch.arange(3), slot] = False
+    assert f[other].abs().sum() == 0
+
+
+def test_intents_leave_out_parked_agvs_and_those_out_of_view():
+    from learners.entity import _Intents
+
+    env, obs = _scene([(0.0, 0.0), (0.3, 0.0), (1.2, 0.0)], [(0.5, 0.0), (0.6, 0.6), (1.0, 1.0)],
+                      parked=(2,))
+    heard = _Intents(tokens(obs, env.obs_layout))
+    assert not heard.hears[0, :, 2].any()  # nobody hears the parked AGV
+    assert heard.hears[0, 0, 1] and heard.hears[0, 1, 0]
+    # a one-slot view: AGV 2 (idle now) sees only its nearest AGV, 1
+    env, obs = _scene([(0.0, 0.0), (0.9, 0.0), (1.2, 0.0)], [(0.5, 0.0), (0.6, 0.6), (1, 1)],
+                      k_agents=1)
+    heard = _Intents(tokens(obs, env.obs_layout))
+    assert heard.hears[0, 2].tolist() == [False, True, False]
+    assert heard.hears[0, 0].tolist() == [False, True, False]
+
+
+def test_intent_exchange_starts_as_none_and_stays_equivariant_once_trained():
+    env, obs = _obs("6v6", num_envs=8, steps=4)
+    plain = _learner("bicnet-e", env, choice_head=True)
+    talk = _learner("bicnet-e", env, choice_head=True, choice_rounds=2)
+    talk.load_state_dict(plain.state_dict(), strict=False)  # all but the intent layer
+    a0, w0 = plain.policy_and_choice(obs)
+    a1, w1 = talk.policy_and_choice(obs)
+    torch.testing.assert_close(a1, a0)  # zero-started: no change
+    torch.testing.assert_close(w1, w0)
+    _stir_intents(talk)
+    a2, w2 = talk.policy_and_choice(obs)
+    assert not torch.allclose(w2, w0)
+    # the AGVs' order does not matter (BiCNet-E sorts them itself)
+    perm = torch.randperm(6, generator=torch.Generator().manual_seed(3))
+    layout = env.obs_layout
+    a3, w3 = talk.policy_and_choice(obs[:, perm])
+    torch.testing.assert_close(a3, a2[:, perm], atol=1e-5, rtol=1e-4)
+    # nor the order of the task and AGV slots
+    pt = torch.randperm(layout.k_tasks, generator=torch.Generator().manual_seed(4))
+    pa = torch.randperm(layout.k_agents, generator=torch.Generator().manual_seed(5))
+    a4, w4 = talk.policy_and_choice(_permute_slots(obs, layout, pt, pa))
+    torch.testing.assert_close(a4, a2, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(w4, w2[..., pt], atol=1e-5, rtol=1e-4)
+    # the cross-entropy trains the intent layer
+    torch.log(w2.amax(-1).clamp_min(1e-9)).sum().backward()
+    assert talk.actor.choose.intent[0].weight.grad.abs().sum() > 0
+
+
+def test_choice_rounds_bad_values_are_clear_errors():
+    env, _ = _obs("3v3", num_envs=1, steps=0)
+    for bad in (-1, 9, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="choice_rounds"):
+            EntityConfig(choice_head=True, choice_rounds=bad)
+    with pytest.raises(ValueError, match="needs choice_head=True"):
+        EntityConfig(choice_rounds=1)
+    with pytest.raises(ValueError, match="MADDPG-E"):
+        _learner("maddpg-e", env, choice_head=True, choice_rounds=1)
+
+
+def test_intent_policy_round_trips_through_a_policy_file(tmp_path):
+    from learners.checkpoint import load_checkpoint, save_checkpoint
+
+    env, obs = _obs("6v6", num_envs=4, steps=3)
+    learner = _learner("bicnet-e", env, choice_head=True, choice_rounds=1)
+    _stir_intents(learner)
+    import dataclasses
+
+    save_checkpoint(tmp_path / "p.safetensors", learner.policy_tensors(),
+                    {"kind": "policy", "algo": "bicnet-e", "reward": "ipf",
+                     "scenario": "6v6", "num_agents": 6, "num_tasks": 6,
+                     "obs_dim": env.obs_dim, "state_dim": env.state_dim,
+                     "config": dataclasses.asdict(learner.config)})
+    tensors, meta = load_checkpoint(tmp_path / "p.safetensors", kind="policy")
+    assert meta["config"]["choice_rounds"] == 1
+    again = make_learner("bicnet-e", env.obs_dim, env.state_dim, 6, meta["config"])
+    again.load_policy_tensors(tensors)
+    torch.testing.assert_close(again.act(obs), learner.act(obs))

@@ -1,0 +1,59 @@
+"""benchmarks/choice_probe.py: the student-against-teacher curves of a choice-head policy."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+from benchmark_scripts import ROOT, load
+
+probe = load("choice_probe")
+CHOICE = ROOT / "benchmarks/results/scale/entity/dagger-choice-w1/dagger.safetensors"
+PARKED = ROOT / "benchmarks/results/scale/entity/bicnet-e-parked/parked.safetensors"
+
+
+def _strict(text: str) -> dict:
+    def refuse(name: str) -> float:
+        raise ValueError(f"{name} in the JSON")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_choice_probe_writes_its_table_curves_and_figure(tmp_path: Path) -> None:
+    probe.main(["--policy", str(CHOICE), "--size", "6v6", "--episodes", "3",
+                "--seed", "5", "--out", str(tmp_path)])
+    data = _strict((tmp_path / "choice.json").read_text())
+    assert [r["controller"] for r in data["rows"]] == ["teacher", "student",
+                                                       "student + shield"]
+    assert data["rows"][0]["response"] == 1.0  # the teacher finishes 6v6
+    assert data["rows"][2]["overlaps"] == 0.0
+    c = data["curves"]
+    assert c["idle"][0] == c["teacher_idle"][0] == 6.0  # every AGV idle at the start
+    assert len(c["agreement"]) == len(c["clashes"]) == len(c["idle"])
+    shares = [v for v in c["agreement"] + c["clashes"] if v is not None]
+    assert shares and all(0.0 <= v <= 1.0 for v in shares)
+    assert 0.0 <= data["summary"]["agreement"] <= 1.0
+    assert not math.isnan(data["summary"]["clashes_first_step"])
+    assert (tmp_path / "choice.png").stat().st_size > 0
+    assert "python" in data["command"] and "choice.png" in (tmp_path / "choice.md").read_text()
+
+
+def test_choice_probe_runs_the_same_on_the_same_seed(tmp_path: Path) -> None:
+    args = ["--policy", str(CHOICE), "--size", "6v6", "--episodes", "2", "--seed", "9"]
+    probe.main([*args, "--out", str(tmp_path / "a")])
+    probe.main([*args, "--out", str(tmp_path / "b")])
+    a, b = (_strict((tmp_path / d / "choice.json").read_text()) for d in "ab")
+    assert a["rows"] == b["rows"] and a["curves"] == b["curves"]
+
+
+@pytest.mark.parametrize("bad", [
+    ["--policy", str(PARKED)],  # an MLP head: no pointer to probe
+    ["--policy", str(CHOICE), "--episodes", "0"],
+    ["--policy", str(CHOICE), "--size", "6v"],
+    ["--policy", "no/such/file.safetensors"],
+])
+def test_choice_probe_refuses_bad_input_with_a_clear_message(bad, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        probe.main([*bad, "--out", str(tmp_path)])
+    assert "error:" in capsys.readouterr().err
