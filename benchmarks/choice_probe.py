@@ -50,7 +50,8 @@ class Teacher:
     def reset(self, env: Any) -> None:
         self.env = env
 
-    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+    def act(self, obs: torch.Tensor) -> torch.Tensor:
+        """The teacher's actions (B, N, 2); ``obs`` is not read (the teacher reads the env)."""
         return teacher(self.env)[0]
 
 

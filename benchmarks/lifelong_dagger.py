@@ -33,7 +33,8 @@ Writes ``--out``/``dagger.safetensors`` (a policy file that ``allocator.make(...
 weights=FILE)`` and ``shield_lifelong.py --weights FILE`` take; written after every
 validation), ``progress.csv`` (loss, and every second iteration the shielded throughput on
 the floor, seed 4242, ``--validation-steps`` steps, 2 runs) and ``dagger.probe.json``
-(command, seed, settings).
+(command, seed, settings, the start's throughput and the teacher's own on the same
+validation, :class:`TeacherDriver`: the ceiling of the imitation).
 """
 
 from __future__ import annotations
@@ -118,6 +119,21 @@ class PlanTeacher(HungarianDispatcher):
         action = (cmd - vel * (1.0 - ph.damping)) / (ph.sensitivity * ph.dt / ph.mass)
         action /= np.maximum(1.0, np.abs(action).max(-1, keepdims=True))
         return torch.as_tensor(action, dtype=torch.float32), goal - pos, kind
+
+
+class TeacherDriver:
+    """:class:`PlanTeacher` driving by itself, a controller for :func:`validate`: what the
+    student could reach by imitating it perfectly (the claims made by reaching a pickup, as
+    the student's)."""
+
+    def reset(self, env: Any) -> None:
+        self.env = env
+        self.teacher = PlanTeacher()
+        self.teacher.reset(env)
+
+    def act(self, obs: torch.Tensor) -> torch.Tensor:
+        """The teacher's actions (B, N, 2); ``obs`` is not read (the teacher reads the env)."""
+        return self.teacher.teach(self.env)[0]
 
 
 def candidate_labels(obs: torch.Tensor, layout: Any, rel: np.ndarray,
@@ -223,7 +239,9 @@ def main(argv: list[str] | None = None) -> None:
     log = []
     t0 = time.perf_counter()
     start = validate(learner, args.floor, args.keep_right, args.validation_steps)
-    print(json.dumps({"iteration": 0, "throughput": start}), flush=True)
+    ceiling = validate(TeacherDriver(), args.floor, args.keep_right, args.validation_steps)
+    print(json.dumps({"iteration": 0, "throughput": start, "teacher_throughput": ceiling}),
+          flush=True)
     for it in range(args.iterations):
         share = 1.0 if it == 0 else TEACHER_SHARE
         data = (data + [rollout(learner, args.floor, args.envs, args.horizon,
@@ -271,7 +289,8 @@ def main(argv: list[str] | None = None) -> None:
          "choice_weight": args.choice_weight, "keep_right": args.keep_right,
          "validation_steps": args.validation_steps,
          "teacher_share": TEACHER_SHARE, "keep": KEEP, "batch": BATCH,
-         "start_throughput": start, "final": log[-1]}, indent=2) + "\n")
+         "start_throughput": start, "teacher_throughput": ceiling, "final": log[-1]},
+        indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")
 
 

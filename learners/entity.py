@@ -480,15 +480,15 @@ INTENT_MATCH = 1e-4
 
 class _Intents:
     """The choice head's intent exchange (:attr:`EntityConfig.choice_rounds`): every idle
-    AGV tells the idle AGVs that see it which task its pointer is on and how far it is from
-    it; AGV i hears, for each of its task slots k, how many of the AGVs it sees point at
-    that task (``any``) and how many of them are nearer to it than i (``nearer``).
+    AGV tells the AGVs that see it which task its pointer is on and how far it is from it;
+    AGV i hears, for each of its task slots k, how many of the AGVs it sees point at that
+    task (``any``) and how many of them are nearer to it than i (``nearer``).
 
     Tasks are told apart by position (AGV i's task k is at ``pos_i + rel_ik``, AGV j's
     pointed task at ``pos_j + rel_j``), AGVs by the relative positions in i's AGV slots,
     so i hears only the AGVs in its own view. Parked AGVs (the holding bit) point at nothing.
-    Computed for a batch of scenes at once, (B, N, N) pairs; one round costs
-    O(B N^2 (K_t + K_a)).
+    Computed for a batch of scenes at once over the (B, N, N) pairs: O(B N^2 K_a) to find
+    who hears whom, then O(B N^2 K_t) per round.
     """
 
     def __init__(self, tok: Tokens) -> None:
