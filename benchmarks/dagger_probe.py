@@ -134,6 +134,17 @@ def recorded_command(script: str, argv: list[str]) -> str:
     return f"cd {shlex.quote(os.path.relpath(cwd, root))} && {line}"
 
 
+def write_progress(path: Path, log: list[dict[str, Any]]) -> None:
+    """Write the iterations' rows as a CSV (atomic); the columns are the last row's (the
+    last iteration always validates, so it has every column)."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(log[-1]))
+        w.writeheader()
+        w.writerows(log)
+    tmp.replace(path)
+
+
 def save_policy(learner: Any, meta: dict[str, Any], path: Path, seed: int) -> None:
     """Write the student as a policy file (atomic): the start file's scenario and sizes, the
     student's own config (with ``--choice-head``, ``choice_head=True``)."""
@@ -296,12 +307,7 @@ def main(argv: list[str] | None = None) -> None:
         log.append(row)
         print(json.dumps(row), flush=True)
     save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
-    fields = list(log[-1])  # the last iteration always validates: every column
-    with open(args.out / "progress.csv.tmp", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        w.writerows(log)
-    (args.out / "progress.csv.tmp").replace(args.out / "progress.csv")
+    write_progress(args.out / "progress.csv", log)
     command = recorded_command(__file__, sys.argv[1:] if argv is None else argv)
     atomic_write_text(args.out / "dagger.probe.json", json.dumps(
         {"command": command, "seed": args.seed, "start": str(args.start),

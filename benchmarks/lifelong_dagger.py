@@ -40,7 +40,6 @@ validation, :class:`TeacherDriver`: the ceiling of the imitation).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -49,7 +48,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from dagger_probe import recorded_command, save_policy
+from dagger_probe import recorded_command, save_policy, write_progress
 
 import sim
 from allocator.dispatch import HungarianDispatcher
@@ -275,12 +274,7 @@ def main(argv: list[str] | None = None) -> None:
             save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
         log.append(row)
         print(json.dumps(row), flush=True)
-    fields = list(log[-1])  # the last iteration always validates: every column
-    with open(args.out / "progress.csv.tmp", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        w.writerows(log)
-    (args.out / "progress.csv.tmp").replace(args.out / "progress.csv")
+    write_progress(args.out / "progress.csv", log)
     command = recorded_command(__file__, sys.argv[1:] if argv is None else argv)
     atomic_write_text(args.out / "dagger.probe.json", json.dumps(
         {"command": command, "seed": args.seed, "start": str(args.start),

@@ -315,6 +315,18 @@ def _mlp(sizes: list[int], last_relu: bool = True) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def _pointer_layers(hidden: int) -> tuple[nn.Sequential, nn.Sequential]:
+    """A pointer head's score MLP ([h, e_k] -> 1) and its residual MLP (h -> 2), the
+    residual's last layer at a tenth of its usual scale and without bias, so that the
+    untrained head's action is mostly its pointer's."""
+    score = _mlp([2 * hidden, hidden, 1], last_relu=False)
+    residual = _mlp([hidden, hidden, 2], last_relu=False)
+    with torch.no_grad():
+        residual[-1].weight.mul_(0.1)
+        residual[-1].bias.zero_()
+    return score, residual
+
+
 def _masked_softmax(logits: Tensor, mask: Tensor) -> Tensor:
     """Softmax over the last axis where ``mask`` (same shape, bool) holds: masked entries get
     weight exactly 0 (exp(-1e9 - top) is 0), and a row with none visible all zeros."""
@@ -418,11 +430,7 @@ class WaypointHead(nn.Module):
 
     def __init__(self, hidden: int) -> None:
         super().__init__()
-        self.score = _mlp([2 * hidden, hidden, 1], last_relu=False)
-        self.residual = _mlp([hidden, hidden, 2], last_relu=False)
-        with torch.no_grad():
-            self.residual[-1].weight.mul_(0.1)
-            self.residual[-1].bias.zero_()
+        self.score, self.residual = _pointer_layers(hidden)
         self.gain = nn.Parameter(torch.tensor(HEAD_GAIN))
         self.target_bias = nn.Parameter(torch.tensor(HEAD_TARGET_BIAS))
         self.path_weight = nn.Parameter(torch.tensor(HEAD_PATH_WEIGHT))
@@ -549,11 +557,7 @@ class TaskChoiceHead(nn.Module):
 
     def __init__(self, hidden: int, rounds: int = 0) -> None:
         super().__init__()
-        self.score = _mlp([2 * hidden, hidden, 1], last_relu=False)
-        self.residual = _mlp([hidden, hidden, 2], last_relu=False)
-        with torch.no_grad():
-            self.residual[-1].weight.mul_(0.1)
-            self.residual[-1].bias.zero_()
+        self.score, self.residual = _pointer_layers(hidden)
         self.dist_weight = nn.Parameter(torch.tensor(CHOICE_DIST_WEIGHT))
         self.rounds = rounds
         self.intent = None
