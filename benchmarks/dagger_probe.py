@@ -134,6 +134,23 @@ def recorded_command(script: str, argv: list[str]) -> str:
     return f"cd {shlex.quote(os.path.relpath(cwd, root))} && {line}"
 
 
+def imitation_loss(act: torch.Tensor, target: torch.Tensor, movable: torch.Tensor,
+                   w: torch.Tensor | None, labels: torch.Tensor,
+                   choice_weight: float) -> torch.Tensor:
+    """The student's loss on a batch: the squared error to the teacher's actions (B, N, 2)
+    summed over the two components and averaged over the AGVs that can move (``movable``,
+    (B, N) bool), plus ``choice_weight`` times the cross-entropy of the choice weights ``w``
+    (B, N, K; None: no such term) against the teacher's ``labels`` (B, N; -1: none),
+    averaged over the movable AGVs with a label."""
+    loss = (((act - target) ** 2).sum(-1) * movable).sum() / movable.sum().clamp_min(1)
+    if w is not None and choice_weight > 0:
+        has = (labels >= 0) & movable
+        picked = w.gather(-1, labels.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+        ce = -torch.log(picked.clamp_min(1e-9)) * has
+        loss = loss + choice_weight * ce.sum() / has.sum().clamp_min(1)
+    return loss
+
+
 def write_progress(path: Path, log: list[dict[str, Any]]) -> None:
     """Write the iterations' rows as a CSV (atomic); the columns are the last row's (the
     last iteration always validates, so it has every column)."""
@@ -284,14 +301,8 @@ def main(argv: list[str] | None = None) -> None:
                     act, w = learner.policy_and_choice(o[idx])
                 else:
                     act, w = learner.policy(o[idx]), None
-                err = ((act - a[idx]) ** 2).sum(-1) * m[idx]
-                loss = loss + err.sum() / m[idx].sum().clamp_min(1)
-                if w is not None and args.choice_weight > 0:
-                    lab = c[idx]
-                    has = lab >= 0
-                    picked = w.gather(-1, lab.clamp_min(0).unsqueeze(-1)).squeeze(-1)
-                    ce = -torch.log(picked.clamp_min(1e-9)) * has
-                    loss = loss + args.choice_weight * ce.sum() / has.sum().clamp_min(1)
+                loss = loss + imitation_loss(act, a[idx], m[idx], w, c[idx],
+                                             args.choice_weight)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(learner.actor.parameters(), 1.0)

@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from dagger_probe import recorded_command, save_policy, write_progress
+from dagger_probe import imitation_loss, recorded_command, save_policy, write_progress
 
 import sim
 from allocator.dispatch import HungarianDispatcher
@@ -252,14 +252,7 @@ def main(argv: list[str] | None = None) -> None:
         for _ in range(args.steps):
             idx = torch.randint(len(o), (BATCH,), generator=gen)
             act, w = learner.policy_and_choice(o[idx])
-            mv = m[idx]
-            loss = (((act - a[idx]) ** 2).sum(-1) * mv).sum() / mv.sum().clamp_min(1)
-            lab = c[idx]
-            has = (lab >= 0) & mv
-            if args.choice_weight > 0:
-                picked = w.gather(-1, lab.clamp_min(0).unsqueeze(-1)).squeeze(-1)
-                ce = -torch.log(picked.clamp_min(1e-9)) * has
-                loss = loss + args.choice_weight * ce.sum() / has.sum().clamp_min(1)
+            loss = imitation_loss(act, a[idx], m[idx], w, c[idx], args.choice_weight)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(learner.actor.parameters(), 1.0)

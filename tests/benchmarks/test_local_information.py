@@ -187,3 +187,17 @@ def test_dagger_adds_an_intent_exchange_to_a_choice_head_student(tmp_path: Path)
     for bad in (["--choice-rounds", "-1", "--choice-head"], ["--choice-rounds", "1"]):
         with pytest.raises(SystemExit):
             dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])
+
+
+def test_imitation_loss_counts_only_movable_agvs_and_their_labels() -> None:
+    act = torch.tensor([[[0.5, 0.0], [1.0, 1.0], [0.0, 0.0]]])
+    target = torch.tensor([[[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]])
+    movable = torch.tensor([[True, False, True]])  # AGV 1's error does not count
+    w = torch.tensor([[[0.25, 0.75], [1.0, 0.0], [0.5, 0.5]]])
+    labels = torch.tensor([[0, 0, -1]])  # AGV 2 has no label, AGV 1 cannot move
+    loss = dagger.imitation_loss(act, target, movable, w, labels, choice_weight=2.0)
+    expected = 0.25 / 2 + 2.0 * -torch.log(torch.tensor(0.25))
+    torch.testing.assert_close(loss, expected)
+    no_choice = dagger.imitation_loss(act, target, movable, None, labels, choice_weight=2.0)
+    torch.testing.assert_close(no_choice, torch.tensor(0.125))
+    assert dagger.imitation_loss(act, target, torch.zeros_like(movable), w, labels, 1.0) == 0
