@@ -59,10 +59,10 @@ def test_the_teacher_alone_delivers_behind_the_shield() -> None:
     from allocator.shield import SafetyShield
 
     ctl = SafetyShield(dagger.TeacherDriver(), keep_right=0.5)
-    m = sim.evaluate_lifelong(ctl, "warehouse-20", steps=300, seed=3)
+    m = sim.evaluate_lifelong(ctl, "warehouse-20", steps=150, seed=3)
     assert m.delivered > 0 and m.collisions_per_1000 == 0
     again = sim.evaluate_lifelong(SafetyShield(dagger.TeacherDriver(), keep_right=0.5),
-                                  "warehouse-20", steps=300, seed=3)
+                                  "warehouse-20", steps=150, seed=3)
     assert again.delivered == m.delivered  # the same seed, the same run
 
 
