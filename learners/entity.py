@@ -486,6 +486,12 @@ INTENT_MATCH = 1e-4
 """Two positions closer than this are the same task (or AGV) in :class:`_Intents`."""
 
 
+def _distances(a: Tensor, b: Tensor) -> Tensor:
+    """Pairwise distances (G, P, 2), (G, Q, 2) -> (G, P, Q), computed as differences (not
+    through a matrix product, whose rounding would blur positions 1e-4 apart)."""
+    return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")
+
+
 class _Intents:
     """The choice head's intent exchange (:attr:`EntityConfig.choice_rounds`): every idle
     AGV tells the AGVs that see it which task its pointer is on and how far it is from it;
@@ -507,11 +513,11 @@ class _Intents:
         self.tasks = pos.unsqueeze(-2) + tok.task[..., 0:2]  # (B, N, Kt, 2)
         idle = tok.own[..., 2] < 0.5
         # hears[b, i, j]: AGV j (idle, not i) is in one of AGV i's AGV slots
+        B, n, _ = pos.shape
         offset = pos.unsqueeze(1) - pos.unsqueeze(2)  # (B, i, j, 2): j relative to i
-        near = torch.linalg.vector_norm(
-            offset.unsqueeze(-2) - tok.agent[..., 0:2].unsqueeze(2), dim=-1)  # (B,i,j,Ka)
+        near = _distances(offset.reshape(B * n, n, 2),
+                          tok.agent[..., 0:2].reshape(B * n, -1, 2)).reshape(B, n, n, -1)
         seen = ((near < INTENT_MATCH) & tok.agent_mask.unsqueeze(2)).any(-1)
-        n = pos.shape[1]
         self.hears = seen & idle.unsqueeze(1) & ~torch.eye(n, dtype=torch.bool,
                                                             device=pos.device)
 
@@ -525,8 +531,8 @@ class _Intents:
         aim = torch.gather(self.tasks, 2, top.unsqueeze(-1).expand(B, N, 1, 2)).squeeze(2)
         dist = torch.gather(tok.task[..., 2], 2, top).squeeze(-1)  # (B, N)
         # same[b, i, k, j]: AGV j points at AGV i's task k
-        same = torch.linalg.vector_norm(
-            self.tasks.unsqueeze(3) - aim[:, None, None], dim=-1) < INTENT_MATCH
+        same = _distances(self.tasks.reshape(B, N * K, 2), aim).reshape(B, N, K, N) \
+            < INTENT_MATCH
         same &= (self.hears & has.unsqueeze(1)).unsqueeze(2)
         nearer = same & (dist[:, None, None, :] < tok.task[..., 2].unsqueeze(-1))
         out = torch.stack([same.sum(-1), nearer.sum(-1)], dim=-1).to(w.dtype)

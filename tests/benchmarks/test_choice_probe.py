@@ -57,3 +57,16 @@ def test_choice_probe_refuses_bad_input_with_a_clear_message(bad, tmp_path, caps
     with pytest.raises(SystemExit):
         probe.main([*bad, "--out", str(tmp_path)])
     assert "error:" in capsys.readouterr().err
+
+
+def test_intent_speed_writes_both_timings_and_their_ratio(tmp_path: Path) -> None:
+    speed = load("intent_speed")
+    speed.main(["--size", "6v6", "--batch", "4", "--repeats", "2", "--out", str(tmp_path)])
+    data = _strict((tmp_path / "intent_speed.json").read_text())
+    assert set(data["seconds"]) == {"0", "2"} and all(len(v) == 2 for v in
+                                                      data["seconds"].values())
+    assert data["ratio"] == data["median"]["2"] / data["median"]["0"] > 0
+    assert "| 2 |" in (tmp_path / "intent_speed.md").read_text()
+    for bad in (["--rounds", "0"], ["--batch", "0"], ["--size", "big"]):
+        with pytest.raises(SystemExit):
+            speed.main([*bad, "--out", str(tmp_path)])
