@@ -112,10 +112,10 @@ def curves(learner: Any, scen: sim.Scenario, episodes: int, seed: int) -> dict[s
         both = idle.unsqueeze(-1) & idle.unsqueeze(-2) & (task >= 0).unsqueeze(-1)
         both &= ~torch.eye(task.shape[1], dtype=torch.bool)
         clashed = (mine & both).any(-1) & idle
-        n = int(idle.sum())
-        hits, seen_n = hits + int(hit.sum()), seen_n + int(seen.sum())
+        n, k_seen, k_hit = int(idle.sum()), int(seen.sum()), int(hit.sum())
+        hits, seen_n = hits + k_hit, seen_n + k_seen
         idle_n.append(n / episodes)
-        agree.append(float(hit.sum()) / int(seen.sum()) if int(seen.sum()) else None)
+        agree.append(k_hit / k_seen if k_seen else None)
         clash.append(float(clashed.sum()) / n if n else None)
         obs, *_ = env.step(act)
     env = sim.make_env(scen, num_envs=episodes, seed=seed)
@@ -135,6 +135,7 @@ def plot(data: dict[str, list], title: str, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+
     def line(key: str) -> list[float]:
         return [np.nan if v is None else v for v in data[key]]
 
@@ -183,14 +184,16 @@ def main(argv: list[str] | None = None) -> None:
                          finished=m.finished_rate, overlaps=m.collisions))
         print(json.dumps(rows[-1]), flush=True)
     data = curves(student, scen, args.episodes, args.seed)
-    first = int(np.argmax(np.asarray(data["idle"]) <= 0.1 * data["idle"][0]))
+    def to_last_tenth(idle: list[float]) -> int:
+        """The first step with at most a tenth of the start's idle AGVs."""
+        return int(np.argmax(np.asarray(idle) <= 0.1 * idle[0]))
+
     summary = dict(
         agreement=data["agreement_pooled"][0],
         agreement_first_step=data["agreement"][0],
         clashes_first_step=data["clashes"][0],
-        steps_to_last_tenth=first,
-        teacher_steps_to_last_tenth=int(np.argmax(
-            np.asarray(data["teacher_idle"]) <= 0.1 * data["teacher_idle"][0])))
+        steps_to_last_tenth=to_last_tenth(data["idle"]),
+        teacher_steps_to_last_tenth=to_last_tenth(data["teacher_idle"]))
     command = recorded_command(__file__, sys.argv[1:] if argv is None else argv)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out.mkdir(parents=True, exist_ok=True)
