@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from provenance import recorded_command
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -338,7 +339,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     if args.untangle_cost:
         rows = untangle_cost(args.untangle_cost)
-        doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
+        doc = dict(command=recorded_command(__file__, argv),
                    date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
         atomic_write(OUT / "untangle-cost.json", json.dumps(doc, indent=1))
         lines = ["# What the plan untangling costs per plan", "",
@@ -354,7 +355,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.lifelong:
         row = run_lifelong(args.lifelong, args.driver)
-        row["command"] = "python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:])
+        row["command"] = recorded_command(__file__, argv)
         print(json.dumps(row), flush=True)
         atomic_write(OUT / f"lifelong-{args.driver}-{args.lifelong}.json",
                      json.dumps(row, indent=1))
@@ -363,7 +364,7 @@ def main(argv: list[str] | None = None) -> None:
         seeds = tuple(int(x) for x in args.seeds.split(","))
         only = tuple(args.only.split(",")) if args.only else None
         rows = run_scenes(args.mode, args.scale, seeds, only, untangle=not args.no_untangle)
-        doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
+        doc = dict(command=recorded_command(__file__, argv),
                    date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
         atomic_write(OUT / f"scenes-{args.label}.json", json.dumps(doc, indent=1))
         lines = [f"# Episodic scenes ({args.label})", "", f"Command: `{doc['command']}`; "
@@ -401,7 +402,7 @@ def main(argv: list[str] | None = None) -> None:
         res.pop("frames")
         rows.append(res)
         print(json.dumps(res), flush=True)
-    doc = dict(command="python benchmarks/antipodal.py " + " ".join(argv or sys.argv[1:]),
+    doc = dict(command=recorded_command(__file__, argv),
                date=time.strftime("%Y-%m-%dT%H:%M", time.gmtime()), rows=rows)
     atomic_write(OUT / f"{args.label}.json", json.dumps(doc, indent=1))
     lines = [f"# Antipodal circle ({args.label})", "",

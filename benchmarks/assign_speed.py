@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import recorded_command
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
@@ -75,7 +75,7 @@ def main() -> None:
     lines = [
         "# allocator.assign speed",
         "",
-        f"Command: `python {' '.join(sys.argv)}`  ",
+        f"Command: `{recorded_command(__file__)}`  ",
         f"Seed: {args.seed}, median of {args.repeats} runs, date: "
         f"{datetime.datetime.now().isoformat(timespec='minutes')}  ",
         "Hungarian = `allocator.assign(agents, tasks)` (input checks, cost matrix, solve, result);"

@@ -29,7 +29,6 @@ import argparse
 import contextlib
 import datetime
 import os
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -40,6 +39,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import osqp  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
+from provenance import recorded_command  # noqa: E402
 
 import allocator  # noqa: E402
 import allocator.avoidance as avoidance  # noqa: E402
@@ -321,7 +321,7 @@ def main() -> None:
     lines = [
         "# Avoidance step speed (all AGVs, one step)",
         "",
-        f"Command: `python {' '.join(sys.argv)}`  ",
+        f"Command: `{recorded_command(__file__)}`  ",
         f"Seed {args.seed}; up to {args.steps} steps of one Hungarian-controlled `NvN` episode "
         f"per N (the first step is not timed); 1 thread; date: {stamp}.  ",
         "Target (issue 4): rows + solve at most 3 ms per step at N = 100. Above "

@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from dagger_probe import VALIDATION_SEED, choice_slots, recorded_command, scenario, teacher
+from dagger_probe import VALIDATION_SEED, choice_slots, scenario, teacher
+from provenance import recorded_command
 
 import sim
 from allocator.shield import SafetyShield

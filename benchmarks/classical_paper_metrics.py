@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import sys
 import time
 from pathlib import Path
+
+from provenance import recorded_command
 
 import allocator
 import sim
@@ -63,7 +64,7 @@ def main() -> None:
     lines = [
         "# Classical allocators on the paper's metrics",
         "",
-        f"Command: `python {' '.join(sys.argv)}`  ",
+        f"Command: `{recorded_command(__file__)}`  ",
         f"Seed: {args.seed} (the same episodes for every method), date: {stamp}  ",
         "Response = claimed / generated tasks; time = steps until every task is claimed "
         "(unfinished episodes count the step limit: 25 for 3v3 / 6v6, 80 for the warehouse); "

@@ -44,7 +44,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import shlex  # noqa: E402
 import sys  # noqa: E402
 from datetime import datetime, timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -54,6 +53,7 @@ from scipy.optimize import linear_sum_assignment, linprog  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import load_curve  # noqa: E402
+from provenance import recorded_command
 
 import sim  # noqa: E402
 from allocator.dispatch import FifoDispatcher, HungarianDispatcher, WaypointDriver  # noqa: E402
@@ -330,8 +330,7 @@ def main(argv: list[str] | None = None) -> None:
                      f"{args.steps}")
     if args.samples < 2:
         parser.error(f"--samples must be >= 2, got {args.samples}")
-    command = "OMP_NUM_THREADS=1 python benchmarks/dispatch_bound.py " + " ".join(
-        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    command = recorded_command(__file__, argv, env="OMP_NUM_THREADS=1")
     if args.report_only:  # the stored runs, the ratios and the table as the code makes them
         data = json.loads((args.out / f"{args.name}.json").read_text())
         rows = data["rows"]

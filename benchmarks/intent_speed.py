@@ -22,7 +22,8 @@ import time
 from pathlib import Path
 
 import torch
-from dagger_probe import recorded_command, scenario
+from dagger_probe import scenario
+from provenance import recorded_command
 
 import sim
 from learners.algorithms import make_learner

@@ -48,7 +48,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from dagger_probe import imitation_loss, recorded_command, save_policy, write_progress
+from dagger_probe import imitation_loss, save_policy, write_progress
+from provenance import recorded_command
 
 import sim
 from allocator.dispatch import HungarianDispatcher

@@ -34,12 +34,12 @@ import math
 import os
 import platform
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from provenance import recorded_command
 
 import sim
 from sim import native
@@ -391,8 +391,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(err))
     results, config = run(rows, args.quick, args.threads, args.seed, not args.no_vmas,
                           args.clock)
-    given = sys.argv[1:] if argv is None else argv
-    command = " ".join(["python benchmarks/lifelong_throughput.py", *given])
+    command = recorded_command(__file__, argv)
     args.out.mkdir(parents=True, exist_ok=True)
     text = to_markdown(results, config, command)
     atomic_write_text(args.out / "lifelong_throughput.md", text)

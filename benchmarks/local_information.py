@@ -30,13 +30,13 @@ import argparse
 import datetime
 import json
 import platform
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from provenance import recorded_command
 from scipy.optimize import linear_sum_assignment
 
 import allocator
@@ -227,8 +227,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     rows = [r for n, e in zip(args.sizes, args.episodes, strict=True)
             for r in rows_for(n, e, args.views, args.seed, args.detour)]
-    command = "python benchmarks/local_information.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
+    command = recorded_command(__file__, argv)
     write(rows, args.out, command.strip(), args.seed)
     print(f"wrote {args.out / 'local.md'}")
 

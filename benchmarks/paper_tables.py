@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from provenance import recorded_command
 from scipy import stats
 
 import allocator
@@ -183,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as err:
         print(f"paper_tables: {err}", file=sys.stderr)
         return 2
-    command = "python benchmarks/paper_tables.py " + " ".join(argv or sys.argv[1:])
+    command = recorded_command(__file__, argv)
     header = (
         "# The paper's Tables I and II, reproduced beside the classical solvers\n\n"
         f"`{command.strip()}`, {datetime.date.today()}: {args.episodes} test episodes per "

@@ -50,13 +50,13 @@ import datetime
 import json
 import math
 import platform
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from provenance import recorded_command
 
 import allocator
 import sim
@@ -407,8 +407,7 @@ def main(argv: list[str] | None = None) -> None:
             p.error(f"--lifelong-weights {w}: no policy file there")
     rows += lifelong_rows(args.floors, args.lifelong_steps, args.seed, args.lifelong_weights,
                           args.dispatchers)
-    given = sys.argv[1:] if argv is None else argv
-    write(rows, args.out, " ".join(["python benchmarks/scale_table.py", *given]), args.seed)
+    write(rows, args.out, recorded_command(__file__, argv), args.seed)
 
 
 if __name__ == "__main__":

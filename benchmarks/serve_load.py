@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from provenance import recorded_command
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -416,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     errors = sum(rec.failures.values()) + sum(
         v for k, v in info["unexpected"].items() if not k.startswith("event 409"))
     result = {
-        "command": "python " + " ".join([os.path.relpath(__file__, ROOT), *sys.argv[1:]]),
+        "command": recorded_command(__file__),
         "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "platform": platform.platform()},

@@ -45,13 +45,13 @@ import datetime
 import math
 import platform
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from provenance import recorded_command
 from scipy import stats
 from torch import Tensor
 
@@ -415,8 +415,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             p.error(f"--weights {entry}: no such file or folder")
     table = rows(args.floor, args.steps, args.seeds, args.weights, args.baselines,
                  args.variants, args.keep_right)
-    command = "python benchmarks/shield_lifelong.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
+    command = recorded_command(__file__, argv)
     write(table, args.out, command.strip(), args.floor, args.steps, args.seeds)
     return table
 

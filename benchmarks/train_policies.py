@@ -40,6 +40,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from provenance import recorded_command
+
 from sim.io import atomic_save, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,7 +143,7 @@ def ship(args: argparse.Namespace, seconds: dict[int, float]) -> dict:
     record = {
         "method": name,
         "scenario": args.scenario,
-        "command": "python benchmarks/train_policies.py " + " ".join(sys.argv[1:]),
+        "command": recorded_command(__file__),
         "shipped_seed": best,
         "validation_seed": 12345,
         "seeds": {str(s): {**scores[s], "wall_seconds_this_call": round(seconds.get(s, 0.0), 1)}

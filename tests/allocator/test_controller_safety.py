@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -12,9 +9,11 @@ import torch
 import allocator
 import sim
 from allocator.controller import AllocatorController
+from tests.benchmarks.benchmark_scripts import load
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from benchmarks.antipodal import AntipodalAllocator, circle_scenario, circle_scene  # noqa: E402
+_antipodal = load("antipodal")
+AntipodalAllocator = _antipodal.AntipodalAllocator
+circle_scenario, circle_scene = _antipodal.circle_scenario, _antipodal.circle_scene
 
 
 def run_circle(n: int, radius: float, kind: str, steps: int = 200, **opts):

@@ -3,9 +3,6 @@ lifelong floors, off on episodic scenes (whose actions stay what they were)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -17,17 +14,12 @@ from allocator.avoidance.liveness import DeadlockResolver
 from allocator.shield import SafetyShield
 from sim.controllers import NearestTaskController
 from sim.lifelong import lifelong_scenario
-
-ROOT = Path(__file__).resolve().parents[2]
+from tests.benchmarks.benchmark_scripts import load
 
 
 def _bench():
     """``benchmarks/shield_lifelong.py`` (its scripted :class:`PathFollower`)."""
-    spec = importlib.util.spec_from_file_location("shield_lifelong",
-                                                  ROOT / "benchmarks" / "shield_lifelong.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load("shield_lifelong")
 
 
 class Swap:

@@ -4,7 +4,6 @@ any-N rows."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -15,9 +14,8 @@ import allocator
 import sim
 from allocator.learned import MissingWeightsError, any_n_weights_path, weights_path
 from learners.train import TrainConfig, train
+from tests.benchmarks.benchmark_scripts import load
 from tests.learners.conftest import TINY
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -91,10 +89,7 @@ def test_which_shipped_weights_are_chosen():
 
 
 def test_scale_table_entity_rows(entity_policy, tmp_path):
-    spec = importlib.util.spec_from_file_location("scale_table",
-                                                  ROOT / "benchmarks" / "scale_table.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load("scale_table")
     bench.main(["--sizes", "4", "--episodes", "2", "--floors", "--methods", "hungarian",
                 "--entity", str(entity_policy), "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
