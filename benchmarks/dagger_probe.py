@@ -2,7 +2,7 @@
 
     python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12]
         [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
-        [--choice-head] [--choice-weight 1.0] [--seed 0]
+        [--choice-head] [--choice-weight 1.0] [--choice-rounds R] [--choice-regret] [--seed 0]
         [--out benchmarks/results/scale/entity/dagger]
 
 The teacher (:func:`teacher_actions`) sees the whole scene: every step it assigns the idle AGVs
@@ -19,7 +19,9 @@ teacher's over the AGVs that move (a batch of 64 joint states per size and step)
 student's last layers are a :class:`learners.entity.TaskChoiceHead` (a pointer over the task
 tokens), fresh, on the start file's encoder (and recurrence), and the loss adds
 ``--choice-weight`` times the cross-entropy of the pointer against the slot of the teacher's
-task (:func:`choice_slots`; AGVs whose teacher task is out of view add nothing). No reward
+task (:func:`choice_slots`; AGVs whose teacher task is out of view add nothing).
+``--choice-rounds R`` gives the pointer R rounds of intent exchange, ``--choice-regret``
+regrets in its messages (new layers and input columns start at zero). No reward
 and no critic: the file written is a policy (``kind="policy"``) that ``allocator.make(...,
 checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train --init-from FILE``
 take.
@@ -35,8 +37,6 @@ import argparse
 import csv
 import dataclasses
 import json
-import os
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 from local_information import velocity_action, view
+from provenance import recorded_command
 from scipy.optimize import linear_sum_assignment
 
 import sim
@@ -106,32 +107,25 @@ def choice_slots(obs: torch.Tensor, layout: ObsLayout, chosen: np.ndarray) -> to
 def fitting_tensors(learner: Any, tensors: dict[str, torch.Tensor]
                     ) -> tuple[dict[str, torch.Tensor], list[str]]:
     """The learner's policy tensors with every one the file has at the same name and shape
-    taken from ``tensors``; returns them and the names that start fresh (sorted)."""
+    taken from ``tensors``, and every weight matrix the learner has wider (more input
+    columns, e.g. the intent layer with ``--choice-regret``) taken with zero columns added,
+    so that it computes what the file's did; returns them and the names that do not come
+    whole from the file (sorted)."""
     own = learner.policy_tensors()
     out, fresh = {}, []
     for name, value in own.items():
         theirs = tensors.get(name)
         if theirs is not None and theirs.shape == value.shape:
             out[name] = theirs
+            continue
+        if theirs is not None and theirs.dim() == value.dim() == 2 \
+                and theirs.shape[0] == value.shape[0] and theirs.shape[1] < value.shape[1]:
+            out[name] = torch.cat([theirs, value.new_zeros(value.shape[0], value.shape[1]
+                                                           - theirs.shape[1])], dim=1)
         else:
             out[name] = value
-            fresh.append(name)
+        fresh.append(name)
     return out, sorted(fresh)
-
-
-def recorded_command(script: str, argv: list[str]) -> str:
-    """The command line as it was run, from the repository root.
-
-    Relative paths in ``argv`` are read from the working directory, so a run
-    started elsewhere (``cd benchmarks && python dagger_probe.py ...``) is
-    recorded with its ``cd``, and rerunning the record repeats the run.
-    """
-    root = Path(__file__).resolve().parent.parent
-    cwd = Path.cwd().resolve()
-    line = shlex.join(["python", os.path.relpath(Path(script).resolve(), cwd), *argv])
-    if cwd == root:
-        return line
-    return f"cd {shlex.quote(os.path.relpath(cwd, root))} && {line}"
 
 
 def imitation_loss(act: torch.Tensor, target: torch.Tensor, movable: torch.Tensor,
@@ -241,6 +235,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="rounds of the choice head's intent exchange "
                              "(EntityConfig.choice_rounds, bicnet-e); the exchange's layers "
                              "start fresh (default: the --start file's)")
+    parser.add_argument("--choice-regret", action="store_true",
+                        help="the intent messages carry regrets (EntityConfig.choice_regret); "
+                             "the intent layer's new input columns start at zero")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -268,6 +265,8 @@ def main(argv: list[str] | None = None) -> None:
         wanted["choice_head"] = True
     if args.choice_rounds is not None:
         wanted["choice_rounds"] = args.choice_rounds
+    if args.choice_regret:
+        wanted["choice_regret"] = True
     fresh: list[str] = []
     try:
         learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
@@ -325,7 +324,8 @@ def main(argv: list[str] | None = None) -> None:
          "iterations": args.iterations, "steps": args.steps, "lr": args.lr,
          "sizes": args.sizes, "view": args.view, "shield": args.shield,
          "choice_head": choice, "choice_weight": args.choice_weight,
-         "choice_rounds": learner.config.choice_rounds, "fresh": fresh,
+         "choice_rounds": learner.config.choice_rounds,
+         "choice_regret": learner.config.choice_regret, "fresh": fresh,
          "teacher_share": TEACHER_SHARE,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")

@@ -481,7 +481,14 @@ def arrive_action(rel: Tensor, vel: Tensor, physics: Physics = EPISODIC_PHYSICS,
 
 
 INTENT_FEATURES = 2
-"""Per task slot, what a round of the intent exchange hears (:class:`_Intents`)."""
+"""Per task slot, what a round of the intent exchange hears (:class:`_Intents`); with
+``regret``, :data:`REGRET_FEATURES` more."""
+REGRET_FEATURES = 2
+"""With :attr:`EntityConfig.choice_regret`: per task slot, the least regret among the nearer
+AGVs pointing at it, and the AGV's own regret (:meth:`_Intents.features`)."""
+REGRET_CAP = 1.0
+"""Regrets (how much farther an AGV's second choice is than its first) are capped here, and
+an AGV with no second choice in view has this regret."""
 INTENT_MATCH = 1e-4
 """Two positions closer than this are the same task (or AGV) in :class:`_Intents`."""
 
@@ -498,6 +505,14 @@ class _Intents:
     AGV i hears, for each of its task slots k, how many of the AGVs it sees point at that
     task (``any``) and how many of them are nearer to it than i (``nearer``).
 
+    With ``regret`` every message also carries the sender's regret: how much farther the
+    task its pointer weighs second is than the one it points at (capped at
+    :data:`REGRET_CAP`, which is also the regret of an AGV with one task in view); AGV i
+    hears, for each task slot k, the least regret among the nearer AGVs pointing at k
+    (:data:`REGRET_CAP` if none) and its own regret. A nearer AGV with a small regret will
+    hardly give the task up; one with a large regret is the one the least total distance
+    serves, as in an auction.
+
     Tasks are told apart by position (AGV i's task k is at ``pos_i + rel_ik``, AGV j's
     pointed task at ``pos_j + rel_j``), AGVs by the relative positions in i's AGV slots,
     so i hears only the AGVs in its own view. Parked AGVs (the holding bit) point at nothing.
@@ -505,10 +520,11 @@ class _Intents:
     who hears whom, then O(B N^2 K_t) per round.
     """
 
-    def __init__(self, tok: Tokens) -> None:
+    def __init__(self, tok: Tokens, regret: bool = False) -> None:
         if tok.pos is None:
             raise ValueError("the intent exchange needs the AGVs' positions (Tokens.pos)")
         self.tok = tok
+        self.regret = regret
         pos = tok.pos
         self.tasks = pos.unsqueeze(-2) + tok.task[..., 0:2]  # (B, N, Kt, 2)
         idle = tok.own[..., 2] < 0.5
@@ -522,11 +538,13 @@ class _Intents:
                                                             device=pos.device)
 
     def features(self, w: Tensor) -> Tensor:
-        """The choice weights (B, N, Kt) -> (B, N, Kt, INTENT_FEATURES): ``any`` and
-        ``nearer`` (counts, 0 in masked slots)."""
+        """The choice weights (B, N, Kt) -> (B, N, Kt, F): ``any`` and ``nearer`` (counts),
+        with ``regret`` also the least regret among the nearer pointers and the AGV's own
+        (F = :data:`INTENT_FEATURES` (+ :data:`REGRET_FEATURES`); 0 in masked slots)."""
         tok = self.tok
         B, N, K = w.shape
-        top = w.argmax(-1, keepdim=True)  # (B, N, 1)
+        top2 = w.masked_fill(~tok.task_mask, -1.0).topk(min(2, K), dim=-1).indices
+        top = top2[..., :1]  # (B, N, 1)
         has = tok.task_mask.any(-1)
         aim = torch.gather(self.tasks, 2, top.unsqueeze(-1).expand(B, N, 1, 2)).squeeze(2)
         dist = torch.gather(tok.task[..., 2], 2, top).squeeze(-1)  # (B, N)
@@ -535,7 +553,18 @@ class _Intents:
             < INTENT_MATCH
         same &= (self.hears & has.unsqueeze(1)).unsqueeze(2)
         nearer = same & (dist[:, None, None, :] < tok.task[..., 2].unsqueeze(-1))
-        out = torch.stack([same.sum(-1), nearer.sum(-1)], dim=-1).to(w.dtype)
+        feats = [same.sum(-1).to(w.dtype), nearer.sum(-1).to(w.dtype)]
+        if self.regret:
+            cap = torch.full_like(dist, REGRET_CAP)
+            regret = cap
+            if K > 1:
+                second = torch.gather(tok.task[..., 2], 2, top2[..., 1:]).squeeze(-1)
+                has2 = torch.gather(tok.task_mask, 2, top2[..., 1:]).squeeze(-1)
+                regret = torch.where(has2, (second - dist).clamp(0.0, REGRET_CAP), cap)
+            least = regret[:, None, None, :].expand(B, N, K, N).masked_fill(~nearer,
+                                                                             REGRET_CAP)
+            feats += [least.amin(-1), regret.unsqueeze(-1).expand(B, N, K)]
+        out = torch.stack(feats, dim=-1)
         return out * tok.task_mask.unsqueeze(-1)
 
 
@@ -558,17 +587,20 @@ class TaskChoiceHead(nn.Module):
     through that many rounds of an intent exchange (:class:`_Intents`): each round adds
     ``intent(any_k, nearer_k)`` (an MLP whose last layer starts at zero, so that the untrained
     exchange changes nothing) to the round-0 logits, the counts heard from the pointers of
-    the round before.
+    the round before. ``regret`` (:attr:`EntityConfig.choice_regret`): the messages also
+    carry regrets (:class:`_Intents`).
     """
 
-    def __init__(self, hidden: int, rounds: int = 0) -> None:
+    def __init__(self, hidden: int, rounds: int = 0, regret: bool = False) -> None:
         super().__init__()
         self.score, self.residual = _pointer_layers(hidden)
         self.dist_weight = nn.Parameter(torch.tensor(CHOICE_DIST_WEIGHT))
         self.rounds = rounds
+        self.regret = regret
         self.intent = None
         if rounds:
-            self.intent = _mlp([INTENT_FEATURES, hidden, 1], last_relu=False)
+            width = INTENT_FEATURES + (REGRET_FEATURES if regret else 0)
+            self.intent = _mlp([width, hidden, 1], last_relu=False)
             with torch.no_grad():  # starts as no exchange: the pointer of round 0
                 self.intent[-1].weight.zero_()
                 self.intent[-1].bias.zero_()
@@ -580,7 +612,7 @@ class TaskChoiceHead(nn.Module):
         logits = logits.squeeze(-1) - self.dist_weight * tok.task[..., 2]
         w = _masked_softmax(logits, tok.task_mask)
         if self.intent is not None:
-            heard = _Intents(tok)
+            heard = _Intents(tok, self.regret)
             for _ in range(self.rounds):
                 bias = self.intent(heard.features(w.detach())).squeeze(-1)
                 w = _masked_softmax(logits + bias, tok.task_mask)
@@ -683,11 +715,14 @@ class SortedBiRNN(nn.Module):
         (:attr:`EntityConfig.choice_head`); its output is then the action itself.
     choice_rounds : int
         The choice head's rounds of intent exchange (:attr:`EntityConfig.choice_rounds`).
+    choice_regret : bool
+        The intent messages carry regrets (:attr:`EntityConfig.choice_regret`).
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
                  lifelong: bool = False, parked_token: bool = False,
-                 choice_head: bool = False, choice_rounds: int = 0) -> None:
+                 choice_head: bool = False, choice_rounds: int = 0,
+                 choice_regret: bool = False) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
@@ -697,7 +732,7 @@ class SortedBiRNN(nn.Module):
         # the lifelong actor steers with a WaypointHead on the recurrence's output, an
         # episodic one with choice_head points with a TaskChoiceHead
         self.steer = WaypointHead(hidden) if lifelong and actor else None
-        self.choose = TaskChoiceHead(hidden, choice_rounds) \
+        self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret) \
             if choice_head and actor and not lifelong else None
         self.head = _mlp([2 * hidden, hidden]
                          if self.steer is not None or self.choose is not None
@@ -786,11 +821,17 @@ class EntityConfig(OffPolicyConfig):
     them point at each of its tasks, and how many of those are nearer (BiCNet's
     communication across agents, made explicit; MADDPG-E's actors do not communicate and
     refuse it). 0 (the default, and what every run before this field did): none."""
+    choice_regret: bool = False
+    """With ``choice_rounds``: each intent message also carries the sender's regret (how much
+    farther its second choice is than its first), and each AGV hears, per task, the least
+    regret among the nearer AGVs pointing at it, and its own regret (:class:`_Intents`).
+    It widens the intent layer's input from 2 to 4 features. False (the default, and what
+    every run before this field did): counts only."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
         ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
-        ``choice_head`` and ``choice_rounds`` too."""
+        ``choice_head``, ``choice_rounds`` and ``choice_regret`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
@@ -802,6 +843,10 @@ class EntityConfig(OffPolicyConfig):
         if self.choice_rounds and not self.choice_head:
             raise ValueError(f"choice_rounds={self.choice_rounds} exchanges the choice head's "
                              "pointers; it needs choice_head=True")
+        self.choice_regret = check_bool("choice_regret", self.choice_regret)
+        if self.choice_regret and not self.choice_rounds:
+            raise ValueError("choice_regret=True adds regrets to the intent exchange; it needs "
+                             "choice_rounds >= 1")
         self.shield_penalty = check_real("shield_penalty", self.shield_penalty, 0.0, math.inf,
                                          high_open=True)
         if self.shield_penalty and not self.shield:
@@ -1124,7 +1169,8 @@ class BiCNetE(EntityLearner):
         self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong,
                                  parked_token=config.parked_token,
                                  choice_head=config.choice_head,
-                                 choice_rounds=config.choice_rounds)
+                                 choice_rounds=config.choice_rounds,
+                                 choice_regret=config.choice_regret)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
                                   parked_token=config.parked_token)
         self._finish_init()

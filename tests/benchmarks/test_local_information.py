@@ -163,16 +163,6 @@ def test_dagger_trains_a_choice_head_student(tmp_path: Path) -> None:
                      "--out", str(tmp_path)])
 
 
-def test_recorded_command_repeats_the_run_from_the_repository_root(monkeypatch):
-    script = str(ROOT / "benchmarks" / "dagger_probe.py")
-    monkeypatch.chdir(ROOT)
-    assert dagger.recorded_command(script, ["--out", "a b"]) == (
-        "python benchmarks/dagger_probe.py --out 'a b'")
-    monkeypatch.chdir(ROOT / "benchmarks")
-    assert dagger.recorded_command(script, ["--start", "results/x"]) == (
-        "cd benchmarks && python dagger_probe.py --start results/x")
-
-
 def test_dagger_adds_an_intent_exchange_to_a_choice_head_student(tmp_path: Path) -> None:
     dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
                  "--sizes", "6v6", "--choice-head", "--choice-rounds", "1",
@@ -187,6 +177,37 @@ def test_dagger_adds_an_intent_exchange_to_a_choice_head_student(tmp_path: Path)
     for bad in (["--choice-rounds", "-1", "--choice-head"], ["--choice-rounds", "1"]):
         with pytest.raises(SystemExit):
             dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])
+
+
+def test_dagger_regrets_widen_a_trained_exchange_without_changing_it(tmp_path: Path) -> None:
+    from learners.algorithms import make_learner
+    from learners.checkpoint import load_checkpoint
+
+    talk = tmp_path / "talk"
+    dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
+                 "--sizes", "6v6", "--choice-head", "--choice-rounds", "1",
+                 "--out", str(talk)])
+    tensors, meta = load_checkpoint(talk / "dagger.safetensors", kind="policy")
+    with torch.no_grad():  # a trained-looking exchange, so that the start is not trivial
+        for name in tensors:
+            if name.startswith("actor.choose.intent."):
+                tensors[name] = torch.randn_like(tensors[name])
+    wider = make_learner("bicnet-e", meta["obs_dim"], meta["state_dim"], meta["num_agents"],
+                         {**meta["config"], "choice_regret": True})
+    fitted, fresh = dagger.fitting_tensors(wider, tensors)
+    assert fresh == ["actor.choose.intent.0.weight"]
+    assert fitted[fresh[0]].shape[1] == tensors[fresh[0]].shape[1] + 2
+    wider.load_policy_tensors(fitted)
+    narrow = make_learner("bicnet-e", meta["obs_dim"], meta["state_dim"], meta["num_agents"],
+                          meta["config"])
+    narrow.load_policy_tensors(tensors)
+    env = sim.make_env(sim.get_scenario("6v6"), num_envs=4, seed=1)
+    obs = env.observe()
+    torch.testing.assert_close(wider.act(obs), narrow.act(obs))
+    dagger.main(["--start", str(talk / "dagger.safetensors"), "--iterations", "1",
+                 "--steps", "2", "--sizes", "6v6", "--choice-regret", "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["choice_regret"] is True and probe["choice_rounds"] == 1
 
 
 def test_imitation_loss_counts_only_movable_agvs_and_their_labels() -> None:

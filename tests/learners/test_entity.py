@@ -420,6 +420,53 @@ def test_intents_count_who_points_at_each_task_and_who_is_nearer():
     assert f[other].abs().sum() == 0
 
 
+def test_intent_regrets_say_how_much_the_nearer_pointer_would_lose():
+    from learners.entity import REGRET_CAP, _Intents
+
+    # AGVs at x = 0 and 0.4 both point at the task at x = 0.5 (0.5 and 0.1 away); AGV 0's
+    # second task is 1.0 away (regret 0.5), AGV 1's 0.78 away (regret 0.68)
+    env, obs = _scene([(0.0, 0.0), (0.4, 0.0)], [(0.5, 0.0), (-1.0, 0.0), (1.0, 0.5)])
+    tok = tokens(obs, env.obs_layout)
+    heard = _Intents(tok, regret=True)
+    at = heard.tasks[0]
+    dist = tok.task[0, :, :, 2]
+    order = dist.argsort(-1)  # each AGV's slots, nearest first
+    # pointers mostly on the nearest task, a little on the second nearest
+    w = torch.zeros_like(dist)
+    w[torch.arange(2), order[:, 0]] = 0.7
+    w[torch.arange(2), order[:, 1]] = 0.2
+    w[torch.arange(2), order[:, 2]] = 0.1
+    f = heard.features(w.unsqueeze(0))[0]  # (N, Kt, 4)
+    assert f.shape[-1] == 4
+    target = torch.tensor([0.5, 0.0], dtype=at.dtype)
+    slot = torch.linalg.vector_norm(at - target, dim=-1).argmin(-1)
+    own = dist.sort(-1).values
+    regret = (own[:, 1] - own[:, 0]).clamp(0, REGRET_CAP)
+    torch.testing.assert_close(regret, torch.tensor([0.5, 0.61 ** 0.5 - 0.1], dtype=regret.dtype))
+    got = f[torch.arange(2), slot]
+    # AGV 0 hears AGV 1 (nearer) with its regret; AGV 1 hears nobody nearer: the cap
+    torch.testing.assert_close(got[0], torch.stack([torch.tensor(1.0, dtype=got.dtype),
+                                                    torch.tensor(1.0, dtype=got.dtype),
+                                                    regret[1], regret[0]]))
+    torch.testing.assert_close(got[1], torch.stack([torch.tensor(1.0, dtype=got.dtype),
+                                                    torch.tensor(0.0, dtype=got.dtype),
+                                                    torch.tensor(REGRET_CAP, dtype=got.dtype),
+                                                    regret[1]]))
+    # every slot carries the AGV's own regret; the counts are those without regrets
+    torch.testing.assert_close(f[..., 3], regret.unsqueeze(-1).expand(2, 3))
+    torch.testing.assert_close(f[..., :2], _Intents(tok).features(w.unsqueeze(0))[0])
+
+
+def test_an_agv_with_one_task_in_view_has_the_capped_regret():
+    from learners.entity import REGRET_CAP, _Intents
+
+    env, obs = _scene([(0.0, 0.0), (0.4, 0.0)], [(0.5, 0.0)])
+    tok = tokens(obs, env.obs_layout)
+    f = _Intents(tok, regret=True).features(torch.ones(1, 2, 1, dtype=obs.dtype))[0]
+    torch.testing.assert_close(f[:, 0, 3], torch.full((2,), REGRET_CAP, dtype=f.dtype))
+    torch.testing.assert_close(f[0, 0, 2], torch.tensor(REGRET_CAP, dtype=f.dtype))
+
+
 def test_intents_leave_out_parked_agvs_and_those_out_of_view():
     from learners.entity import _Intents
 
@@ -471,6 +518,10 @@ def test_choice_rounds_bad_values_are_clear_errors():
             EntityConfig(choice_head=True, choice_rounds=bad)
     with pytest.raises(ValueError, match="needs choice_head=True"):
         EntityConfig(choice_rounds=1)
+    with pytest.raises(ValueError, match="choice_rounds >= 1"):
+        EntityConfig(choice_head=True, choice_regret=True)
+    with pytest.raises(ValueError, match="choice_regret"):
+        EntityConfig(choice_head=True, choice_rounds=1, choice_regret=1)
     with pytest.raises(ValueError, match="MADDPG-E"):
         _learner("maddpg-e", env, choice_head=True, choice_rounds=1)
 
