@@ -136,6 +136,8 @@ def test_orders_of_a_broken_agv_are_reassigned_in_the_next_step(name: str) -> No
             checked += 1
             assert (env.orders.status[0][returned] == ASSIGNED).all()
             assert not (env.orders.agent[0][returned] == -1).any()
+            if checked == 3:  # enough returned orders seen
+                break
     assert checked >= 3
 
 

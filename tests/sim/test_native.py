@@ -5,7 +5,6 @@ from __future__ import annotations
 import ctypes
 import os
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -334,15 +333,29 @@ def test_failed_build_warns_and_falls_back(tmp_path) -> None:
     assert "kernels unavailable" in out.stderr
 
 
-def test_damaged_cache_entry_is_rebuilt(tmp_path) -> None:
-    code = "import sim; print(sim.make_env('3v3').native)"
-    first = _run(code, AGV_CACHE_DIR=str(tmp_path))
-    assert first.stdout.strip() == "True", first.stderr
-    (built,) = tmp_path.glob("agv_kernels_*.so")
-    built.write_bytes(b"not a shared library")
-    second = _run(code, AGV_CACHE_DIR=str(tmp_path))
-    assert second.stdout.strip() == "True", second.stderr
-    assert built.read_bytes()[:4] == b"\x7fELF" or sys.platform != "linux"
+def _tiny_library(tmp_path: Path) -> tuple[Path, Path]:
+    """A one-function C file that includes a header (compiles in a fraction of a second, where
+    the kernels take seconds)."""
+    (tmp_path / "tiny.h").write_text("#define TINY 7\n")
+    (tmp_path / "tiny.c").write_text('#include "tiny.h"\nint agv_tiny(void) { return TINY; }\n')
+    return tmp_path / "tiny.c", tmp_path / "tiny.h"
+
+
+TINY_FLAGS = ["-O0", "-fPIC", "-shared"]
+
+
+def test_damaged_cache_entry_is_rebuilt(tmp_path, monkeypatch) -> None:
+    source, header = _tiny_library(tmp_path)
+    monkeypatch.setenv("AGV_CACHE_DIR", str(tmp_path / "first"))
+    assert native.load_cached(source, TINY_FLAGS, "tiny", [source, header]).agv_tiny() == 7
+    (built,) = (tmp_path / "first").glob("tiny_*.so")
+    # the same entry, damaged, in a cache this process has never loaded from
+    damaged = tmp_path / "second" / built.name
+    damaged.parent.mkdir()
+    damaged.write_bytes(b"not a shared library")
+    monkeypatch.setenv("AGV_CACHE_DIR", str(damaged.parent))
+    assert native.load_cached(source, TINY_FLAGS, "tiny", [source, header]).agv_tiny() == 7
+    assert damaged.read_bytes()[:4] == b"\x7fELF" or sys.platform != "linux"
 
 
 def test_signature_table_is_read_from_every_exported_c_function() -> None:
@@ -381,18 +394,19 @@ def test_kernel_calls_with_the_wrong_argument_count_are_refused() -> None:
         native.library().agv_prepare(1, 1)
 
 
-def test_build_key_covers_every_included_source_file(tmp_path) -> None:
-    # kernels.c includes the concept files: a change in any of them must rebuild the library.
-    src = tmp_path / "src"
-    shutil.copytree(native.NATIVE_DIR, src)
-    cache = tmp_path / "cache"
-    code = ("import pathlib, sim.native as n\n"
-            f"n.NATIVE_DIR = pathlib.Path({str(src)!r}); n.SOURCE = n.NATIVE_DIR / 'kernels.c'\n"
-            "print(n.available())")
-    assert _run(code, AGV_CACHE_DIR=str(cache)).stdout.strip() == "True"
-    (src / "tasks.h").write_text((src / "tasks.h").read_text() + "\n/* edited */\n")
-    assert _run(code, AGV_CACHE_DIR=str(cache)).stdout.strip() == "True"
-    assert len(list(cache.glob("agv_kernels_*.so"))) == 2
+def test_build_key_covers_every_included_source_file(tmp_path, monkeypatch) -> None:
+    # kernels.c includes the concept files: every file it includes is an input of the key
+    included = set()
+    for path in native.sources():
+        included |= set(re.findall(r'#include "([^"]+)"', path.read_text()))
+    assert included and included <= {p.name for p in native.sources()}
+    # and a change in an input (not the compiled file itself) builds a new library
+    source, header = _tiny_library(tmp_path)
+    monkeypatch.setenv("AGV_CACHE_DIR", str(tmp_path / "cache"))
+    assert native.load_cached(source, TINY_FLAGS, "tiny", [source, header]).agv_tiny() == 7
+    header.write_text("#define TINY 8\n")
+    assert native.load_cached(source, TINY_FLAGS, "tiny", [source, header]).agv_tiny() == 8
+    assert len(list((tmp_path / "cache").glob("tiny_*.so"))) == 2
 
 
 @pytest.mark.parametrize("bad, match", [
