@@ -66,7 +66,12 @@ def test_intent_speed_writes_both_timings_and_their_ratio(tmp_path: Path) -> Non
     assert set(data["seconds"]) == {"0", "2"} and all(len(v) == 2 for v in
                                                       data["seconds"].values())
     assert data["ratio"] == data["median"]["2"] / data["median"]["0"] > 0
-    assert "| 2 |" in (tmp_path / "intent_speed.md").read_text()
+    assert "| 2 |" in (tmp_path / "intent_speed.md").read_text() and data["regret"] is False
+    speed.main(["--size", "6v6", "--batch", "4", "--repeats", "1", "--rounds", "1",
+                "--regret", "--out", str(tmp_path)])
+    data = _strict((tmp_path / "intent_speed.json").read_text())
+    assert data["regret"] is True and set(data["seconds"]) == {"0", "1"}
+    assert "| 1 (with regrets) |" in (tmp_path / "intent_speed.md").read_text()
     for bad in (["--rounds", "0"], ["--batch", "0"], ["--size", "big"]):
         with pytest.raises(SystemExit):
             speed.main([*bad, "--out", str(tmp_path)])
