@@ -2,7 +2,8 @@
 
     python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12]
         [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
-        [--choice-head] [--choice-weight 1.0] [--choice-rounds R] [--choice-regret] [--seed 0]
+        [--choice-head] [--choice-weight 1.0] [--choice-rounds R] [--choice-regret]
+        [--choice-accumulate] [--seed 0]
         [--out benchmarks/results/scale/entity/dagger]
 
 The teacher (:func:`teacher_actions`) sees the whole scene: every step it assigns the idle AGVs
@@ -21,7 +22,8 @@ tokens), fresh, on the start file's encoder (and recurrence), and the loss adds
 ``--choice-weight`` times the cross-entropy of the pointer against the slot of the teacher's
 task (:func:`choice_slots`; AGVs whose teacher task is out of view add nothing).
 ``--choice-rounds R`` gives the pointer R rounds of intent exchange, ``--choice-regret``
-regrets in its messages (new layers and input columns start at zero). No reward
+regrets in its messages (new layers and input columns start at zero), ``--choice-accumulate``
+rounds whose biases add up. No reward
 and no critic: the file written is a policy (``kind="policy"``) that ``allocator.make(...,
 checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train --init-from FILE``
 take.
@@ -238,6 +240,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--choice-regret", action="store_true",
                         help="the intent messages carry regrets (EntityConfig.choice_regret); "
                              "the intent layer's new input columns start at zero")
+    parser.add_argument("--choice-accumulate", action="store_true",
+                        help="the exchange's rounds add their biases up "
+                             "(EntityConfig.choice_accumulate)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -267,6 +272,8 @@ def main(argv: list[str] | None = None) -> None:
         wanted["choice_rounds"] = args.choice_rounds
     if args.choice_regret:
         wanted["choice_regret"] = True
+    if args.choice_accumulate:
+        wanted["choice_accumulate"] = True
     fresh: list[str] = []
     try:
         learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
@@ -325,7 +332,8 @@ def main(argv: list[str] | None = None) -> None:
          "sizes": args.sizes, "view": args.view, "shield": args.shield,
          "choice_head": choice, "choice_weight": args.choice_weight,
          "choice_rounds": learner.config.choice_rounds,
-         "choice_regret": learner.config.choice_regret, "fresh": fresh,
+         "choice_regret": learner.config.choice_regret,
+         "choice_accumulate": learner.config.choice_accumulate, "fresh": fresh,
          "teacher_share": TEACHER_SHARE,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")

@@ -588,15 +588,18 @@ class TaskChoiceHead(nn.Module):
     ``intent(any_k, nearer_k)`` (an MLP whose last layer starts at zero, so that the untrained
     exchange changes nothing) to the round-0 logits, the counts heard from the pointers of
     the round before. ``regret`` (:attr:`EntityConfig.choice_regret`): the messages also
-    carry regrets (:class:`_Intents`).
+    carry regrets (:class:`_Intents`). ``accumulate`` (:attr:`EntityConfig.choice_accumulate`):
+    each round's bias adds to those of the rounds before instead of replacing them.
     """
 
-    def __init__(self, hidden: int, rounds: int = 0, regret: bool = False) -> None:
+    def __init__(self, hidden: int, rounds: int = 0, regret: bool = False,
+                 accumulate: bool = False) -> None:
         super().__init__()
         self.score, self.residual = _pointer_layers(hidden)
         self.dist_weight = nn.Parameter(torch.tensor(CHOICE_DIST_WEIGHT))
         self.rounds = rounds
         self.regret = regret
+        self.accumulate = accumulate
         self.intent = None
         if rounds:
             width = INTENT_FEATURES + (REGRET_FEATURES if regret else 0)
@@ -613,9 +616,11 @@ class TaskChoiceHead(nn.Module):
         w = _masked_softmax(logits, tok.task_mask)
         if self.intent is not None:
             heard = _Intents(tok, self.regret)
+            total = torch.zeros_like(logits)
             for _ in range(self.rounds):
                 bias = self.intent(heard.features(w.detach())).squeeze(-1)
-                w = _masked_softmax(logits + bias, tok.task_mask)
+                total = total + bias if self.accumulate else bias
+                w = _masked_softmax(logits + total, tok.task_mask)
         drive = arrive_action(tok.task[..., 0:2], tok.own[..., 0:2].unsqueeze(-2))
         a = (w.unsqueeze(-1) * drive).sum(-2) + self.residual(h)
         return a / a.abs().amax(-1, keepdim=True).clamp_min(1.0), w
@@ -717,12 +722,14 @@ class SortedBiRNN(nn.Module):
         The choice head's rounds of intent exchange (:attr:`EntityConfig.choice_rounds`).
     choice_regret : bool
         The intent messages carry regrets (:attr:`EntityConfig.choice_regret`).
+    choice_accumulate : bool
+        The rounds' biases add up (:attr:`EntityConfig.choice_accumulate`).
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
                  lifelong: bool = False, parked_token: bool = False,
                  choice_head: bool = False, choice_rounds: int = 0,
-                 choice_regret: bool = False) -> None:
+                 choice_regret: bool = False, choice_accumulate: bool = False) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
@@ -732,7 +739,7 @@ class SortedBiRNN(nn.Module):
         # the lifelong actor steers with a WaypointHead on the recurrence's output, an
         # episodic one with choice_head points with a TaskChoiceHead
         self.steer = WaypointHead(hidden) if lifelong and actor else None
-        self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret) \
+        self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret, choice_accumulate) \
             if choice_head and actor and not lifelong else None
         self.head = _mlp([2 * hidden, hidden]
                          if self.steer is not None or self.choose is not None
@@ -827,11 +834,19 @@ class EntityConfig(OffPolicyConfig):
     regret among the nearer AGVs pointing at it, and its own regret (:class:`_Intents`).
     It widens the intent layer's input from 2 to 4 features. False (the default, and what
     every run before this field did): counts only."""
+    choice_accumulate: bool = False
+    """With ``choice_rounds`` >= 2: each round's learned bias is added to those of the rounds
+    before, instead of replacing them, so that a task an AGV gave up in one round is not
+    taken up again by every AGV that gave it up (as when each round hears only the pointers
+    of the round before, and two AGVs that both drop a task both come back to it). The
+    weights are the same as without it. False (the default, and what every run before this
+    field did): each round's bias replaces the last."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
         ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
-        ``choice_head``, ``choice_rounds`` and ``choice_regret`` too."""
+        ``choice_head``, ``choice_rounds``, ``choice_regret`` and ``choice_accumulate``
+        too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
@@ -847,6 +862,10 @@ class EntityConfig(OffPolicyConfig):
         if self.choice_regret and not self.choice_rounds:
             raise ValueError("choice_regret=True adds regrets to the intent exchange; it needs "
                              "choice_rounds >= 1")
+        self.choice_accumulate = check_bool("choice_accumulate", self.choice_accumulate)
+        if self.choice_accumulate and self.choice_rounds < 2:
+            raise ValueError("choice_accumulate=True adds the rounds' biases up; it needs "
+                             f"choice_rounds >= 2, got {self.choice_rounds}")
         self.shield_penalty = check_real("shield_penalty", self.shield_penalty, 0.0, math.inf,
                                          high_open=True)
         if self.shield_penalty and not self.shield:
@@ -1170,7 +1189,8 @@ class BiCNetE(EntityLearner):
                                  parked_token=config.parked_token,
                                  choice_head=config.choice_head,
                                  choice_rounds=config.choice_rounds,
-                                 choice_regret=config.choice_regret)
+                                 choice_regret=config.choice_regret,
+                                 choice_accumulate=config.choice_accumulate)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
                                   parked_token=config.parked_token)
         self._finish_init()

@@ -511,6 +511,39 @@ def test_intent_exchange_starts_as_none_and_stays_equivariant_once_trained():
     assert talk.actor.choose.intent[0].weight.grad.abs().sum() > 0
 
 
+class _ConstantBias(torch.nn.Module):
+    """An intent layer that ignores what it hears: the same bias every round."""
+
+    def __init__(self, bias: torch.Tensor) -> None:
+        super().__init__()
+        self.bias = bias
+
+    def forward(self, heard: torch.Tensor) -> torch.Tensor:
+        return self.bias.expand(*heard.shape[:-1], 1)
+
+
+def test_accumulated_rounds_add_their_biases_up():
+    from learners.entity import TaskChoiceHead
+
+    env, obs = _obs("6v6", num_envs=2, steps=2)
+    tok = tokens(obs, env.obs_layout)
+    B, N, K = tok.task_mask.shape
+    gen = torch.Generator().manual_seed(1)
+    h, emb = torch.randn(B, N, 16, generator=gen), torch.randn(B, N, K, 16, generator=gen)
+    bias = torch.randn(B, N, K, 1, generator=gen)
+    heads = {}
+    for name, rounds, accumulate, b in (("acc", 3, True, bias), ("once", 1, False, 3 * bias),
+                                        ("replace", 3, False, bias)):
+        torch.manual_seed(0)
+        heads[name] = TaskChoiceHead(16, rounds, accumulate=accumulate)
+        heads[name].intent = _ConstantBias(b)
+    _, w_acc = heads["acc"](h, emb, tok)
+    _, w_once = heads["once"](h, emb, tok)
+    _, w_replace = heads["replace"](h, emb, tok)
+    torch.testing.assert_close(w_acc, w_once)  # three rounds of b: one of 3b
+    assert not torch.allclose(w_acc, w_replace)
+
+
 def test_choice_rounds_bad_values_are_clear_errors():
     env, _ = _obs("3v3", num_envs=1, steps=0)
     for bad in (-1, 9, 1.5, True, "2"):
@@ -522,6 +555,10 @@ def test_choice_rounds_bad_values_are_clear_errors():
         EntityConfig(choice_head=True, choice_regret=True)
     with pytest.raises(ValueError, match="choice_regret"):
         EntityConfig(choice_head=True, choice_rounds=1, choice_regret=1)
+    with pytest.raises(ValueError, match="choice_rounds >= 2"):
+        EntityConfig(choice_head=True, choice_rounds=1, choice_accumulate=True)
+    with pytest.raises(ValueError, match="choice_accumulate"):
+        EntityConfig(choice_head=True, choice_rounds=2, choice_accumulate="yes")
     with pytest.raises(ValueError, match="MADDPG-E"):
         _learner("maddpg-e", env, choice_head=True, choice_rounds=1)
 
