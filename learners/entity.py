@@ -543,8 +543,7 @@ class _Intents:
         (F = :data:`INTENT_FEATURES` (+ :data:`REGRET_FEATURES`); 0 in masked slots)."""
         tok = self.tok
         B, N, K = w.shape
-        top2 = w.masked_fill(~tok.task_mask, -1.0).topk(min(2, K), dim=-1).indices
-        top = top2[..., :1]  # (B, N, 1)
+        top = w.argmax(-1, keepdim=True)  # (B, N, 1)
         has = tok.task_mask.any(-1)
         aim = torch.gather(self.tasks, 2, top.unsqueeze(-1).expand(B, N, 1, 2)).squeeze(2)
         dist = torch.gather(tok.task[..., 2], 2, top).squeeze(-1)  # (B, N)
@@ -557,9 +556,11 @@ class _Intents:
         if self.regret:
             cap = torch.full_like(dist, REGRET_CAP)
             regret = cap
-            if K > 1:
-                second = torch.gather(tok.task[..., 2], 2, top2[..., 1:]).squeeze(-1)
-                has2 = torch.gather(tok.task_mask, 2, top2[..., 1:]).squeeze(-1)
+            if K > 1:  # the visible slot weighed most after the pointed one
+                rest = w.masked_fill(~tok.task_mask, -1.0).scatter(-1, top, -2.0)
+                nxt = rest.argmax(-1, keepdim=True)
+                second = torch.gather(tok.task[..., 2], 2, nxt).squeeze(-1)
+                has2 = torch.gather(tok.task_mask, 2, nxt).squeeze(-1)
                 regret = torch.where(has2, (second - dist).clamp(0.0, REGRET_CAP), cap)
             least = regret[:, None, None, :].expand(B, N, K, N).masked_fill(~nearer,
                                                                              REGRET_CAP)
