@@ -3,7 +3,7 @@
     python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12]
         [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
         [--choice-head] [--choice-weight 1.0] [--choice-rounds R] [--choice-regret]
-        [--choice-accumulate] [--seed 0]
+        [--choice-accumulate] [--choice-sinkhorn R] [--seed 0]
         [--out benchmarks/results/scale/entity/dagger]
 
 The teacher (:func:`teacher_actions`) sees the whole scene: every step it assigns the idle AGVs
@@ -23,10 +23,11 @@ tokens), fresh, on the start file's encoder (and recurrence), and the loss adds
 task (:func:`choice_slots`; AGVs whose teacher task is out of view add nothing).
 ``--choice-rounds R`` gives the pointer R rounds of intent exchange, ``--choice-regret``
 regrets in its messages (new layers and input columns start at zero), ``--choice-accumulate``
-rounds whose biases add up. No reward
-and no critic: the file written is a policy (``kind="policy"``) that ``allocator.make(...,
-checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train --init-from FILE``
-take.
+rounds whose biases add up, ``--choice-sinkhorn R`` R rounds of the assignment exchange
+(:attr:`learners.entity.EntityConfig.choice_sinkhorn`; its one parameter starts fresh). No
+reward and no critic: the file written is a policy (``kind="policy"``) that
+``allocator.make(..., checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train
+--init-from FILE`` take.
 
 Writes ``--out``/``dagger.safetensors`` (+ sidecar), ``progress.csv`` (loss and the 20v20
 validation, seed 12345, 100 episodes, plain and shielded, every second iteration) and
@@ -243,6 +244,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--choice-accumulate", action="store_true",
                         help="the exchange's rounds add their biases up "
                              "(EntityConfig.choice_accumulate)")
+    parser.add_argument("--choice-sinkhorn", type=int, default=None,
+                        help="rounds of the choice head's assignment exchange "
+                             "(EntityConfig.choice_sinkhorn, bicnet-e; default: the --start "
+                             "file's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -274,6 +279,8 @@ def main(argv: list[str] | None = None) -> None:
         wanted["choice_regret"] = True
     if args.choice_accumulate:
         wanted["choice_accumulate"] = True
+    if args.choice_sinkhorn is not None:
+        wanted["choice_sinkhorn"] = args.choice_sinkhorn
     fresh: list[str] = []
     try:
         learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
@@ -333,7 +340,8 @@ def main(argv: list[str] | None = None) -> None:
          "choice_head": choice, "choice_weight": args.choice_weight,
          "choice_rounds": learner.config.choice_rounds,
          "choice_regret": learner.config.choice_regret,
-         "choice_accumulate": learner.config.choice_accumulate, "fresh": fresh,
+         "choice_accumulate": learner.config.choice_accumulate,
+         "choice_sinkhorn": learner.config.choice_sinkhorn, "fresh": fresh,
          "teacher_share": TEACHER_SHARE,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")

@@ -1,12 +1,13 @@
 """What the choice head's intent exchange costs a DAgger step (issue 17).
 
     python benchmarks/intent_speed.py [--size 50v50] [--batch 64] [--rounds 2] [--regret]
-        [--repeats 5] [--out benchmarks/results/scale/entity/intent_speed]
+        [--sinkhorn R] [--repeats 5] [--out benchmarks/results/scale/entity/intent_speed]
 
 Times one forward and backward pass of a BiCNet-E choice-head actor over ``--batch`` joint
 states of ``--size`` at the whole view (what one Adam step of ``dagger_probe.py`` does per
 size), with ``choice_rounds`` = 0 and = ``--rounds`` (``--regret``: with
-``choice_regret``), alternating, on one torch thread; the
+``choice_regret``; ``--sinkhorn R``: with R rounds of the assignment exchange,
+``choice_sinkhorn``), alternating, on one torch thread; the
 untrained networks of the same seed. Reports the median seconds of each and their ratio.
 Writes ``intent_speed.md`` and ``intent_speed.json`` (command, machine, every timing).
 """
@@ -50,11 +51,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--regret", action="store_true",
                         help="the exchange's messages carry regrets (choice_regret)")
+    parser.add_argument("--sinkhorn", type=int, default=0,
+                        help="rounds of the assignment exchange after the intent rounds "
+                             "(choice_sinkhorn)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    if args.batch < 1 or args.repeats < 1 or not 1 <= args.rounds <= 8:
-        parser.error("--batch and --repeats must be >= 1, --rounds in [1, 8]")
+    if args.batch < 1 or args.repeats < 1 or not 1 <= args.rounds <= 8 \
+            or not 0 <= args.sinkhorn <= 64:
+        parser.error("--batch and --repeats must be >= 1, --rounds in [1, 8], --sinkhorn in "
+                     "[0, 64]")
     try:
         scen = scenario(args.size, "full")
     except ValueError as err:
@@ -67,7 +73,8 @@ def main(argv: list[str] | None = None) -> None:
         torch.manual_seed(0)
         learner = make_learner("bicnet-e", env.obs_dim, env.state_dim, env.num_agents,
                                {"choice_head": True, "choice_rounds": rounds,
-                                "choice_regret": bool(rounds) and args.regret})
+                                "choice_regret": bool(rounds) and args.regret,
+                                "choice_sinkhorn": args.sinkhorn if rounds else 0})
         learner.set_layout(ObsLayout(scen.k_tasks, scen.k_agents))
         step_seconds(learner, obs)  # warm-up
         nets[rounds] = learner
@@ -84,13 +91,15 @@ def main(argv: list[str] | None = None) -> None:
              f"torch {torch.__version__}, one thread, {stamp}; median of {args.repeats}.", "",
              "| choice_rounds | forward + backward, s | ratio |", "|---|---|---|",
              f"| 0 | {med[0]:.3f} | 1.00 |",
-             f"| {args.rounds}{' (with regrets)' if args.regret else ''} | "
+             f"| {args.rounds}{' (with regrets)' if args.regret else ''}"
+             f"{f', {args.sinkhorn} assignment rounds' if args.sinkhorn else ''} | "
              f"{med[args.rounds]:.3f} | {ratio:.2f} |"]
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "intent_speed.md", "\n".join(lines) + "\n")
     atomic_write_text(args.out / "intent_speed.json", json.dumps(
         dict(command=command, date=stamp, size=args.size, batch=args.batch,
-             rounds=args.rounds, regret=args.regret, seconds={str(r): t for r, t in times.items()},
+             rounds=args.rounds, regret=args.regret, sinkhorn=args.sinkhorn,
+             seconds={str(r): t for r, t in times.items()},
              median={str(r): m for r, m in med.items()}, ratio=ratio), indent=1) + "\n")
     print("\n".join(lines))
 

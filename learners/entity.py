@@ -489,6 +489,15 @@ AGVs pointing at it, and the AGV's own regret (:meth:`_Intents.features`)."""
 REGRET_CAP = 1.0
 """Regrets (how much farther an AGV's second choice is than its first) are capped here, and
 an AGV with no second choice in view has this regret."""
+SINKHORN_LOG_SCALE = 0.0
+"""Initial log of the learned factor on the choice logits before the assignment exchange
+(:attr:`EntityConfig.choice_sinkhorn`; 0: the logits as they are)."""
+SINKHORN_TEMPERATURES = (3.0, 30.0)
+"""The assignment exchange's inverse temperatures on the (scaled) choice logits: the first
+round's and the last's, geometric in between (:func:`_sinkhorn`)."""
+SINKHORN_FLOOR = 1e-6
+"""Demands below this count as this in the assignment exchange's price steps (a task no
+AGV wants lowers its price by at most log(1e6) / s_t per round)."""
 INTENT_MATCH = 1e-4
 """Two positions closer than this are the same task (or AGV) in :class:`_Intents`."""
 
@@ -569,6 +578,96 @@ class _Intents:
         return out * tok.task_mask.unsqueeze(-1)
 
 
+def _task_groups(tasks: Tensor, mask: Tensor) -> Tensor:
+    """Which visible task slots hold the same task: (B, N, K, 2) positions, (B, N, K) mask ->
+    (B, N, K) group ids in [0, N K), the same for every slot (of any AGV of the scene) whose
+    positions are within :data:`INTENT_MATCH` of each other; masked slots get N K.
+
+    Exact and O(B N K log(N K)): sort by x and split where consecutive x differ by more than
+    the tolerance (the copies of a task, read from different AGVs' relative positions, differ
+    by rounding only, so they never split), then within each run sort by y and split the same
+    way. Two distinct tasks land in one group only if they lie within about twice the
+    tolerance of each other in both coordinates."""
+    B, N, K, _ = tasks.shape
+    M = N * K
+    p = tasks.reshape(B, M, 2)
+    valid = mask.reshape(B, M)
+    far = torch.finfo(p.dtype).max / 4
+    x = p[..., 0].masked_fill(~valid, far)
+    xs, o1 = x.sort(-1)
+    first = torch.ones(B, 1, dtype=torch.bool, device=p.device)
+    xrun = torch.cat([first, xs.diff(dim=-1) > INTENT_MATCH], dim=-1).cumsum(-1)
+    ys, o2 = p[..., 1].masked_fill(~valid, far).gather(1, o1).sort(dim=-1, stable=True)
+    run, o3 = xrun.gather(1, o2).sort(dim=-1, stable=True)
+    y = ys.gather(1, o3)
+    order = o1.gather(1, o2.gather(1, o3))
+    new = torch.cat([first, (run.diff(dim=-1) != 0) | (y.diff(dim=-1) > INTENT_MATCH)], dim=-1)
+    ids = torch.empty_like(order).scatter_(1, order, new.cumsum(-1) - 1)
+    return ids.masked_fill(~valid, M).reshape(B, N, K)
+
+
+def _sinkhorn(logits: Tensor, tok: Tokens, hears: Tensor, rounds: int,
+              whole: bool | None = None) -> Tensor:
+    """The choice head's assignment exchange (:attr:`EntityConfig.choice_sinkhorn`):
+    ``rounds`` rounds of an annealed Sinkhorn iteration over the idle AGVs' choice weights,
+    with prices on the tasks -> the final weights (B, N, Kt), zero in masked slots.
+
+    AGV i keeps a price g_ik >= 0 on each of its task slots (0 at the start) and weighs
+    them by w_i = softmax(s_t (logits_i - g_i)), at an inverse temperature s_t that grows
+    geometrically from :data:`SINKHORN_TEMPERATURES`'s first value to its last over the
+    rounds. Each round every idle AGV tells the AGVs that see it its weight on each of its
+    tasks; AGV i adds up, for each task slot k, its own weight and those heard on the same
+    task (told apart by position, :func:`_task_groups`): the demand c_ik, and moves the
+    price by log(c_ik) / s_t (up where more than one AGV's worth wants the task, down where
+    less, never below 0). The weights after the last round are the output. With the whole
+    scene in view every AGV computes the same demands, and the rounds are the
+    epsilon-scaling form of Sinkhorn's iteration for the entropic assignment of AGVs to
+    tasks, with at most one AGV per task (Cuturi, 2013; Schmitzer, 2019). They are
+    differentiable, so the logits train through them.
+
+    Parameters
+    ----------
+    logits : Tensor, shape (B, N, Kt)
+    tok : Tokens
+        Episodic tokens with ``pos``.
+    hears : Tensor, shape (B, N, N) bool
+        ``hears[b, i, j]``: AGV i hears idle AGV j (j != i), :class:`_Intents`.
+    rounds : int
+    whole : bool, optional
+        Whether every idle AGV hears every other idle AGV (then one demand per task is summed
+        for all); None: find out from ``hears``. False computes each listener's own sums.
+    """
+    B, N, K = logits.shape
+    mask = tok.task_mask
+    assert tok.pos is not None
+    idle = (tok.own[..., 2] < 0.5) & mask.any(-1)
+    ids = _task_groups(tok.pos.unsqueeze(-2) + tok.task[..., 0:2], mask)  # (B, N, K)
+    flat = ids.reshape(B, N * K)
+    who = hears | torch.diag_embed(idle)  # (B, i, j): whose weights i adds up
+    # with the whole scene in view every idle AGV hears every other: one sum per task
+    if whole is None:
+        whole = bool((who == idle.unsqueeze(1)).all(-1)[idle].all())
+    index = flat.unsqueeze(1).expand(B, N, N * K)
+    first, last = SINKHORN_TEMPERATURES
+    price = torch.zeros_like(logits)
+
+    def weights(s: float) -> Tensor:
+        return _masked_softmax(s * (logits - price), mask)
+
+    for t in range(rounds):
+        s = first * (last / first) ** (t / max(rounds - 1, 1))
+        w = weights(s) * idle.unsqueeze(-1)
+        per = w.new_zeros(B, N, N * K + 1).scatter_add(2, ids, w)  # (B, j, group)
+        if whole:
+            col = per.sum(1).gather(1, flat).reshape(B, N, K)
+        else:  # heard[b, j, i, k]: AGV j's weight on AGV i's task k
+            heard = per.gather(2, index).reshape(B, N, N, K)
+            col = torch.einsum("bij,bjik->bik", who.to(w.dtype), heard)
+        step = torch.log(col.clamp_min(SINKHORN_FLOOR)).masked_fill(~mask, 0.0)
+        price = (price + step / s).clamp_min(0.0)
+    return weights(last)
+
+
 class TaskChoiceHead(nn.Module):
     """The episodic actors' choice head (:attr:`EntityConfig.choice_head`): point at a task.
 
@@ -591,16 +690,24 @@ class TaskChoiceHead(nn.Module):
     the round before. ``regret`` (:attr:`EntityConfig.choice_regret`): the messages also
     carry regrets (:class:`_Intents`). ``accumulate`` (:attr:`EntityConfig.choice_accumulate`):
     each round's bias adds to those of the rounds before instead of replacing them.
+
+    With ``sinkhorn`` > 0 (BiCNet-E's :attr:`EntityConfig.choice_sinkhorn`) the final
+    logits, times ``exp(sinkhorn_scale)`` (a learned log-scale that starts at
+    :data:`SINKHORN_LOG_SCALE`), go through that many rounds of an assignment exchange
+    (:func:`_sinkhorn`) before they weigh the actions.
     """
 
     def __init__(self, hidden: int, rounds: int = 0, regret: bool = False,
-                 accumulate: bool = False) -> None:
+                 accumulate: bool = False, sinkhorn: int = 0) -> None:
         super().__init__()
         self.score, self.residual = _pointer_layers(hidden)
         self.dist_weight = nn.Parameter(torch.tensor(CHOICE_DIST_WEIGHT))
         self.rounds = rounds
         self.regret = regret
         self.accumulate = accumulate
+        self.sinkhorn = sinkhorn
+        if sinkhorn:
+            self.sinkhorn_scale = nn.Parameter(torch.tensor(SINKHORN_LOG_SCALE))
         self.intent = None
         if rounds:
             width = INTENT_FEATURES + (REGRET_FEATURES if regret else 0)
@@ -615,13 +722,18 @@ class TaskChoiceHead(nn.Module):
         logits = self.score(torch.cat([h.unsqueeze(-2).expand_as(task_emb), task_emb], dim=-1))
         logits = logits.squeeze(-1) - self.dist_weight * tok.task[..., 2]
         w = _masked_softmax(logits, tok.task_mask)
+        heard = _Intents(tok, self.regret) if self.intent is not None or self.sinkhorn else None
         if self.intent is not None:
-            heard = _Intents(tok, self.regret)
+            assert heard is not None
             total = torch.zeros_like(logits)
             for _ in range(self.rounds):
                 bias = self.intent(heard.features(w.detach())).squeeze(-1)
                 total = total + bias if self.accumulate else bias
                 w = _masked_softmax(logits + total, tok.task_mask)
+            logits = logits + total
+        if self.sinkhorn:
+            assert heard is not None
+            w = _sinkhorn(logits * self.sinkhorn_scale.exp(), tok, heard.hears, self.sinkhorn)
         drive = arrive_action(tok.task[..., 0:2], tok.own[..., 0:2].unsqueeze(-2))
         a = (w.unsqueeze(-1) * drive).sum(-2) + self.residual(h)
         return a / a.abs().amax(-1, keepdim=True).clamp_min(1.0), w
@@ -725,12 +837,15 @@ class SortedBiRNN(nn.Module):
         The intent messages carry regrets (:attr:`EntityConfig.choice_regret`).
     choice_accumulate : bool
         The rounds' biases add up (:attr:`EntityConfig.choice_accumulate`).
+    choice_sinkhorn : int
+        Rounds of the assignment exchange (:attr:`EntityConfig.choice_sinkhorn`).
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
                  lifelong: bool = False, parked_token: bool = False,
                  choice_head: bool = False, choice_rounds: int = 0,
-                 choice_regret: bool = False, choice_accumulate: bool = False) -> None:
+                 choice_regret: bool = False, choice_accumulate: bool = False,
+                 choice_sinkhorn: int = 0) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
@@ -740,8 +855,10 @@ class SortedBiRNN(nn.Module):
         # the lifelong actor steers with a WaypointHead on the recurrence's output, an
         # episodic one with choice_head points with a TaskChoiceHead
         self.steer = WaypointHead(hidden) if lifelong and actor else None
-        self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret, choice_accumulate) \
-            if choice_head and actor and not lifelong else None
+        self.choose = None
+        if choice_head and actor and not lifelong:
+            self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret, choice_accumulate,
+                                         choice_sinkhorn)
         self.head = _mlp([2 * hidden, hidden]
                          if self.steer is not None or self.choose is not None
                          else [2 * hidden, hidden, out_features], last_relu=False)
@@ -842,12 +959,22 @@ class EntityConfig(OffPolicyConfig):
     of the round before, and two AGVs that both drop a task both come back to it). The
     weights are the same as without it. False (the default, and what every run before this
     field did): each round's bias replaces the last."""
+    choice_sinkhorn: int = 0
+    """BiCNet-E with ``choice_head``: rounds of an assignment exchange after the pointer's
+    logits (and the intent rounds, if any) are computed. Each round every idle AGV tells the
+    AGVs that see it its weight on each task it sees; each AGV adds up the weights it hears
+    on each of its tasks, scales its own weight on a task down where the total exceeds one
+    AGV, and renormalizes: Sinkhorn's iteration for the assignment of AGVs to tasks, run as
+    communication (:func:`_sinkhorn`). The logits are multiplied by a learned factor first
+    (``sinkhorn_scale``, its log starting at 0). It adds one parameter; a run may start from
+    weights without it. MADDPG-E refuses it. 0 (the default, and what every run before this
+    field did): none."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
         ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
-        ``choice_head``, ``choice_rounds``, ``choice_regret`` and ``choice_accumulate``
-        too."""
+        ``choice_head``, ``choice_rounds``, ``choice_regret``, ``choice_accumulate`` and
+        ``choice_sinkhorn`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
@@ -864,6 +991,10 @@ class EntityConfig(OffPolicyConfig):
             raise ValueError("choice_regret=True adds regrets to the intent exchange; it needs "
                              "choice_rounds >= 1")
         self.choice_accumulate = check_bool("choice_accumulate", self.choice_accumulate)
+        self.choice_sinkhorn = check_int("choice_sinkhorn", self.choice_sinkhorn, 0, 64)
+        if self.choice_sinkhorn and not self.choice_head:
+            raise ValueError(f"choice_sinkhorn={self.choice_sinkhorn} exchanges the choice "
+                             "head's weights; it needs choice_head=True")
         if self.choice_accumulate and self.choice_rounds < 2:
             raise ValueError("choice_accumulate=True adds the rounds' biases up; it needs "
                              f"choice_rounds >= 2, got {self.choice_rounds}")
@@ -1136,6 +1267,10 @@ class MADDPGE(EntityLearner):
         if config.choice_rounds:
             raise ValueError(f"choice_rounds={config.choice_rounds} is communication between "
                              "the actors, which MADDPG-E's do not have: use bicnet-e or 0")
+        if config.choice_sinkhorn:
+            raise ValueError(f"choice_sinkhorn={config.choice_sinkhorn} is communication "
+                             "between the actors, which MADDPG-E's do not have: use bicnet-e "
+                             "or 0")
         self.actor = EntityActor(config.hidden, self.lifelong, config.parked_token,
                                  config.choice_head)
         self.critic = PooledCritic(config.hidden, self.lifelong, config.parked_token)
@@ -1191,7 +1326,8 @@ class BiCNetE(EntityLearner):
                                  choice_head=config.choice_head,
                                  choice_rounds=config.choice_rounds,
                                  choice_regret=config.choice_regret,
-                                 choice_accumulate=config.choice_accumulate)
+                                 choice_accumulate=config.choice_accumulate,
+                                 choice_sinkhorn=config.choice_sinkhorn)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
                                   parked_token=config.parked_token)
         self._finish_init()

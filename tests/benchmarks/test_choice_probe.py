@@ -72,6 +72,12 @@ def test_intent_speed_writes_both_timings_and_their_ratio(tmp_path: Path) -> Non
     data = _strict((tmp_path / "intent_speed.json").read_text())
     assert data["regret"] is True and set(data["seconds"]) == {"0", "1"}
     assert "| 1 (with regrets) |" in (tmp_path / "intent_speed.md").read_text()
-    for bad in (["--rounds", "0"], ["--batch", "0"], ["--size", "big"]):
+    speed.main(["--size", "6v6", "--batch", "4", "--repeats", "1", "--sinkhorn", "3",
+                "--out", str(tmp_path)])
+    data = _strict((tmp_path / "intent_speed.json").read_text())
+    assert data["sinkhorn"] == 3 and data["regret"] is False
+    assert "| 2, 3 assignment rounds |" in (tmp_path / "intent_speed.md").read_text()
+    for bad in (["--rounds", "0"], ["--batch", "0"], ["--size", "big"], ["--sinkhorn", "-1"],
+                ["--sinkhorn", "65"]):
         with pytest.raises(SystemExit):
             speed.main([*bad, "--out", str(tmp_path)])

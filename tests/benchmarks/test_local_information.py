@@ -210,6 +210,21 @@ def test_dagger_regrets_widen_a_trained_exchange_without_changing_it(tmp_path: P
     assert probe["choice_regret"] is True and probe["choice_rounds"] == 1
 
 
+def test_dagger_adds_the_assignment_exchange(tmp_path: Path) -> None:
+    dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
+                 "--sizes", "6v6", "--choice-head", "--choice-sinkhorn", "4",
+                 "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["choice_sinkhorn"] == 4 and "actor.choose.sinkhorn_scale" in probe["fresh"]
+    solver = allocator.make("bicnet-ipf", scenario="10v10", shield=True,
+                            checkpoint=tmp_path / "dagger.safetensors")
+    assert solver.policy.learner.config.choice_sinkhorn == 4
+    assert sim.evaluate(solver, "10v10", episodes=2, seed=0).collisions == 0
+    for bad in (["--choice-sinkhorn", "-1", "--choice-head"], ["--choice-sinkhorn", "2"]):
+        with pytest.raises(SystemExit):
+            dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])
+
+
 def test_imitation_loss_counts_only_movable_agvs_and_their_labels() -> None:
     act = torch.tensor([[[0.5, 0.0], [1.0, 1.0], [0.0, 0.0]]])
     target = torch.tensor([[[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]])

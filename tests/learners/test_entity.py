@@ -25,9 +25,12 @@ ALGOS = list(ENTITY_ALGORITHMS)
 VARIANTS = [pytest.param(a, {}, id=a) for a in ALGOS] + [
     pytest.param(a, {"choice_head": True}, id=f"{a}-choice") for a in ALGOS] + [
     pytest.param("bicnet-e", {"choice_head": True, "choice_rounds": 2},
-                 id="bicnet-e-intents")]
+                 id="bicnet-e-intents"),
+    pytest.param("bicnet-e", {"choice_head": True, "choice_rounds": 2, "choice_sinkhorn": 5},
+                 id="bicnet-e-sinkhorn")]
 """Every learner, with its MLP head and with the choice head (EntityConfig.choice_head);
-BiCNet-E's also with two rounds of intent exchange (EntityConfig.choice_rounds)."""
+BiCNet-E's also with two rounds of intent exchange (EntityConfig.choice_rounds), and with
+those and the assignment exchange (EntityConfig.choice_sinkhorn)."""
 
 
 def _obs(scenario: str, num_envs: int = 8, seed: int = 0, steps: int = 3) -> tuple:
@@ -581,3 +584,97 @@ def test_intent_policy_round_trips_through_a_policy_file(tmp_path):
     again = make_learner("bicnet-e", env.obs_dim, env.state_dim, 6, meta["config"])
     again.load_policy_tensors(tensors)
     torch.testing.assert_close(again.act(obs), learner.act(obs))
+
+
+# ---------------------------------------------------------------------- the assignment exchange
+def test_task_groups_tell_tasks_apart_by_position_across_agvs():
+    from learners.entity import _task_groups
+
+    env, obs = _obs("20v20", num_envs=3, steps=5)
+    tok = tokens(obs, env.obs_layout)
+    B, N, K = tok.task_mask.shape
+    ids = _task_groups(tok.pos.unsqueeze(-2) + tok.task[..., 0:2], tok.task_mask)
+    assert ids.shape == (B, N, K)
+    assert (ids[~tok.task_mask] == N * K).all()
+    for b in range(B):
+        # the env's index of the task in each visible slot
+        at = tok.pos[b].unsqueeze(-2) + tok.task[b, :, :, 0:2]
+        true = torch.cdist(at.reshape(-1, 2), env._task_pos[b].to(at.dtype)).argmin(-1)
+        seen = tok.task_mask[b].reshape(-1)
+        got, want = ids[b].reshape(-1)[seen], true[seen]
+        # the same group exactly when the same task
+        assert torch.equal(got.unsqueeze(0) == got.unsqueeze(1),
+                           want.unsqueeze(0) == want.unsqueeze(1))
+        assert len(set(got.tolist())) == len(set(want.tolist())) > 1
+
+
+def test_task_groups_split_tasks_that_share_a_coordinate():
+    from learners.entity import _task_groups
+
+    # four tasks: two share x, two share y, one pair 3e-4 apart; two AGVs see all four
+    tasks = torch.tensor([[0.5, 0.0], [0.5, 1.0], [-1.0, 1.0], [-1.0, 1.0003]])
+    pos = torch.tensor([[0.0, 0.0], [0.3, -0.2]])
+    rel = tasks.unsqueeze(0) - pos.unsqueeze(1)  # (2, 4, 2)
+    at = (pos.unsqueeze(1) + rel).unsqueeze(0)
+    mask = torch.ones(1, 2, 4, dtype=torch.bool)
+    mask[0, 1, 3] = False
+    ids = _task_groups(at, mask)[0]
+    assert len(set(ids[0].tolist())) == 4
+    assert ids[1, :3].tolist() == ids[0, :3].tolist() and ids[1, 3].item() == 8
+
+
+def test_assignment_exchange_gives_the_nearer_agv_the_contested_task():
+    from learners.entity import _Intents, _sinkhorn
+
+    # both AGVs are nearest to the task at x = 0.5; the least total distance sends AGV 1
+    # (0.1 away) there and AGV 0 to the task at x = -1 (1.0 away, against 1.4 for AGV 1)
+    env, obs = _scene([(0.0, 0.0), (0.4, 0.0)], [(0.5, 0.0), (-1.0, 0.0)])
+    tok = tokens(obs, env.obs_layout)
+    dist = tok.task[..., 2]
+    assert (dist.argmin(-1) == dist.argmin(-1)[0, 0]).all()  # both nearest to one slot
+    hears = _Intents(tok).hears
+    w = _sinkhorn(-5 * dist, tok, hears, 30)
+    at = tok.pos.unsqueeze(-2) + tok.task[..., 0:2]
+    goal = torch.gather(at, 2, w.argmax(-1)[..., None, None].expand(1, 2, 1, 2))[0, :, 0]
+    torch.testing.assert_close(goal, torch.tensor([[-1.0, 0.0], [0.5, 0.0]], dtype=goal.dtype))
+    torch.testing.assert_close(w.sum(-1), torch.ones(1, 2, dtype=w.dtype))
+    # no rounds: the softmax of the logits at the last temperature, both on the near task
+    w0 = _sinkhorn(-5 * dist, tok, hears, 0)
+    assert (w0.argmax(-1) == dist.argmin(-1)).all()
+
+
+def test_assignment_exchange_sums_per_listener_out_of_full_view():
+    from learners.entity import _Intents, _sinkhorn
+
+    env, obs = _obs("20v20", num_envs=2, steps=3)
+    tok = tokens(obs, env.obs_layout)
+    hears = _Intents(tok).hears
+    logits = -3 * tok.task[..., 2]
+    torch.testing.assert_close(_sinkhorn(logits, tok, hears, 8),
+                               _sinkhorn(logits, tok, hears, 8, whole=False))
+    # the paper's view: listeners hear different AGVs, and the two sums differ
+    scen = sim.get_scenario("20v20")
+    env = sim.make_env(scen, num_envs=2, seed=0)
+    tok = tokens(env.observe(), env.obs_layout)
+    hears = _Intents(tok).hears
+    logits = -3 * tok.task[..., 2]
+    own = _sinkhorn(logits, tok, hears, 8)
+    torch.testing.assert_close(own, _sinkhorn(logits, tok, hears, 8, whole=False))
+    assert not torch.allclose(own, _sinkhorn(logits, tok, hears, 8, whole=True))
+    assert torch.equal(own[~tok.task_mask], torch.zeros_like(own[~tok.task_mask]))
+
+
+def test_assignment_exchange_trains_its_scale_and_refuses_bad_settings():
+    env, obs = _obs("6v6", num_envs=4, steps=2)
+    learner = _learner("bicnet-e", env, choice_head=True, choice_sinkhorn=4)
+    _, w = learner.policy_and_choice(obs)
+    torch.log(w.amax(-1).clamp_min(1e-9)).sum().backward()
+    assert learner.actor.choose.sinkhorn_scale.grad.abs() > 0
+    assert learner.actor.encoder.task[0].weight.grad.abs().sum() > 0
+    for bad in (-1, 65, 2.5, True):
+        with pytest.raises(ValueError, match="choice_sinkhorn"):
+            EntityConfig(choice_head=True, choice_sinkhorn=bad)
+    with pytest.raises(ValueError, match="needs choice_head=True"):
+        EntityConfig(choice_sinkhorn=3)
+    with pytest.raises(ValueError, match="MADDPG-E"):
+        _learner("maddpg-e", env, choice_head=True, choice_sinkhorn=3)
