@@ -3,7 +3,7 @@
     python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12]
         [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
         [--choice-head] [--choice-weight 1.0] [--choice-rounds R] [--choice-regret]
-        [--choice-accumulate] [--choice-sinkhorn R] [--seed 0]
+        [--choice-accumulate] [--choice-sinkhorn R] [--first-share 1.0] [--seed 0]
         [--out benchmarks/results/scale/entity/dagger]
 
 The teacher (:func:`teacher_actions`) sees the whole scene: every step it assigns the idle AGVs
@@ -11,11 +11,14 @@ to the open tasks (least total distance) and drives each at its task
 (``local_information.py``'s rule with the full view). The student is the actor of an entity
 policy file (``--start``, e.g. a curriculum run's ``best.safetensors``), which reads only its
 observation (``--view``: the paper's 6 nearest tasks and 5 nearest AGVs, or the whole scene).
-DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix (each
-environment driven by the teacher with probability 0.3, else by the student); every state
-visited is labelled with the teacher's action; the last 8 rollouts per size are kept and the
-actor takes ``--steps`` Adam steps on the mean squared error between its action and the
-teacher's over the AGVs that move (a batch of 64 joint states per size and step);
+DAgger (Ross et al., 2011): iteration 0 rolls the teacher out (``--first-share``: drives
+that share of its environments with the teacher, 1.0 by default; 0.3 suits a fine-tune of a
+student that already drives well, whose first iteration then sees its own states), later
+ones a mix (each environment driven by the teacher with probability 0.3, else by the
+student); every state visited is labelled with the teacher's action; the last 8 rollouts
+per size are kept and the actor takes ``--steps`` Adam steps on the mean squared error
+between its action and the teacher's over the AGVs that move (a batch of 64 joint states per
+size and step);
 ``--shield`` executes the rollouts' actions through the safety shield. ``--choice-head``: the
 student's last layers are a :class:`learners.entity.TaskChoiceHead` (a pointer over the task
 tokens), fresh, on the start file's encoder (and recurrence), and the loss adds
@@ -248,11 +251,16 @@ def main(argv: list[str] | None = None) -> None:
                         help="rounds of the choice head's assignment exchange "
                              "(EntityConfig.choice_sinkhorn, bicnet-e; default: the --start "
                              "file's)")
+    parser.add_argument("--first-share", type=float, default=1.0,
+                        help="share of the first iteration's environments the teacher drives "
+                             f"(later iterations: {TEACHER_SHARE})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     if args.iterations < 1 or args.steps < 1 or args.seed < 0:
         parser.error("--iterations and --steps must be >= 1, --seed >= 0")
+    if not 0.0 <= args.first_share <= 1.0:
+        parser.error(f"--first-share must be in [0, 1], got {args.first_share}")
     if not (np.isfinite(args.lr) and args.lr > 0):
         parser.error(f"--lr must be a finite number > 0, got {args.lr}")
     if not (np.isfinite(args.choice_weight) and args.choice_weight >= 0):
@@ -298,7 +306,7 @@ def main(argv: list[str] | None = None) -> None:
     log = []
     t0 = time.perf_counter()
     for it in range(args.iterations):
-        share = 1.0 if it == 0 else TEACHER_SHARE
+        share = args.first_share if it == 0 else TEACHER_SHARE
         for k, (name, scen) in enumerate(scens.items()):
             seed = args.seed * 100_000 + it * 100 + k
             data[name] = (data[name] + [rollout(learner, scen, BATCH.get(name, 16), seed,
@@ -342,7 +350,7 @@ def main(argv: list[str] | None = None) -> None:
          "choice_regret": learner.config.choice_regret,
          "choice_accumulate": learner.config.choice_accumulate,
          "choice_sinkhorn": learner.config.choice_sinkhorn, "fresh": fresh,
-         "teacher_share": TEACHER_SHARE,
+         "teacher_share": TEACHER_SHARE, "first_share": args.first_share,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")
 

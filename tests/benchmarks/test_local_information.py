@@ -213,14 +213,16 @@ def test_dagger_regrets_widen_a_trained_exchange_without_changing_it(tmp_path: P
 def test_dagger_adds_the_assignment_exchange(tmp_path: Path) -> None:
     dagger.main(["--start", str(PARKED), "--iterations", "1", "--steps", "2",
                  "--sizes", "6v6", "--choice-head", "--choice-sinkhorn", "4",
-                 "--out", str(tmp_path)])
+                 "--first-share", "0.3", "--out", str(tmp_path)])
     probe = json.loads((tmp_path / "dagger.probe.json").read_text())
     assert probe["choice_sinkhorn"] == 4 and "actor.choose.sinkhorn_scale" in probe["fresh"]
+    assert probe["first_share"] == 0.3
     solver = allocator.make("bicnet-ipf", scenario="10v10", shield=True,
                             checkpoint=tmp_path / "dagger.safetensors")
     assert solver.policy.learner.config.choice_sinkhorn == 4
     assert sim.evaluate(solver, "10v10", episodes=2, seed=0).collisions == 0
-    for bad in (["--choice-sinkhorn", "-1", "--choice-head"], ["--choice-sinkhorn", "2"]):
+    for bad in (["--choice-sinkhorn", "-1", "--choice-head"], ["--choice-sinkhorn", "2"],
+                ["--first-share", "1.5"], ["--first-share", "-0.1"]):
         with pytest.raises(SystemExit):
             dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])
 
