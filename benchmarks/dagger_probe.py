@@ -1,6 +1,6 @@
 """Imitation probe for issue 17: an entity policy taught by a re-planning Hungarian (DAgger).
 
-    python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12]
+    python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12 | 0]
         [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
         [--choice-head] [--choice-weight 1.0] [--choice-rounds R] [--choice-regret]
         [--choice-accumulate] [--choice-sinkhorn R] [--first-share 1.0] [--seed 0]
@@ -31,6 +31,9 @@ rounds whose biases add up, ``--choice-sinkhorn R`` R rounds of the assignment e
 reward and no critic: the file written is a policy (``kind="policy"``) that
 ``allocator.make(..., checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train
 --init-from FILE`` take.
+
+``--iterations 0`` trains nothing: it writes the start file under the flags (new layers
+fresh, e.g. an exchange added at test time) and validates it once.
 
 Writes ``--out``/``dagger.safetensors`` (+ sidecar), ``progress.csv`` (loss and the 20v20
 validation, seed 12345, 100 episodes, plain and shielded, every second iteration) and
@@ -257,8 +260,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    if args.iterations < 1 or args.steps < 1 or args.seed < 0:
-        parser.error("--iterations and --steps must be >= 1, --seed >= 0")
+    if args.iterations < 0 or args.steps < 1 or args.seed < 0:
+        parser.error("--iterations must be >= 0, --steps >= 1, --seed >= 0")
     if not 0.0 <= args.first_share <= 1.0:
         parser.error(f"--first-share must be in [0, 1], got {args.first_share}")
     if not (np.isfinite(args.lr) and args.lr > 0):
@@ -336,6 +339,13 @@ def main(argv: list[str] | None = None) -> None:
             row.update({f"{k}": v for k, v in plain.items() if k != "shield"})
             row.update({f"shielded_{k}": v for k, v in shielded.items() if k != "shield"})
             save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
+        log.append(row)
+        print(json.dumps(row), flush=True)
+    if not log:  # --iterations 0: the start under the flags, untrained, validated
+        row = dict(iteration=0, loss=None, seconds=0.0)
+        plain, shielded = validate(learner, val)
+        row.update({f"{k}": v for k, v in plain.items() if k != "shield"})
+        row.update({f"shielded_{k}": v for k, v in shielded.items() if k != "shield"})
         log.append(row)
         print(json.dumps(row), flush=True)
     save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)

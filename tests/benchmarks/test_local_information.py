@@ -221,7 +221,16 @@ def test_dagger_adds_the_assignment_exchange(tmp_path: Path) -> None:
                             checkpoint=tmp_path / "dagger.safetensors")
     assert solver.policy.learner.config.choice_sinkhorn == 4
     assert sim.evaluate(solver, "10v10", episodes=2, seed=0).collisions == 0
+    # --iterations 0: the start under the flags, untrained, validated once
+    untrained = tmp_path / "untrained"
+    dagger.main(["--start", str(tmp_path / "dagger.safetensors"), "--iterations", "0",
+                 "--choice-sinkhorn", "2", "--out", str(untrained)])
+    probe = json.loads((untrained / "dagger.probe.json").read_text())
+    assert probe["choice_sinkhorn"] == 2 and probe["fresh"] == []
+    assert probe["final"]["iteration"] == 0 and probe["final"]["loss"] is None
+    assert 0 < probe["final"]["response"] <= 1
     for bad in (["--choice-sinkhorn", "-1", "--choice-head"], ["--choice-sinkhorn", "2"],
+                ["--iterations", "-1"],
                 ["--first-share", "1.5"], ["--first-share", "-0.1"]):
         with pytest.raises(SystemExit):
             dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])
