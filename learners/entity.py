@@ -961,11 +961,13 @@ class EntityConfig(OffPolicyConfig):
     field did): each round's bias replaces the last."""
     choice_sinkhorn: int = 0
     """BiCNet-E with ``choice_head``: rounds of an assignment exchange after the pointer's
-    logits (and the intent rounds, if any) are computed. Each round every idle AGV tells the
-    AGVs that see it its weight on each task it sees; each AGV adds up the weights it hears
-    on each of its tasks, scales its own weight on a task down where the total exceeds one
-    AGV, and renormalizes: Sinkhorn's iteration for the assignment of AGVs to tasks, run as
-    communication (:func:`_sinkhorn`). The logits are multiplied by a learned factor first
+    logits (and the intent rounds, if any) are computed. Each AGV keeps a price on each task
+    it sees; each round every idle AGV tells the AGVs that see it its weight on each of its
+    tasks, and each AGV raises a task's price where the weights it hears on it (and its own)
+    add up to more than one AGV, lowers it (not below 0) where less, and reweighs its tasks
+    by their logits less their prices, at a temperature that falls over the rounds: the
+    annealed Sinkhorn iteration for the assignment of AGVs to tasks, run as communication
+    (:func:`_sinkhorn`). The logits are multiplied by a learned factor first
     (``sinkhorn_scale``, its log starting at 0). It adds one parameter; a run may start from
     weights without it. MADDPG-E refuses it. 0 (the default, and what every run before this
     field did): none."""
