@@ -29,6 +29,7 @@ from provenance import recorded_command
 
 import sim
 from learners.algorithms import make_learner
+from learners.entity import SINKHORN_MAX_ROUNDS
 from sim.io import atomic_write_text
 from sim.observations import ObsLayout
 
@@ -58,9 +59,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     if args.batch < 1 or args.repeats < 1 or not 1 <= args.rounds <= 8 \
-            or not 0 <= args.sinkhorn <= 64:
+            or not 0 <= args.sinkhorn <= SINKHORN_MAX_ROUNDS:
         parser.error("--batch and --repeats must be >= 1, --rounds in [1, 8], --sinkhorn in "
-                     "[0, 64]")
+                     f"[0, {SINKHORN_MAX_ROUNDS}]")
     try:
         scen = scenario(args.size, "full")
     except ValueError as err:

@@ -495,6 +495,8 @@ SINKHORN_LOG_SCALE = 0.0
 SINKHORN_TEMPERATURES = (3.0, 30.0)
 """The assignment exchange's inverse temperatures on the (scaled) choice logits: the first
 round's and the last's, geometric in between (:func:`_sinkhorn`)."""
+SINKHORN_MAX_ROUNDS = 256
+"""The most rounds :attr:`EntityConfig.choice_sinkhorn` takes."""
 SINKHORN_FLOOR = 1e-6
 """Demands below this count as this in the assignment exchange's price steps (a task no
 AGV wants lowers its price by at most log(1e6) / s_t per round)."""
@@ -993,7 +995,8 @@ class EntityConfig(OffPolicyConfig):
             raise ValueError("choice_regret=True adds regrets to the intent exchange; it needs "
                              "choice_rounds >= 1")
         self.choice_accumulate = check_bool("choice_accumulate", self.choice_accumulate)
-        self.choice_sinkhorn = check_int("choice_sinkhorn", self.choice_sinkhorn, 0, 64)
+        self.choice_sinkhorn = check_int("choice_sinkhorn", self.choice_sinkhorn, 0,
+                                         SINKHORN_MAX_ROUNDS)
         if self.choice_sinkhorn and not self.choice_head:
             raise ValueError(f"choice_sinkhorn={self.choice_sinkhorn} exchanges the choice "
                              "head's weights; it needs choice_head=True")

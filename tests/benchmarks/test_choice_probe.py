@@ -78,6 +78,6 @@ def test_intent_speed_writes_both_timings_and_their_ratio(tmp_path: Path) -> Non
     assert data["sinkhorn"] == 3 and data["regret"] is False
     assert "| 2, 3 assignment rounds |" in (tmp_path / "intent_speed.md").read_text()
     for bad in (["--rounds", "0"], ["--batch", "0"], ["--size", "big"], ["--sinkhorn", "-1"],
-                ["--sinkhorn", "65"]):
+                ["--sinkhorn", "257"]):
         with pytest.raises(SystemExit):
             speed.main([*bad, "--out", str(tmp_path)])

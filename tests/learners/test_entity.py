@@ -671,7 +671,7 @@ def test_assignment_exchange_trains_its_scale_and_refuses_bad_settings():
     torch.log(w.amax(-1).clamp_min(1e-9)).sum().backward()
     assert learner.actor.choose.sinkhorn_scale.grad.abs() > 0
     assert learner.actor.encoder.task[0].weight.grad.abs().sum() > 0
-    for bad in (-1, 65, 2.5, True):
+    for bad in (-1, 257, 2.5, True):
         with pytest.raises(ValueError, match="choice_sinkhorn"):
             EntityConfig(choice_head=True, choice_sinkhorn=bad)
     with pytest.raises(ValueError, match="needs choice_head=True"):
