@@ -3,7 +3,8 @@
     python benchmarks/dagger_probe.py --start POLICY.safetensors [--iterations 12 | 0]
         [--steps 300] [--lr 1e-3] [--sizes 10v10 20v20 50v50] [--view 6:5|full] [--shield]
         [--choice-head] [--choice-weight 1.0] [--choice-rounds R] [--choice-regret]
-        [--choice-accumulate] [--choice-sinkhorn R] [--first-share 1.0] [--seed 0]
+        [--choice-accumulate] [--choice-sinkhorn R] [--sinkhorn-beta 30] [--first-share 1.0]
+        [--seed 0]
         [--out benchmarks/results/scale/entity/dagger]
 
 The teacher (:func:`teacher_actions`) sees the whole scene: every step it assigns the idle AGVs
@@ -27,7 +28,8 @@ task (:func:`choice_slots`; AGVs whose teacher task is out of view add nothing).
 ``--choice-rounds R`` gives the pointer R rounds of intent exchange, ``--choice-regret``
 regrets in its messages (new layers and input columns start at zero), ``--choice-accumulate``
 rounds whose biases add up, ``--choice-sinkhorn R`` R rounds of the assignment exchange
-(:attr:`learners.entity.EntityConfig.choice_sinkhorn`; its one parameter starts fresh). No
+(:attr:`learners.entity.EntityConfig.choice_sinkhorn`; its one parameter starts fresh) and
+``--sinkhorn-beta B`` its last inverse temperature (``choice_sinkhorn_beta``). No
 reward and no critic: the file written is a policy (``kind="policy"``) that
 ``allocator.make(..., checkpoint=FILE)``, ``scale_table.py --entity FILE`` and ``agv train
 --init-from FILE`` take.
@@ -254,6 +256,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="rounds of the choice head's assignment exchange "
                              "(EntityConfig.choice_sinkhorn, bicnet-e; default: the --start "
                              "file's)")
+    parser.add_argument("--sinkhorn-beta", type=float, default=None,
+                        help="the assignment exchange's last inverse temperature "
+                             "(EntityConfig.choice_sinkhorn_beta; default: the --start file's)")
     parser.add_argument("--first-share", type=float, default=1.0,
                         help="share of the first iteration's environments the teacher drives "
                              f"(later iterations: {TEACHER_SHARE})")
@@ -292,6 +297,8 @@ def main(argv: list[str] | None = None) -> None:
         wanted["choice_accumulate"] = True
     if args.choice_sinkhorn is not None:
         wanted["choice_sinkhorn"] = args.choice_sinkhorn
+    if args.sinkhorn_beta is not None:
+        wanted["choice_sinkhorn_beta"] = args.sinkhorn_beta
     fresh: list[str] = []
     try:
         learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
@@ -359,7 +366,8 @@ def main(argv: list[str] | None = None) -> None:
          "choice_rounds": learner.config.choice_rounds,
          "choice_regret": learner.config.choice_regret,
          "choice_accumulate": learner.config.choice_accumulate,
-         "choice_sinkhorn": learner.config.choice_sinkhorn, "fresh": fresh,
+         "choice_sinkhorn": learner.config.choice_sinkhorn,
+         "choice_sinkhorn_beta": learner.config.choice_sinkhorn_beta, "fresh": fresh,
          "teacher_share": TEACHER_SHARE, "first_share": args.first_share,
          "keep": KEEP, "batch": BATCH, "final": log[-1]}, indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")

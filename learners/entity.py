@@ -494,7 +494,11 @@ SINKHORN_LOG_SCALE = 0.0
 (:attr:`EntityConfig.choice_sinkhorn`; 0: the logits as they are)."""
 SINKHORN_TEMPERATURES = (3.0, 30.0)
 """The assignment exchange's inverse temperatures on the (scaled) choice logits: the first
-round's and the last's, geometric in between (:func:`_sinkhorn`)."""
+round's and, by default, the last's (:attr:`EntityConfig.choice_sinkhorn_beta`), geometric
+in between (:func:`_sinkhorn`)."""
+SINKHORN_MAX_BETA = 1e4
+"""The largest last-round inverse temperature :attr:`EntityConfig.choice_sinkhorn_beta`
+takes."""
 SINKHORN_MAX_ROUNDS = 256
 """The most rounds :attr:`EntityConfig.choice_sinkhorn` takes."""
 SINKHORN_FLOOR = 1e-6
@@ -609,14 +613,14 @@ def _task_groups(tasks: Tensor, mask: Tensor) -> Tensor:
 
 
 def _sinkhorn(logits: Tensor, tok: Tokens, hears: Tensor, rounds: int,
-              whole: bool | None = None) -> Tensor:
+              whole: bool | None = None, beta: float = SINKHORN_TEMPERATURES[1]) -> Tensor:
     """The choice head's assignment exchange (:attr:`EntityConfig.choice_sinkhorn`):
     ``rounds`` rounds of an annealed Sinkhorn iteration over the idle AGVs' choice weights,
     with prices on the tasks -> the final weights (B, N, Kt), zero in masked slots.
 
     AGV i keeps a price g_ik >= 0 on each of its task slots (0 at the start) and weighs
     them by w_i = softmax(s_t (logits_i - g_i)), at an inverse temperature s_t that grows
-    geometrically from :data:`SINKHORN_TEMPERATURES`'s first value to its last over the
+    geometrically from :data:`SINKHORN_TEMPERATURES`'s first value to ``beta`` over the
     rounds. Each round every idle AGV tells the AGVs that see it its weight on each of its
     tasks; AGV i adds up, for each task slot k, its own weight and those heard on the same
     task (told apart by position, :func:`_task_groups`): the demand c_ik, and moves the
@@ -638,6 +642,8 @@ def _sinkhorn(logits: Tensor, tok: Tokens, hears: Tensor, rounds: int,
     whole : bool, optional
         Whether every idle AGV hears every other idle AGV (then one demand per task is summed
         for all); None: find out from ``hears``. False computes each listener's own sums.
+    beta : float
+        The last round's inverse temperature (:attr:`EntityConfig.choice_sinkhorn_beta`).
     """
     B, N, K = logits.shape
     mask = tok.task_mask
@@ -650,7 +656,7 @@ def _sinkhorn(logits: Tensor, tok: Tokens, hears: Tensor, rounds: int,
     if whole is None:
         whole = bool((who == idle.unsqueeze(1)).all(-1)[idle].all())
     index = flat.unsqueeze(1).expand(B, N, N * K)
-    first, last = SINKHORN_TEMPERATURES
+    first, last = SINKHORN_TEMPERATURES[0], beta
     price = torch.zeros_like(logits)
 
     def weights(s: float) -> Tensor:
@@ -700,7 +706,8 @@ class TaskChoiceHead(nn.Module):
     """
 
     def __init__(self, hidden: int, rounds: int = 0, regret: bool = False,
-                 accumulate: bool = False, sinkhorn: int = 0) -> None:
+                 accumulate: bool = False, sinkhorn: int = 0,
+                 sinkhorn_beta: float = SINKHORN_TEMPERATURES[1]) -> None:
         super().__init__()
         self.score, self.residual = _pointer_layers(hidden)
         self.dist_weight = nn.Parameter(torch.tensor(CHOICE_DIST_WEIGHT))
@@ -708,6 +715,7 @@ class TaskChoiceHead(nn.Module):
         self.regret = regret
         self.accumulate = accumulate
         self.sinkhorn = sinkhorn
+        self.sinkhorn_beta = sinkhorn_beta
         if sinkhorn:
             self.sinkhorn_scale = nn.Parameter(torch.tensor(SINKHORN_LOG_SCALE))
         self.intent = None
@@ -735,7 +743,8 @@ class TaskChoiceHead(nn.Module):
             logits = logits + total
         if self.sinkhorn:
             assert heard is not None
-            w = _sinkhorn(logits * self.sinkhorn_scale.exp(), tok, heard.hears, self.sinkhorn)
+            w = _sinkhorn(logits * self.sinkhorn_scale.exp(), tok, heard.hears, self.sinkhorn,
+                          beta=self.sinkhorn_beta)
         drive = arrive_action(tok.task[..., 0:2], tok.own[..., 0:2].unsqueeze(-2))
         a = (w.unsqueeze(-1) * drive).sum(-2) + self.residual(h)
         return a / a.abs().amax(-1, keepdim=True).clamp_min(1.0), w
@@ -841,13 +850,16 @@ class SortedBiRNN(nn.Module):
         The rounds' biases add up (:attr:`EntityConfig.choice_accumulate`).
     choice_sinkhorn : int
         Rounds of the assignment exchange (:attr:`EntityConfig.choice_sinkhorn`).
+    choice_sinkhorn_beta : float
+        Its last round's inverse temperature (:attr:`EntityConfig.choice_sinkhorn_beta`).
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
                  lifelong: bool = False, parked_token: bool = False,
                  choice_head: bool = False, choice_rounds: int = 0,
                  choice_regret: bool = False, choice_accumulate: bool = False,
-                 choice_sinkhorn: int = 0) -> None:
+                 choice_sinkhorn: int = 0,
+                 choice_sinkhorn_beta: float = SINKHORN_TEMPERATURES[1]) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
@@ -860,7 +872,7 @@ class SortedBiRNN(nn.Module):
         self.choose = None
         if choice_head and actor and not lifelong:
             self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret, choice_accumulate,
-                                         choice_sinkhorn)
+                                         choice_sinkhorn, choice_sinkhorn_beta)
         self.head = _mlp([2 * hidden, hidden]
                          if self.steer is not None or self.choose is not None
                          else [2 * hidden, hidden, out_features], last_relu=False)
@@ -973,12 +985,18 @@ class EntityConfig(OffPolicyConfig):
     (``sinkhorn_scale``, its log starting at 0). It adds one parameter; a run may start from
     weights without it. MADDPG-E refuses it. 0 (the default, and what every run before this
     field did): none."""
+    choice_sinkhorn_beta: float = SINKHORN_TEMPERATURES[1]
+    """With ``choice_sinkhorn``: the assignment exchange's last inverse temperature (the
+    first is :data:`SINKHORN_TEMPERATURES`'s 3, geometric in between), in [3, 1e4]. Higher
+    ends nearer a hard assignment; with more rounds the prices have time to follow. It adds
+    no parameter, so a policy file trained at one value runs at another. 30 (the default,
+    and what every run before this field did)."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
         ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
         ``choice_head``, ``choice_rounds``, ``choice_regret``, ``choice_accumulate`` and
-        ``choice_sinkhorn`` too."""
+        ``choice_sinkhorn`` and ``choice_sinkhorn_beta`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
@@ -1000,6 +1018,8 @@ class EntityConfig(OffPolicyConfig):
         if self.choice_sinkhorn and not self.choice_head:
             raise ValueError(f"choice_sinkhorn={self.choice_sinkhorn} exchanges the choice "
                              "head's weights; it needs choice_head=True")
+        self.choice_sinkhorn_beta = check_real("choice_sinkhorn_beta", self.choice_sinkhorn_beta,
+                                               SINKHORN_TEMPERATURES[0], SINKHORN_MAX_BETA)
         if self.choice_accumulate and self.choice_rounds < 2:
             raise ValueError("choice_accumulate=True adds the rounds' biases up; it needs "
                              f"choice_rounds >= 2, got {self.choice_rounds}")
@@ -1332,7 +1352,8 @@ class BiCNetE(EntityLearner):
                                  choice_rounds=config.choice_rounds,
                                  choice_regret=config.choice_regret,
                                  choice_accumulate=config.choice_accumulate,
-                                 choice_sinkhorn=config.choice_sinkhorn)
+                                 choice_sinkhorn=config.choice_sinkhorn,
+                                 choice_sinkhorn_beta=config.choice_sinkhorn_beta)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
                                   parked_token=config.parked_token)
         self._finish_init()

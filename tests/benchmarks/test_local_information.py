@@ -224,13 +224,17 @@ def test_dagger_adds_the_assignment_exchange(tmp_path: Path) -> None:
     # --iterations 0: the start under the flags, untrained, validated once
     untrained = tmp_path / "untrained"
     dagger.main(["--start", str(tmp_path / "dagger.safetensors"), "--iterations", "0",
-                 "--choice-sinkhorn", "2", "--out", str(untrained)])
+                 "--choice-sinkhorn", "2", "--sinkhorn-beta", "100", "--out", str(untrained)])
     probe = json.loads((untrained / "dagger.probe.json").read_text())
     assert probe["choice_sinkhorn"] == 2 and probe["fresh"] == []
+    assert probe["choice_sinkhorn_beta"] == 100.0
+    again = allocator.make("bicnet-ipf", scenario="10v10",
+                           checkpoint=untrained / "dagger.safetensors")
+    assert again.policy.learner.config.choice_sinkhorn_beta == 100.0
     assert probe["final"]["iteration"] == 0 and probe["final"]["loss"] is None
     assert 0 < probe["final"]["response"] <= 1
     for bad in (["--choice-sinkhorn", "-1", "--choice-head"], ["--choice-sinkhorn", "2"],
-                ["--iterations", "-1"],
+                ["--iterations", "-1"], ["--sinkhorn-beta", "2"],
                 ["--first-share", "1.5"], ["--first-share", "-0.1"]):
         with pytest.raises(SystemExit):
             dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])

@@ -641,6 +641,14 @@ def test_assignment_exchange_gives_the_nearer_agv_the_contested_task():
     # no rounds: the softmax of the logits at the last temperature, both on the near task
     w0 = _sinkhorn(-5 * dist, tok, hears, 0)
     assert (w0.argmax(-1) == dist.argmin(-1)).all()
+    # a higher last inverse temperature, with more rounds to reach it, ends nearer the hard
+    # assignment, on the same tasks
+    sharp = _sinkhorn(-5 * dist, tok, hears, 120, beta=300.0)
+    assert torch.equal(sharp.argmax(-1), w.argmax(-1))
+    assert w.amax(-1).min() < 0.99 < sharp.amax(-1).min()
+    # annealed too fast (30 rounds up to 100), the prices cannot follow: both stay near
+    hasty = _sinkhorn(-5 * dist, tok, hears, 30, beta=100.0)
+    assert (hasty.argmax(-1) == dist.argmin(-1)).all()
 
 
 def test_assignment_exchange_sums_per_listener_out_of_full_view():
@@ -678,3 +686,9 @@ def test_assignment_exchange_trains_its_scale_and_refuses_bad_settings():
         EntityConfig(choice_sinkhorn=3)
     with pytest.raises(ValueError, match="MADDPG-E"):
         _learner("maddpg-e", env, choice_head=True, choice_sinkhorn=3)
+    sharp = _learner("bicnet-e", env, choice_head=True, choice_sinkhorn=4,
+                     choice_sinkhorn_beta=300.0)
+    assert sharp.actor.choose.sinkhorn_beta == 300.0
+    for bad in (2.9, 1e5, float("nan"), float("inf"), "30"):
+        with pytest.raises(ValueError, match="choice_sinkhorn_beta"):
+            EntityConfig(choice_head=True, choice_sinkhorn=3, choice_sinkhorn_beta=bad)
