@@ -665,10 +665,11 @@ def _sinkhorn(logits: Tensor, tok: Tokens, hears: Tensor, rounds: int,
     for t in range(rounds):
         s = first * (last / first) ** (t / max(rounds - 1, 1))
         w = weights(s) * idle.unsqueeze(-1)
-        per = w.new_zeros(B, N, N * K + 1).scatter_add(2, ids, w)  # (B, j, group)
-        if whole:
-            col = per.sum(1).gather(1, flat).reshape(B, N, K)
+        if whole:  # one demand per task: (B, group)
+            tot = w.new_zeros(B, N * K + 1).scatter_add(1, flat, w.reshape(B, N * K))
+            col = tot.gather(1, flat).reshape(B, N, K)
         else:  # heard[b, j, i, k]: AGV j's weight on AGV i's task k
+            per = w.new_zeros(B, N, N * K + 1).scatter_add(2, ids, w)  # (B, j, group)
             heard = per.gather(2, index).reshape(B, N, N, K)
             col = torch.einsum("bij,bjik->bik", who.to(w.dtype), heard)
         step = torch.log(col.clamp_min(SINKHORN_FLOOR)).masked_fill(~mask, 0.0)
