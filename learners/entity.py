@@ -990,8 +990,9 @@ class EntityConfig(OffPolicyConfig):
     """With ``choice_sinkhorn``: the assignment exchange's last inverse temperature (the
     first is :data:`SINKHORN_TEMPERATURES`'s 3, geometric in between), in [3, 1e4]. Higher
     ends nearer a hard assignment; with more rounds the prices have time to follow. It adds
-    no parameter, so a policy file trained at one value runs at another. 30 (the default,
-    and what every run before this field did)."""
+    no parameter, so a policy file trained at one value runs at another. Any other value
+    needs ``choice_sinkhorn`` >= 1. 30 (the default, and what every run before this field
+    did)."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
@@ -1021,6 +1022,10 @@ class EntityConfig(OffPolicyConfig):
                              "head's weights; it needs choice_head=True")
         self.choice_sinkhorn_beta = check_real("choice_sinkhorn_beta", self.choice_sinkhorn_beta,
                                                SINKHORN_TEMPERATURES[0], SINKHORN_MAX_BETA)
+        if self.choice_sinkhorn_beta != SINKHORN_TEMPERATURES[1] and not self.choice_sinkhorn:
+            raise ValueError(f"choice_sinkhorn_beta={self.choice_sinkhorn_beta} is the "
+                             "assignment exchange's last inverse temperature; it needs "
+                             "choice_sinkhorn >= 1")
         if self.choice_accumulate and self.choice_rounds < 2:
             raise ValueError("choice_accumulate=True adds the rounds' biases up; it needs "
                              f"choice_rounds >= 2, got {self.choice_rounds}")

@@ -234,7 +234,8 @@ def test_dagger_adds_the_assignment_exchange(tmp_path: Path) -> None:
     assert probe["final"]["iteration"] == 0 and probe["final"]["loss"] is None
     assert 0 < probe["final"]["response"] <= 1
     for bad in (["--choice-sinkhorn", "-1", "--choice-head"], ["--choice-sinkhorn", "2"],
-                ["--iterations", "-1"], ["--sinkhorn-beta", "2"],
+                ["--iterations", "-1"], ["--sinkhorn-beta", "2"], ["--sinkhorn-beta", "nan"],
+                ["--sinkhorn-beta", ""], ["--sinkhorn-beta", "1e9"], ["--sinkhorn-beta", "100"],
                 ["--first-share", "1.5"], ["--first-share", "-0.1"]):
         with pytest.raises(SystemExit):
             dagger.main(["--start", str(PARKED), *bad, "--out", str(tmp_path)])

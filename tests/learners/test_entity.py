@@ -692,3 +692,5 @@ def test_assignment_exchange_trains_its_scale_and_refuses_bad_settings():
     for bad in (2.9, 1e5, float("nan"), float("inf"), "30"):
         with pytest.raises(ValueError, match="choice_sinkhorn_beta"):
             EntityConfig(choice_head=True, choice_sinkhorn=3, choice_sinkhorn_beta=bad)
+    with pytest.raises(ValueError, match="needs choice_sinkhorn >= 1"):
+        EntityConfig(choice_head=True, choice_sinkhorn_beta=100.0)
