@@ -16,9 +16,27 @@ intention round the obstacle:
 2. **Blocked?** The straight segment from the AGV to that goal passes within ``2 r`` of a
    parked AGV's centre.
 3. **Detour:** the intended velocity turns toward the next waypoint of a shortest path
-   round the parked AGVs (:class:`sim.floor_paths.FloorWaypoints` on the scene's world with
-   every parked AGV as a square shelf of side ``2 r``; one planner per scene and set of
-   parked AGVs, built when first needed and kept while that set stands), at ``speed``.
+   round the parked AGVs (:class:`sim.floor_paths.FloorWaypoints` on the scene's world; one
+   planner per scene and set of parked AGVs, built when first needed and kept while that set
+   stands), at ``speed``.
+
+Two models of the parked AGVs (``model``):
+
+- ``"squares"`` (the default, the first version): every parked AGV a square shelf of side
+  ``2 r`` on the floor's grid (cells of ``r / 2``); blocked means within ``2 r``. Squares
+  close diagonal gaps that discs leave open (two parked AGVs 0.72 apart on a diagonal leave
+  no path between them, where the shield passes at 0.62), and the shield's margins close
+  gaps the squares leave open (a straight line 0.303 from a parked centre counts as free,
+  and the shield stops the AGV there). Where the goal cannot be reached on the grid the
+  intention is kept, and the AGV wedges.
+- ``"discs"``: every parked AGV a disc that keeps centres ``2 r + clearance`` away
+  (``clearance`` 0.011 by default, a hair above the QP's static margin of 0.01, so the
+  planner's gaps are the shield's), on a grid of ``r / 6`` cells (0.025 at ``r`` = 0.15) so
+  that gaps a few hundredths wider than that are found; blocked means within ``2 r +
+  clearance``. The goal is also kept from step to step while the AGV is turned: an
+  intention that points at no open task (the detour's own momentum against the policy's
+  push back toward the straight line) keeps the last goal instead of dropping the detour,
+  which otherwise flips on and off every other step.
 
 The detour changes preferred velocities only; the QP and the braking filter after it certify
 whatever it gives (``docs/safety.md``), so safety does not depend on it. It needs the episodic
@@ -38,7 +56,10 @@ import torch
 
 from sim.floor_paths import FloorWaypoints
 
-__all__ = ["ParkedDetour", "blocked_segments"]
+__all__ = ["DETOUR_MODELS", "ParkedDetour", "blocked_segments", "detour_model"]
+
+DETOUR_MODELS = ("squares", "discs")
+"""How :class:`ParkedDetour` can see parked AGVs (see ``model``)."""
 
 
 def blocked_segments(start: np.ndarray, end: np.ndarray, centres: np.ndarray,
@@ -69,6 +90,23 @@ def blocked_segments(start: np.ndarray, end: np.ndarray, centres: np.ndarray,
     return near.any(-1)
 
 
+def detour_model(detour: Any) -> str | None:
+    """The model a ``detour`` argument asks for: None (False: no detours), ``"squares"``
+    (True) or the model named (one of :data:`DETOUR_MODELS`).
+
+    Raises
+    ------
+    ValueError
+        For anything else (the message names the valid values).
+    """
+    if isinstance(detour, (bool, np.bool_)):
+        return "squares" if detour else None
+    if isinstance(detour, str) and detour in DETOUR_MODELS:
+        return detour
+    raise ValueError(f"detour must be True, False or one of "
+                     f"{', '.join(map(repr, DETOUR_MODELS))}, got {detour!r}")
+
+
 def _fraction(name: str, value: Any, low: float, high: float) -> float:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) \
             or not np.isfinite(value) or not low <= value <= high:
@@ -90,8 +128,10 @@ class ParkedDetour:
     min_speed : float
         Intended speeds below this (units/s) are left alone: the AGV means to stop (>= 0;
         default 0.05).
-    lookahead : int
-        Path cells from an AGV to its waypoint (>= 1; default 6, :class:`FloorWaypoints`'s).
+    lookahead : int, optional
+        Path cells from an AGV to its waypoint (>= 1; default 6 for ``"squares"``,
+        :class:`FloorWaypoints`'s, and 18 for ``"discs"``, the same 0.45 units on its finer
+        grid).
     speed : float or None
         Speed of a detour (> 0; default 1.5 units/s, three quarters of the terminal speed of
         a unit action: a policy that crawls toward a blocked task is sped up, one that rushes
@@ -99,6 +139,11 @@ class ParkedDetour:
         waypoint in one step. (On 50 episodes of 50v50, seed 0, a taught entity policy behind
         the shield: 99.6% response in 51.6 steps at 1.5 against 99.3% in 56.4 at the intended
         speed capped at 1.5.)
+    model : str
+        ``"squares"`` (default) or ``"discs"``: how the planner sees parked AGVs (above).
+    clearance : float, optional
+        ``"discs"`` only: the gap kept beyond ``2 r`` between an AGV's centre and a parked
+        one's (>= 0; default 0.011).
 
     Attributes
     ----------
@@ -112,8 +157,19 @@ class ParkedDetour:
     """
 
     def __init__(self, cone: float = 0.7, distance_weight: float = 0.05,
-                 min_speed: float = 0.05, lookahead: int = 6,
-                 speed: float | None = 1.5) -> None:
+                 min_speed: float = 0.05, lookahead: int | None = None,
+                 speed: float | None = 1.5, model: str = "squares",
+                 clearance: float | None = None) -> None:
+        if model not in DETOUR_MODELS:
+            raise ValueError(f"model must be one of {', '.join(map(repr, DETOUR_MODELS))}, "
+                             f"got {model!r}")
+        self.model = model
+        if clearance is not None and model != "discs":
+            raise ValueError("clearance is the discs model's gap: it needs model='discs'")
+        self.clearance = 0.0 if model == "squares" else _fraction(
+            "clearance", 0.011 if clearance is None else clearance, 0.0, np.inf)
+        if lookahead is None:
+            lookahead = 6 if model == "squares" else 18
         self.cone = _fraction("cone", cone, -1.0, 1.0)
         self.distance_weight = _fraction("distance_weight", distance_weight, 0.0, np.inf)
         self.min_speed = _fraction("min_speed", min_speed, 0.0, np.inf)
@@ -127,6 +183,7 @@ class ParkedDetour:
         self.env: Any = None
         self.redirected = 0
         self._planners: dict[int, tuple[bytes, FloorWaypoints]] = {}
+        self._goal = np.zeros((0, 0), dtype=np.int64)
 
     def reset(self, env: Any) -> None:
         """Bind to an episodic env.
@@ -147,6 +204,7 @@ class ParkedDetour:
         self.dt = float(env.world.physics.dt)
         self.redirected = 0
         self._planners = {}
+        self._goal = np.full((env.num_envs, env.num_agents), -1, dtype=np.int64)
 
     def _planner(self, b: int, parked_pos: np.ndarray) -> FloorWaypoints:
         """The shortest-path planner of scene ``b`` round its parked AGVs (kept per set)."""
@@ -156,12 +214,17 @@ class ParkedDetour:
             return kept[1]
         world = self.env.world
         r = world.agent_radius
-        squares = np.concatenate([parked_pos - r, parked_pos + r], axis=1)
-        floor = dataclasses.replace(
-            world, obstacles=np.concatenate([np.asarray(world.obstacles).reshape(-1, 4),
-                                             squares]),
-            pickups=np.zeros((0, 2)), stations=np.zeros((0, 2)), depot=np.zeros((0, 4)))
-        planner = FloorWaypoints(floor, lookahead=self.lookahead)
+        bare = dict(pickups=np.zeros((0, 2)), stations=np.zeros((0, 2)), depot=np.zeros((0, 4)))
+        if self.model == "discs":
+            planner = FloorWaypoints(dataclasses.replace(world, **bare), resolution=r / 6,
+                                     lookahead=self.lookahead, discs=parked_pos,
+                                     disc_clearance=2 * r + self.clearance)
+        else:
+            squares = np.concatenate([parked_pos - r, parked_pos + r], axis=1)
+            floor = dataclasses.replace(
+                world, obstacles=np.concatenate([np.asarray(world.obstacles).reshape(-1, 4),
+                                                 squares]), **bare)
+            planner = FloorWaypoints(floor, lookahead=self.lookahead)
         self._planners[b] = (key, planner)
         return planner
 
@@ -202,6 +265,7 @@ class ParkedDetour:
         ask = movable & (speed > self.min_speed) & parked.any(1, keepdims=True) \
             & open_.any(1, keepdims=True)
         if not ask.any():
+            self._goal[:] = -1
             return out, turned
         tasks = env.task_pos.detach().cpu().double().numpy()
         rel = tasks[:, None] - pos[:, :, None]                                    # (B, N, M, 2)
@@ -210,9 +274,15 @@ class ParkedDetour:
         score = np.where((cos >= self.cone) & open_[:, None], cos - self.distance_weight * dist,
                          -np.inf)
         pick = score.argmax(-1)
-        ask &= np.isfinite(np.take_along_axis(score, pick[..., None], -1)[..., 0])
+        found = np.isfinite(np.take_along_axis(score, pick[..., None], -1)[..., 0])
+        if self.model == "discs":  # an AGV turned last step keeps its goal while still open
+            kept = self._goal >= 0
+            kept &= ~found & np.take_along_axis(open_, np.maximum(self._goal, 0), 1)
+            pick, found = np.where(kept, self._goal, pick), found | kept
+        ask &= found
         goal = np.take_along_axis(tasks, pick[..., None].repeat(2, -1), 1)         # (B, N, 2)
-        ask &= blocked_segments(pos, goal, pos, 2.0 * env.world.agent_radius, parked)
+        ask &= blocked_segments(pos, goal, pos, 2.0 * env.world.agent_radius + self.clearance,
+                                parked)
         for b in np.flatnonzero(ask.any(1)):
             agents = np.flatnonzero(ask[b])
             planner = self._planner(int(b), pos[b, parked[b]])
@@ -227,4 +297,5 @@ class ParkedDetour:
             out[b, agents[ok]] = heading[ok] / norm[ok] * go
             turned[b, agents[ok]] = True
         self.redirected += int(turned.sum())
+        self._goal = np.where(turned, pick, -1)
         return out, turned

@@ -112,10 +112,12 @@ class LearnedAllocator:
         (``SafetyShield(keep_right=...)``, radians in [0, pi/2)). None (default): the angle the
         weights were trained with behind the shield (``shield_keep_right`` of an entity
         learner's config; 0 for the others).
-    detour : bool
+    detour : bool or str
         With ``shield=True`` in episodic scenes: the shield first turns intentions that drive
         at a task through a parked AGV round it (``SafetyShield(detour=True)``,
-        :class:`allocator.detour.ParkedDetour`; default False).
+        :class:`allocator.detour.ParkedDetour`; default False). ``"discs"``: the planner
+        that sees parked AGVs as discs with the shield's own gaps (``ParkedDetour``'s
+        ``model``); True is ``"squares"``.
     weights : {"scenario", "auto", "any"} or path-like
         Which shipped weights (when no ``checkpoint`` is given): only the scenario's own
         (``"scenario"``, the default); the scenario's own if they exist, else the any-N ones
@@ -142,7 +144,7 @@ class LearnedAllocator:
     def __init__(
         self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
         max_steps: int | None = None, shield: bool = False, weights: str = "scenario",
-        keep_right: float | None = None, detour: bool = False, **options: Any,
+        keep_right: float | None = None, detour: bool | str = False, **options: Any,
     ) -> None:
         from learners.policy import LearnedPolicy
         from sim.scenarios import get_scenario
@@ -164,9 +166,9 @@ class LearnedAllocator:
             raise ValueError(f"shield must be True or False, got {shield!r}")
         if keep_right is not None and not shield:
             raise ValueError("keep_right is the shield's lane angle: it needs shield=True")
-        if not isinstance(detour, (bool, np.bool_)):
-            raise ValueError(f"detour must be True or False, got {detour!r}")
-        if detour and not shield:
+        from allocator.detour import detour_model
+
+        if detour_model(detour) is not None and not shield:
             raise ValueError("detour is a stage of the shield: it needs shield=True")
         if isinstance(weights, (str, os.PathLike)) and weights not in WEIGHT_CHOICES \
                 and Path(weights).exists():
@@ -225,7 +227,7 @@ class LearnedAllocator:
             if keep_right is None:  # the angle the weights were trained with behind the shield
                 keep_right = float(getattr(self.policy.learner.config, "shield_keep_right", 0.0))
             self.safety = SafetyShield(_Unshielded(self), keep_right=keep_right,
-                                       detour=bool(detour))
+                                       detour=detour_model(detour) or False)
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:

@@ -50,7 +50,7 @@ from torch import Tensor
 from allocator.avoidance import AvoidanceConfig, VelocityAvoidance
 from allocator.avoidance.braking import BrakingShield, braking_velocity
 from allocator.avoidance.liveness import DeadlockResolver
-from allocator.detour import ParkedDetour
+from allocator.detour import ParkedDetour, detour_model
 
 __all__ = ["SafetyShield", "movable_agents"]
 
@@ -119,10 +119,12 @@ class SafetyShield:
         Where the liveness rules run: turn the intended velocities this many radians to the
         right first, SafeDriver's lane discipline (in [0, pi/2); default 0, the policy's
         direction).
-    detour : bool
+    detour : bool or str
         Episodic scenes: turn intentions that drive at an open task through a parked AGV round
-        it first (:class:`~allocator.detour.ParkedDetour`; default False). A lifelong env
-        refuses it at :meth:`reset`.
+        it first (:class:`~allocator.detour.ParkedDetour`; default False). True is the
+        ``"squares"`` model; ``"discs"`` plans round discs with the shield's own gaps and
+        keeps an AGV's goal while it is turned (see ``ParkedDetour``'s ``model``). A lifelong
+        env refuses it at :meth:`reset`.
 
     Attributes
     ----------
@@ -150,7 +152,7 @@ class SafetyShield:
     def __init__(self, controller: Any, qp: bool = True, margin: float = 0.01,
                  tolerance: float = 1e-3, avoidance_options: dict[str, Any] | None = None,
                  liveness: bool | None = None, seed: int = 0, cruise_speed: float = 1.2,
-                 keep_right: float = 0.0, detour: bool = False) -> None:
+                 keep_right: float = 0.0, detour: bool | str = False) -> None:
         if not (callable(getattr(controller, "reset", None))
                 and callable(getattr(controller, "act", None))):
             raise ValueError(f"controller must have reset(env) and act(obs) methods, got "
@@ -176,8 +178,7 @@ class SafetyShield:
                 or not np.isfinite(keep_right) or not 0 <= keep_right < np.pi / 2:
             raise ValueError(f"keep_right must be an angle in [0, pi/2) radians, got "
                              f"{keep_right!r}")
-        if not isinstance(detour, (bool, np.bool_)):
-            raise ValueError(f"detour must be True or False, got {detour!r}")
+        model = detour_model(detour)
         if avoidance_options is not None and not isinstance(avoidance_options, dict):
             raise ValueError(f"avoidance_options must be a dict of AvoidanceConfig fields, "
                              f"got {type(avoidance_options).__name__}")
@@ -190,7 +191,10 @@ class SafetyShield:
         self.seed = int(seed)
         self.cruise_speed = float(cruise_speed)
         self.keep_right = float(keep_right)
-        self.detour = bool(detour)
+        self.detour = model is not None
+        self.detour_model = model
+        """``"squares"`` or ``"discs"`` (:class:`~allocator.detour.ParkedDetour`'s ``model``),
+        None without detours."""
         self._detour: ParkedDetour | None = None
         self.live = False
         self.resolver: DeadlockResolver | None = None
@@ -203,7 +207,7 @@ class SafetyShield:
 
     def __repr__(self) -> str:
         return (f"SafetyShield({self.controller!r}, qp={self.qp}, liveness={self.liveness}, "
-                f"detour={self.detour})")
+                f"detour={self.detour_model or False!r})")
 
     @property
     def name(self) -> str:
@@ -214,7 +218,7 @@ class SafetyShield:
         """Reset the wrapped controller and the counters; build the QP for ``env``'s world
         and, where the liveness rules run (see ``liveness``), a fresh resolver."""
         if self.detour:  # first: a lifelong env is refused before anything is bound
-            self._detour = ParkedDetour()
+            self._detour = ParkedDetour(model=self.detour_model)
             self._detour.reset(env)
         else:
             self._detour = None

@@ -5,7 +5,7 @@
         [--seed 0] [--quick] [--out benchmarks/results/scale]
         [--methods hungarian maddpg-ipf ...] [--no-any-n] [--entity POLICY.safetensors ...]
         [--lifelong-weights RUN_DIR_OR_FILE ...] [--dispatchers hungarian fifo ...] [--view KT:KA]
-        [--detour]
+        [--detour [{squares,discs}]]
 
 Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
 ``fifo`` and ``auction`` (its radio range equal to the scenario's sensing range, so that the
@@ -24,7 +24,9 @@ entity learner run (e.g. ``runs/.../best.safetensors``), plain and shielded, nam
 ``<algo>-<reward> any-N`` and ``FILE's algo-reward (FILE)``. ``--methods`` keeps only the
 named rows (``hungarian`` is always run: the time column is relative to it). ``--detour``
 adds a third row for every learned method: shielded, with the shield's detours round parked
-AGVs (``allocator.make(..., shield=True, detour=True)``, :mod:`allocator.detour`).
+AGVs (``allocator.make(..., shield=True, detour=True)``, :mod:`allocator.detour`);
+``--detour discs`` runs that row with the planner that sees parked AGVs as discs with the
+shield's own gaps (``detour="discs"``).
 
 Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
 ``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) with their default
@@ -81,7 +83,7 @@ LIFELONG_COMM_RANGE = 3.0
 
 
 def episodic_method(name: str, n: int, shield: bool, sensing_range: float,
-                    detour: bool = False) -> Any:
+                    detour: bool | str = False) -> Any:
     """The controller for one episodic row (``detour``: the shield's detours round parked
     AGVs, learned rows with ``shield`` only)."""
     guard = dict(shield=shield, detour=detour)
@@ -129,11 +131,13 @@ class OverlapCounter:
 def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
                   methods: list[str] | None = None, any_n: bool = False,
                   entity: list[str] | None = None,
-                  view: tuple[int, int] | None = None, detour: bool = False) -> list[dict]:
+                  view: tuple[int, int] | None = None, detour: bool | str = False
+                  ) -> list[dict]:
     """The episodic rows; ``view`` (K_t, K_a): the task and AGV slots every row observes
     (capped at M and N - 1), except the paper's weights (``LEARNED``), whose input size is
     fixed; None: the scenarios' own (6 and 5). ``detour``: every learned row also runs
-    shielded with the shield's detours round parked AGVs (``detour=True``)."""
+    shielded with the shield's detours round parked AGVs (True or ``"squares"``, or
+    ``"discs"``: :class:`allocator.detour.ParkedDetour`'s model)."""
     rows = []
     learned = list(LEARNED)
     if any_n:  # the families whose any-N weights ship
@@ -150,7 +154,7 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
         viewed = base if view is None else sim.get_scenario(
             scenario, k_tasks=min(view[0], n), k_agents=min(view[1], n - 1))
         hung_time = None
-        guards = [(False, False), (True, False)] + ([(True, True)] if detour else [])
+        guards = [(False, False), (True, False)] + ([(True, detour)] if detour else [])
         variants = [(m, False, False) for m in CLASSICAL] + [(m, s, d) for m in learned
                                                              for s, d in guards]
         if keep is not None:
@@ -259,6 +263,13 @@ def _fmt(x: Any, spec: str = ".3f") -> str:
     return format(x, spec)
 
 
+def _detour_label(detour: bool | str | None) -> str:
+    """The shield column's suffix for a row's ``detour`` (True, False or a model)."""
+    if not detour:
+        return ""
+    return " + detour" if detour in (True, "squares") else f" + {detour} detour"
+
+
 def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
     out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -269,7 +280,8 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
         f"{torch.__version__}, {stamp}; seed {seed} (the same episodes and orders for every "
         "method). Learned rows: the shipped weights (3v3 at N = 3, 6v6 zero-shot above), "
         "plain and shielded (`shield=True`; `yes + detour`: with the shield's detours round "
-        "parked AGVs, `detour=True`); `any-N` rows: the shipped any-N weights "
+        "parked AGVs, `detour=True`; `yes + discs detour`: `detour=\"discs\"`); `any-N` "
+        "rows: the shipped any-N weights "
         "(`allocator/weights/any`), `entity:FILE` rows: an entity learner's policy file, "
         "both run zero-shot at every N. Auction: radio range = the scenario's sensing "
         "range (episodic), 3.0 (lifelong `auction`), unlimited (lifelong `auction+safe`, as "
@@ -285,7 +297,7 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
             "|---|---|---|---|---|---|---|---|---|---|",
         ]
     for r in (r for r in rows if r["kind"] == "episodic"):
-        guard = "yes + detour" if r.get("detour") else "yes" if r["shield"] else "no"
+        guard = "yes" + _detour_label(r.get("detour")) if r["shield"] else "no"
         lines.append(
             f"| {r['scenario']} | {r['method']} | {guard} | "
             f"{r['episodes']} | {_fmt(r['response'])} | {_fmt(r['avg_time'], '.2f')} | "
@@ -324,14 +336,14 @@ def plot(rows: list[dict], path: Path) -> None:
     if not ep:
         return
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-    keys = sorted({(r["method"], r["shield"], bool(r.get("detour"))) for r in ep},
+    keys = sorted({(r["method"], r["shield"], _detour_label(r.get("detour"))) for r in ep},
                   key=lambda k: (k[0] not in CLASSICAL, k))
     for method, shield, detour in keys:
         pts = sorted((r["n"], r["response"], r["time_vs_hungarian"]) for r in ep
                      if r["method"] == method and r["shield"] == shield
-                     and bool(r.get("detour")) == detour)
+                     and _detour_label(r.get("detour")) == detour)
         n = [p[0] for p in pts]
-        label = method + (" + shield + detour" if detour else " + shield" if shield else "")
+        label = method + (" + shield" + detour if shield else "")
         style = ":" if detour else "--" if shield else "-"
         ax1.plot(n, [p[1] for p in pts], style, marker="o", label=label)
         ax2.plot(n, [p[2] for p in pts], style, marker="o", label=label)
@@ -369,9 +381,11 @@ def main(argv: list[str] | None = None) -> None:
                    help="episodic rows observe KT task and KA AGV slots (capped at M and "
                         "N - 1; not the paper's weights, whose input is fixed; default the "
                         "scenario's 6:5)")
-    p.add_argument("--detour", action="store_true",
+    p.add_argument("--detour", nargs="?", const="squares", default=False,
+                   choices=("squares", "discs"),
                    help="learned episodic rows also run shielded with detours round parked "
-                        "AGVs (SafetyShield(detour=True))")
+                        "AGVs (SafetyShield(detour=True); 'discs': detour='discs', the "
+                        "planner with the shield's own gaps)")
     p.add_argument("--lifelong-weights", nargs="+", default=[], metavar="RUN_OR_FILE",
                    help="add lifelong rows for these lifelong entity runs or policy files")
     p.add_argument("--dispatchers", nargs="+", default=None, choices=BASELINES,
@@ -401,7 +415,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     np.seterr(all="ignore")
     rows = episodic_rows(args.sizes, episodes, args.seed, args.methods, args.any_n,
-                         args.entity, view, args.detour)
+                         args.entity, view, True if args.detour == "squares" else args.detour)
     for w in args.lifelong_weights:
         if not policy_file(w).is_file():
             p.error(f"--lifelong-weights {w}: no policy file there")

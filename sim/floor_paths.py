@@ -27,6 +27,7 @@ import scipy.sparse as sp
 import torch
 from scipy import ndimage
 from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from sim.world import World
@@ -47,16 +48,24 @@ class FloorWaypoints:
         Cell side, world units (default half the AGV radius, at most 0.1).
     lookahead : int
         Path cells between an AGV's cell and its waypoint (default 6).
+    discs : np.ndarray, shape (C, 2), optional
+        Centres of round obstacles besides the shelves (parked AGVs, for
+        :class:`allocator.detour.ParkedDetour`): a cell is free only if its centre is at least
+        ``disc_clearance`` from each.
+    disc_clearance : float
+        Least distance from a free cell's centre to a disc's centre (>= 0; default 0).
 
     Raises
     ------
     ValueError
         For a world that is not a ``sim.World``, a resolution that is not positive and finite
-        or gives more than four million cells, or a lookahead below 1.
+        or gives more than four million cells, a lookahead below 1, discs that are not finite
+        (C, 2) centres or a negative disc clearance.
     """
 
     def __init__(self, world: World, resolution: float | None = None,
-                 lookahead: int = 6) -> None:
+                 lookahead: int = 6, discs: np.ndarray | None = None,
+                 disc_clearance: float = 0.0) -> None:
         if not isinstance(world, World):
             raise ValueError(f"world must be a sim.World, got {type(world).__name__}")
         res = min(world.agent_radius / 2, 0.1) if resolution is None else resolution
@@ -65,6 +74,15 @@ class FloorWaypoints:
             raise ValueError(f"resolution must be a positive finite number, got {resolution!r}")
         if isinstance(lookahead, bool) or not isinstance(lookahead, int) or lookahead < 1:
             raise ValueError(f"lookahead must be an integer >= 1, got {lookahead!r}")
+        if discs is not None:
+            discs = np.asarray(discs, dtype=np.float64)
+            if discs.ndim != 2 or discs.shape[1] != 2 or not np.all(np.isfinite(discs)):
+                raise ValueError(f"discs must be finite centres of shape (C, 2), got shape "
+                                 f"{discs.shape}")
+        if isinstance(disc_clearance, bool) or not isinstance(disc_clearance, (int, float)) \
+                or not (math.isfinite(disc_clearance) and disc_clearance >= 0):
+            raise ValueError(f"disc_clearance must be a finite number >= 0, got "
+                             f"{disc_clearance!r}")
         self.world, self.resolution, self.lookahead = world, float(res), lookahead
         xmin, ymin, xmax, ymax = world.bounds
         self.origin = (float(xmin), float(ymin))
@@ -77,7 +95,10 @@ class FloorWaypoints:
         ix, iy = np.meshgrid(np.arange(self.width), np.arange(self.height))
         self._centres = np.stack([xmin + (ix.ravel() + 0.5) * res,
                                   ymin + (iy.ravel() + 0.5) * res], axis=1)
-        free = world.is_free(self._centres).reshape(self.height, self.width)
+        free = world.is_free(self._centres)
+        if discs is not None and len(discs):
+            free &= cKDTree(discs).query(self._centres)[0] >= disc_clearance
+        free = free.reshape(self.height, self.width)
         if not free.any():
             raise ValueError("no cell of this floor holds an AGV")
         # every cell's nearest free cell (points inside a shelf's margin snap out of it)

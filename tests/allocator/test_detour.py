@@ -108,10 +108,87 @@ def test_learned_allocator_passes_detour_to_its_shield() -> None:
     assert m.collisions == 0 and 0.0 < m.response_rate <= 1.0
 
 
-@pytest.mark.parametrize("value", [None, float("nan"), 1e300, "", 1])
-def test_detour_flag_takes_only_a_bool(value) -> None:
-    with pytest.raises(ValueError, match="detour must be True or False"):
+@pytest.mark.parametrize("value", [None, float("nan"), 1e300, "", 1, "circles", "Discs"])
+def test_detour_flag_takes_a_bool_or_a_model_name(value) -> None:
+    with pytest.raises(ValueError, match="detour must be True, False or one of 'squares', "
+                                         "'discs'"):
         SafetyShield(NearestTaskController(), detour=value)
+    with pytest.raises(ValueError, match="detour must be"):
+        allocator.make("bicnet-ipf", scenario="6v6", shield=True, detour=value)
+
+
+def test_detour_models_reach_the_shield() -> None:
+    assert SafetyShield(NearestTaskController(), detour=True).detour_model == "squares"
+    assert SafetyShield(NearestTaskController()).detour_model is None
+    ctl = allocator.make("bicnet-ipf", scenario="6v6", shield=True, detour="discs")
+    assert ctl.safety.detour is True and ctl.safety.detour_model == "discs"
+    assert "discs" in repr(ctl.safety)
+    m = sim.evaluate(ctl, "6v6", episodes=4, seed=0)
+    assert m.collisions == 0 and 0.0 < m.response_rate <= 1.0
+
+
+def test_discs_model_settings_name_the_problem() -> None:
+    for kwargs, word in ((dict(model="circles"), "model"), (dict(model=None), "model"),
+                         (dict(clearance=0.02), "needs model='discs'"),
+                         (dict(model="discs", clearance=-0.01), "clearance"),
+                         (dict(model="discs", clearance=float("nan")), "clearance"),
+                         (dict(model="discs", clearance="wide"), "clearance")):
+        with pytest.raises(ValueError, match=word):
+            ParkedDetour(**kwargs)
+    assert ParkedDetour(model="discs").clearance == pytest.approx(0.011)
+    assert ParkedDetour(model="discs").lookahead == 18 and ParkedDetour().lookahead == 6
+
+
+def _slot_scene(num_envs: int = 1):
+    """AGVs 1 and 2 park 0.617 apart across the line from idle AGV 0 to task 2: a slot the
+    AGV's disc fits through (0.6) but the shield's gaps do not (0.62)."""
+    env = sim.make_env("3v3", num_envs=num_envs, seed=0)
+    half = 0.3085
+    env.set_state(np.array([[[-0.8, 0.0], [0.0, half], [0.0, -half]]] * num_envs),
+                  np.array([[[0.0, half], [0.0, -half], [0.8, 0.0]]] * num_envs))
+    env.step(torch.zeros(num_envs, 3, 2))  # AGVs 1 and 2 claim tasks 0 and 1 and park
+    assert env.agent_task[:, 0].eq(-1).all() and env.agent_task[:, 1:].ge(0).all()
+    return env
+
+
+def test_the_discs_model_goes_round_a_slot_the_shield_does_not_let_through() -> None:
+    reached = {}
+    for model in ("squares", "discs"):
+        env = _slot_scene()
+        shield = SafetyShield(NearestTaskController(), detour=model)
+        shield.reset(env)
+        obs = env.observe()
+        pairs = 0
+        for _ in range(40):
+            obs, _, _, info = env.step(shield.act(obs))
+            pairs += int(info["collision_pairs"].sum())
+        assert pairs == 0
+        reached[model] = bool(env.task_claimed[0, 2])
+        # squares: the line 0.3085 from both parked centres counts as free, so no detour
+        assert (shield.interventions["detour"] > 0) == (model == "discs")
+    assert reached == {"squares": False, "discs": True}
+
+
+def test_the_discs_model_keeps_the_goal_while_the_intention_points_elsewhere() -> None:
+    kept = {}
+    for model in ("squares", "discs"):
+        env = _wall_scene()
+        detour = ParkedDetour(model=model)
+        detour.reset(env)
+        intended = np.zeros((1, 2, 2))
+        intended[0, 0] = [1.0, 0.0]  # at task 1, through the parked AGV: turned
+        assert detour.redirect(intended, movable_agents(env))[1][0, 0]
+        intended[0, 0] = [0.0, -1.0]  # at no open task (the detour's momentum, say)
+        out, turned = detour.redirect(intended, movable_agents(env))
+        kept[model] = bool(turned[0, 0])
+        if turned[0, 0]:
+            assert out[0, 0, 0] > 0 or abs(out[0, 0, 1]) > 0.3  # still round, toward task 1
+        # an AGV that means to stop is left alone either way; that drops the goal
+        intended[0, 0] = [0.0, 0.0]
+        assert not detour.redirect(intended, movable_agents(env))[1].any()
+        intended[0, 0] = [0.0, -1.0]
+        assert not detour.redirect(intended, movable_agents(env))[1].any()
+    assert kept == {"squares": False, "discs": True}
 
 
 @pytest.mark.parametrize("name,value", [("cone", float("nan")), ("cone", 1e300), ("cone", None),

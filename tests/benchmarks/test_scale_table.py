@@ -76,6 +76,18 @@ def test_detour_adds_a_shielded_detour_row_per_learned_method(tmp_path: Path) ->
     assert "| 6v6 | bicnet-ipf | yes + detour |" in (tmp_path / "scale.md").read_text()
 
 
+def test_detour_discs_names_its_row(tmp_path: Path) -> None:
+    bench.main(["--sizes", "6", "--episodes", "2", "--floors", "--no-any-n", "--detour",
+                "discs", "--methods", "hungarian", "bicnet-ipf", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
+    assert [r["detour"] for r in rows] == [False, False, False, "discs"]
+    assert rows[-1]["overlaps"] == 0
+    assert "| 6v6 | bicnet-ipf | yes + discs detour |" in (tmp_path / "scale.md").read_text()
+    with pytest.raises(SystemExit):
+        bench.main(["--sizes", "6", "--episodes", "2", "--floors", "--detour", "circles",
+                    "--out", str(tmp_path)])
+
+
 def test_bad_arguments(tmp_path: Path) -> None:
     for view in ("10", "a:b", "0:3", "3:-1"):
         with pytest.raises(SystemExit):
