@@ -1,7 +1,7 @@
 """How fast can AGVs that see only their K nearest tasks and AGVs finish an episode? (issue 17)
 
     python benchmarks/local_information.py [--sizes 20 50] [--episodes 100 20]
-        [--views 6:5 10:10 16:15 full] [--seed 0] [--detour]
+        [--views 6:5 10:10 16:15 full] [--seed 0] [--detour [{squares,discs}]]
         [--out benchmarks/results/scale/local]
 
 The learned policies read the paper's observation: the K_t = 6 nearest open tasks and the
@@ -17,7 +17,8 @@ row of the scale table, planned once, OMPL paths and ORCA), on the same seeded e
 Columns: response, average time (steps until every task is claimed, the step limit where
 not), that time over ``hungarian``'s, overlapping pairs per episode (no avoidance here: the
 rule drives straight), plain and with :class:`allocator.shield.SafetyShield` (``--detour``:
-also with the shield's detours round parked AGVs, :mod:`allocator.detour`).
+also with the shield's detours round parked AGVs, :mod:`allocator.detour`; ``--detour discs``:
+the planner that sees parked AGVs as discs with the shield's own gaps).
 
 Writes ``local.md`` and ``local.json`` to ``--out`` with the command, seed and machine.
 The assignment loop runs once per idle AGV and step in Python: a measuring tool, not a
@@ -144,15 +145,16 @@ def view(n: int, spec: str) -> tuple[int, int]:
 
 
 def rows_for(n: int, episodes: int, views: list[str], seed: int,
-             detour: bool = False) -> list[dict]:
+             detour: bool | str = False) -> list[dict]:
     """The rows of one NvN scene: ``hungarian``, then the rule at every view, plain and
-    shielded (``detour``: also shielded with the shield's detours round parked AGVs)."""
+    shielded (``detour``: also shielded with the shield's detours round parked AGVs, True or
+    ``"squares"``, or ``"discs"``)."""
     name = f"{n}v{n}"
     rows: list[dict] = []
     hung = None
     runs: list[tuple[str, str, bool, bool, Any, Any]] = [
         ("hungarian", "-", False, False, allocator.make("hungarian"), sim.get_scenario(name))]
-    guards = [(False, False), (True, False)] + ([(True, True)] if detour else [])
+    guards = [(False, False), (True, False)] + ([(True, detour)] if detour else [])
     for spec in views:
         kt, ka = view(n, spec)
         scenario = sim.get_scenario(name, k_tasks=kt, k_agents=ka)
@@ -175,9 +177,18 @@ def rows_for(n: int, episodes: int, views: list[str], seed: int,
     return rows
 
 
+def detour_label(detour: bool | str | None) -> str:
+    """The shield column's suffix for a row's ``detour``: ``""`` (none), ``" + detour"``
+    (True, the squares model) or ``" + discs detour"``."""
+    if not detour:
+        return ""
+    return " + detour" if detour in (True, "squares") else f" + {detour} detour"
+
+
 def guard(row: dict) -> str:
-    """The shield column of a row: ``no``, ``yes`` or ``yes + detour``."""
-    return "yes + detour" if row.get("detour") else "yes" if row["shield"] else "no"
+    """The shield column of a row: ``no``, ``yes``, ``yes + detour`` or ``yes + discs
+    detour``."""
+    return "yes" + detour_label(row.get("detour")) if row["shield"] else "no"
 
 
 def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
@@ -209,9 +220,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--views", nargs="+", default=["6:5", "10:10", "16:15", "full"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
-    parser.add_argument("--detour", action="store_true",
+    parser.add_argument("--detour", nargs="?", const="squares", default=False,
+                        choices=("squares", "discs"),
                         help="also run the rule shielded with detours round parked AGVs "
-                             "(SafetyShield(detour=True))")
+                             "(SafetyShield(detour=True); 'discs': detour='discs')")
     args = parser.parse_args(argv)
     if len(args.sizes) != len(args.episodes):
         parser.error("--sizes and --episodes need one value each per size")
@@ -226,7 +238,8 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(str(err))
     torch.set_num_threads(1)
     rows = [r for n, e in zip(args.sizes, args.episodes, strict=True)
-            for r in rows_for(n, e, args.views, args.seed, args.detour)]
+            for r in rows_for(n, e, args.views, args.seed,
+                              True if args.detour == "squares" else args.detour)]
     command = recorded_command(__file__, argv)
     write(rows, args.out, command.strip(), args.seed)
     print(f"wrote {args.out / 'local.md'}")

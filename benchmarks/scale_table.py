@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from local_information import detour_label
 from provenance import recorded_command
 
 import allocator
@@ -263,13 +264,6 @@ def _fmt(x: Any, spec: str = ".3f") -> str:
     return format(x, spec)
 
 
-def _detour_label(detour: bool | str | None) -> str:
-    """The shield column's suffix for a row's ``detour`` (True, False or a model)."""
-    if not detour:
-        return ""
-    return " + detour" if detour in (True, "squares") else f" + {detour} detour"
-
-
 def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
     out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -297,7 +291,7 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
             "|---|---|---|---|---|---|---|---|---|---|",
         ]
     for r in (r for r in rows if r["kind"] == "episodic"):
-        guard = "yes" + _detour_label(r.get("detour")) if r["shield"] else "no"
+        guard = "yes" + detour_label(r.get("detour")) if r["shield"] else "no"
         lines.append(
             f"| {r['scenario']} | {r['method']} | {guard} | "
             f"{r['episodes']} | {_fmt(r['response'])} | {_fmt(r['avg_time'], '.2f')} | "
@@ -336,12 +330,12 @@ def plot(rows: list[dict], path: Path) -> None:
     if not ep:
         return
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-    keys = sorted({(r["method"], r["shield"], _detour_label(r.get("detour"))) for r in ep},
+    keys = sorted({(r["method"], r["shield"], detour_label(r.get("detour"))) for r in ep},
                   key=lambda k: (k[0] not in CLASSICAL, k))
     for method, shield, detour in keys:
         pts = sorted((r["n"], r["response"], r["time_vs_hungarian"]) for r in ep
                      if r["method"] == method and r["shield"] == shield
-                     and _detour_label(r.get("detour")) == detour)
+                     and detour_label(r.get("detour")) == detour)
         n = [p[0] for p in pts]
         label = method + (" + shield" + detour if shield else "")
         style = ":" if detour else "--" if shield else "-"

@@ -11,6 +11,7 @@ import sim
 from allocator.detour import ParkedDetour, blocked_segments
 from allocator.shield import SafetyShield, movable_agents
 from sim.controllers import NearestTaskController
+from tests.allocator.test_shield import _run
 
 
 def test_blocked_segments_geometry() -> None:
@@ -63,18 +64,19 @@ def test_a_free_line_or_no_parked_agv_changes_nothing() -> None:
     assert not turned.any() and np.array_equal(out, intended)
 
 
+def _drive(env, detour, steps: int) -> SafetyShield:
+    """``steps`` steps of the nearest-task controller behind a shield with ``detour``; no
+    two AGVs may overlap on the way."""
+    shield = SafetyShield(NearestTaskController(), detour=detour)
+    assert _run(env, shield, steps) == 0
+    return shield
+
+
 def test_the_shield_with_detours_reaches_the_task_that_it_is_held_from_without() -> None:
     reached = {}
     for detour in (False, True):
         env = _wall_scene(num_envs=2)
-        shield = SafetyShield(NearestTaskController(), detour=detour)
-        shield.reset(env)
-        obs = env.observe()
-        pairs = 0
-        for _ in range(30):
-            obs, _, _, info = env.step(shield.act(obs))
-            pairs += int(info["collision_pairs"].sum())
-        assert pairs == 0
+        shield = _drive(env, detour, 30)
         reached[detour] = bool(env.task_claimed[:, 1].all())
         assert (shield.interventions["detour"] > 0) == detour
     assert reached == {False: False, True: True}
@@ -155,14 +157,7 @@ def test_the_discs_model_goes_round_a_slot_the_shield_does_not_let_through() -> 
     reached = {}
     for model in ("squares", "discs"):
         env = _slot_scene()
-        shield = SafetyShield(NearestTaskController(), detour=model)
-        shield.reset(env)
-        obs = env.observe()
-        pairs = 0
-        for _ in range(40):
-            obs, _, _, info = env.step(shield.act(obs))
-            pairs += int(info["collision_pairs"].sum())
-        assert pairs == 0
+        shield = _drive(env, model, 40)
         reached[model] = bool(env.task_claimed[0, 2])
         # squares: the line 0.3085 from both parked centres counts as free, so no detour
         assert (shield.interventions["detour"] > 0) == (model == "discs")

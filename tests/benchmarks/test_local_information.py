@@ -91,6 +91,14 @@ def test_detour_adds_a_shielded_detour_row_per_view(tmp_path: Path) -> None:
         (False, False), (False, False), (True, False), (True, True)]
     assert rows[-1]["overlaps"] == 0
     assert "| 3:2 | yes + detour |" in (tmp_path / "local.md").read_text()
+    local.main(["--sizes", "3", "--episodes", "2", "--views", "full", "--detour", "discs",
+                "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "local.json").read_text())["rows"]
+    assert rows[-1]["detour"] == "discs" and rows[-1]["overlaps"] == 0
+    assert "| 3:2 | yes + discs detour |" in (tmp_path / "local.md").read_text()
+    with pytest.raises(SystemExit):
+        local.main(["--sizes", "3", "--episodes", "2", "--detour", "round",
+                    "--out", str(tmp_path)])
 
 
 def test_dagger_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
