@@ -381,7 +381,8 @@ class LearnedAllocator:
             from allocator.shield import SafetyShield
 
             rollout = SafetyShield(_Unshielded(self), qp=self.safety.qp,
-                                   margin=self.safety.margin)
+                                   margin=self.safety.margin,
+                                   detour=self.safety.detour_model or False)
             rollout.reset(env)
             act = rollout.act
         frames = [env.agent_pos[0].clone()]

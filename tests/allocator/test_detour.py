@@ -192,3 +192,23 @@ def test_the_discs_model_keeps_the_goal_while_the_intention_points_elsewhere() -
 def test_detour_settings_refuse_nan_huge_empty_and_wrong_types(name, value) -> None:
     with pytest.raises(ValueError, match=name):
         ParkedDetour(**{name: value})
+
+
+def test_a_shielded_assign_rolls_out_with_the_same_detours(monkeypatch) -> None:
+    models = []
+    original = ParkedDetour.reset
+
+    def spy(self, env):
+        models.append(self.model)
+        original(self, env)
+
+    monkeypatch.setattr(ParkedDetour, "reset", spy)
+    ctl = allocator.make("bicnet-ipf", scenario="6v6", shield=True, detour="discs")
+    rng = np.random.default_rng(0)
+    plan = ctl.assign(rng.uniform(-1, 1, (6, 2)) * [1, 0.3] + [0, 0.6],
+                      rng.uniform(-1, 1, (6, 2)) * [1, 0.3] - [0, 0.6])
+    assert models == ["discs"] and plan.task_of_agent.shape == (6,)
+    models.clear()
+    allocator.make("bicnet-ipf", scenario="6v6", shield=True).assign(
+        np.array([[-1.0, 0.0], [1.0, 0.0]]), np.array([[0.0, 1.0], [0.0, -1.0]]))
+    assert models == []
