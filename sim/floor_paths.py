@@ -27,7 +27,6 @@ import scipy.sparse as sp
 import torch
 from scipy import ndimage
 from scipy.sparse import csgraph
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from sim.world import World
@@ -97,7 +96,7 @@ class FloorWaypoints:
                                   ymin + (iy.ravel() + 0.5) * res], axis=1)
         free = world.is_free(self._centres)
         if discs is not None and len(discs):
-            free &= cKDTree(discs).query(self._centres)[0] >= disc_clearance
+            free &= self._clear_of(discs, float(disc_clearance))
         free = free.reshape(self.height, self.width)
         if not free.any():
             raise ValueError("no cell of this floor holds an AGV")
@@ -109,6 +108,23 @@ class FloorWaypoints:
         self._row_of_cell = torch.full((cells,), -1, dtype=torch.int64)
         self._wp_cell = torch.zeros(0, cells, dtype=torch.int64)
         self._dist = torch.zeros(0, cells, dtype=torch.float32)
+
+    def _clear_of(self, discs: np.ndarray, clearance: float) -> np.ndarray:
+        """Whether each cell's centre is at least ``clearance`` from every disc's centre,
+        (cells,) bool: each disc marks the cells of a window round it (its radius in cells
+        plus one, so no cell outside it comes nearer), O(C (clearance / resolution)^2)."""
+        res, (x0, y0) = self.resolution, self.origin
+        reach = math.ceil(clearance / res) + 1
+        off = np.arange(-reach, reach + 1)
+        gx = np.floor((discs[:, 0] - x0) / res).astype(np.int64)[:, None, None] + off[None, None]
+        gy = np.floor((discs[:, 1] - y0) / res).astype(np.int64)[:, None, None] + off[None, :, None]
+        gx, gy = np.broadcast_arrays(gx, gy)                                        # (C, S, S)
+        near = (x0 + (gx + 0.5) * res - discs[:, 0, None, None]) ** 2 \
+            + (y0 + (gy + 0.5) * res - discs[:, 1, None, None]) ** 2 < clearance ** 2
+        near &= (gx >= 0) & (gx < self.width) & (gy >= 0) & (gy < self.height)
+        clear = np.ones(self.width * self.height, dtype=bool)
+        clear[(gy * self.width + gx)[near]] = False
+        return clear
 
     @property
     def cached_targets(self) -> int:

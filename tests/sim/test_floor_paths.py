@@ -55,3 +55,17 @@ def test_waypoints_keep_the_clearance_from_every_disc() -> None:
 def test_bad_discs_name_the_problem(discs, clearance, word) -> None:
     with pytest.raises(ValueError, match=word):
         FloorWaypoints(_box(), discs=discs, disc_clearance=clearance)
+
+
+@pytest.mark.parametrize("clearance", [0.0, 0.05, 0.311, 1.0])
+def test_free_cells_are_exactly_those_at_the_clearance_from_every_disc(clearance) -> None:
+    world = _box()
+    rng = np.random.default_rng(3)
+    discs = rng.uniform(-2.5, 2.5, (25, 2))  # some beyond the floor's walls (+-1.83)
+    paths = FloorWaypoints(world, resolution=0.025, discs=discs, disc_clearance=clearance)
+    centres = paths._centres
+    gap = np.linalg.norm(centres[:, None] - discs[None], axis=-1).min(1)
+    expected = world.is_free(centres) & (gap >= clearance)
+    got = np.asarray(paths._graph.sum(1)).ravel() > 0  # cells with a free neighbour
+    assert np.array_equal(paths._clear_of(discs, clearance), gap >= clearance)
+    assert not (got & ~expected).any()  # no blocked cell joins the graph
