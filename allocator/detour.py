@@ -143,7 +143,7 @@ class ParkedDetour:
         ``"squares"`` (default) or ``"discs"``: how the planner sees parked AGVs (above).
     clearance : float, optional
         ``"discs"`` only: the gap kept beyond ``2 r`` between an AGV's centre and a parked
-        one's (>= 0; default 0.011).
+        one's (in [0, 1]; default 0.011).
 
     Attributes
     ----------
@@ -167,7 +167,7 @@ class ParkedDetour:
         if clearance is not None and model != "discs":
             raise ValueError("clearance is the discs model's gap: it needs model='discs'")
         self.clearance = 0.0 if model == "squares" else _fraction(
-            "clearance", 0.011 if clearance is None else clearance, 0.0, np.inf)
+            "clearance", 0.011 if clearance is None else clearance, 0.0, 1.0)
         if lookahead is None:
             lookahead = 6 if model == "squares" else 18
         self.cone = _fraction("cone", cone, -1.0, 1.0)

@@ -168,7 +168,8 @@ class LearnedAllocator:
             raise ValueError("keep_right is the shield's lane angle: it needs shield=True")
         from allocator.detour import detour_model
 
-        if detour_model(detour) is not None and not shield:
+        detour = detour_model(detour)  # None, "squares" or "discs"
+        if detour is not None and not shield:
             raise ValueError("detour is a stage of the shield: it needs shield=True")
         if isinstance(weights, (str, os.PathLike)) and weights not in WEIGHT_CHOICES \
                 and Path(weights).exists():
@@ -227,7 +228,7 @@ class LearnedAllocator:
             if keep_right is None:  # the angle the weights were trained with behind the shield
                 keep_right = float(getattr(self.policy.learner.config, "shield_keep_right", 0.0))
             self.safety = SafetyShield(_Unshielded(self), keep_right=keep_right,
-                                       detour=detour_model(detour) or False)
+                                       detour=detour or False)
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:

@@ -115,6 +115,11 @@ class FloorWaypoints:
         plus one, so no cell outside it comes nearer), O(C (clearance / resolution)^2)."""
         res, (x0, y0) = self.resolution, self.origin
         reach = math.ceil(clearance / res) + 1
+        if 2 * reach + 1 > max(self.width, self.height):  # a window wider than the floor
+            clear = np.ones(self.width * self.height, dtype=bool)
+            for disc in discs:
+                clear &= np.linalg.norm(self._centres - disc, axis=-1) >= clearance
+            return clear
         off = np.arange(-reach, reach + 1)
         gx = np.floor((discs[:, 0] - x0) / res).astype(np.int64)[:, None, None] + off[None, None]
         gy = np.floor((discs[:, 1] - y0) / res).astype(np.int64)[:, None, None] + off[None, :, None]

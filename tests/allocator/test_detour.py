@@ -134,7 +134,8 @@ def test_discs_model_settings_name_the_problem() -> None:
                          (dict(clearance=0.02), "needs model='discs'"),
                          (dict(model="discs", clearance=-0.01), "clearance"),
                          (dict(model="discs", clearance=float("nan")), "clearance"),
-                         (dict(model="discs", clearance="wide"), "clearance")):
+                         (dict(model="discs", clearance="wide"), "clearance"),
+                         (dict(model="discs", clearance=1e300), "clearance")):
         with pytest.raises(ValueError, match=word):
             ParkedDetour(**kwargs)
     assert ParkedDetour(model="discs").clearance == pytest.approx(0.011)

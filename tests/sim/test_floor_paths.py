@@ -57,6 +57,17 @@ def test_bad_discs_name_the_problem(discs, clearance, word) -> None:
         FloorWaypoints(_box(), discs=discs, disc_clearance=clearance)
 
 
+def test_a_clearance_wider_than_the_floor_blocks_every_cell_without_a_huge_window() -> None:
+    with pytest.raises(ValueError, match="no cell of this floor holds an AGV"):
+        FloorWaypoints(_box(), discs=np.array([[0.0, 0.0]]), disc_clearance=1e300)
+    # a disc far off the floor with a wide clearance: the dense check, cells near it blocked
+    paths = FloorWaypoints(_box(), resolution=0.025, discs=np.array([[9.0, 0.0]]),
+                           disc_clearance=10.0)
+    gap = np.linalg.norm(paths._centres - [9.0, 0.0], axis=-1)
+    assert np.array_equal(paths._clear_of(np.array([[9.0, 0.0]]), 10.0), gap >= 10.0)
+    assert not (gap >= 10.0).all() and (gap >= 10.0).any()
+
+
 @pytest.mark.parametrize("clearance", [0.0, 0.05, 0.311, 1.0])
 def test_free_cells_are_exactly_those_at_the_clearance_from_every_disc(clearance) -> None:
     world = _box()
