@@ -392,7 +392,9 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         return run_evaluate(args)
     scenario = args.scenario or "3v3"
     solver = allocator.make(name, **({"scenario": scenario} if name in LEARNED else {}))
-    metrics = sim.evaluate(solver, scenario, episodes=args.episodes, seed=args.seed)
+    # a taught family sees the whole scene (allocator.learned.TAUGHT): its own scenario
+    seen = solver.scenario if getattr(solver, "taught", False) else scenario
+    metrics = sim.evaluate(solver, seen, episodes=args.episodes, seed=args.seed)
     print_metrics(name, {"method": name, "scenario": scenario}, metrics, args.seed, args.json)
     return 0
 

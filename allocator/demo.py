@@ -109,9 +109,9 @@ def lifelong_methods() -> list[tuple[str, Callable[[], Any]]]:
 def _shipped_families(lifelong: bool) -> list[str]:
     """The ``<algo>-<reward>`` names whose any-N weights ship (``lifelong``: the lifelong ones,
     ``allocator/weights/lifelong``; else ``allocator/weights/any``)."""
-    from allocator.learned import ALGOS, REWARDS, any_n_weights_path
+    from allocator.learned import ALGOS, REWARDS, TAUGHT, any_n_weights_path
 
-    return [f"{a}-{r}" for a in ALGOS for r in REWARDS
+    return [f"{a}-{r}" for a in ALGOS for r in REWARDS + TAUGHT.get(a, ())
             if any_n_weights_path(a, r, lifelong=lifelong).is_file()]
 
 
@@ -153,18 +153,20 @@ SCALE_SCENARIO = "20v20"
 def scale_methods() -> list[tuple[str, Callable[[], Any]]]:
     """(name, factory) of the demo's scale headline on :data:`SCALE_SCENARIO`: Hungarian, the
     auction at the scenario's sensing range, and every learned family whose any-N weights ship
-    (``allocator/weights/any``), plain and shielded."""
+    (``allocator/weights/any``), plain, shielded, and shielded with the detours that see
+    parked AGVs as discs (``detour="discs"``)."""
     import allocator
 
     rng = float(sim.get_scenario(SCALE_SCENARIO).sensing_range)
     makers: list[tuple[str, Callable[[], Any]]] = [
         ("hungarian", lambda: allocator.make("hungarian")),
         (f"auction (range {rng:g})", lambda: allocator.make("auction", comm_range=rng))]
+    guards = [("", {}), (", shielded", dict(shield=True)),
+              (", shielded + discs detour", dict(shield=True, detour="discs"))]
     for name in _shipped_families(lifelong=False):
-        for shield in (False, True):
-            makers.append((f"{name} (any-N{', shielded' if shield else ''})",
-                           lambda n=name, s=shield: allocator.make(
-                               n, scenario=SCALE_SCENARIO, weights="auto", shield=s)))
+        for label, guard in guards:
+            makers.append((f"{name} (any-N{label})", lambda n=name, g=guard: allocator.make(
+                n, scenario=SCALE_SCENARIO, weights="auto", **g)))
     return makers
 
 
@@ -175,10 +177,14 @@ def run_scale(out: Path, episodes: int, seed: int) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     hungarian_time = float("nan")
     for name, make in scale_methods():
-        m = sim.evaluate(make(), SCALE_SCENARIO, episodes=episodes, seed=seed)
+        solver = make()  # a taught family sees the whole scene: its own scenario
+        scenario = sim.get_scenario(
+            solver.scenario if getattr(solver, "taught", False) else SCALE_SCENARIO)
+        m = sim.evaluate(solver, scenario, episodes=episodes, seed=seed)
         if name == "hungarian":
             hungarian_time = m.avg_time
-        rows.append({"scenario": SCALE_SCENARIO, "method": name, "response_rate":
+        rows.append({"scenario": SCALE_SCENARIO, "method": name,
+                     "view": f"{scenario.k_tasks}:{scenario.k_agents}", "response_rate":
                      m.response_rate, "avg_time": m.avg_time,
                      "time_vs_hungarian": m.avg_time / hungarian_time, "overlaps": m.collisions,
                      "seconds": m.seconds})
@@ -192,9 +198,10 @@ def run_scale(out: Path, episodes: int, seed: int) -> list[dict[str, Any]]:
 def format_scale_table(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of the demo's scale headline."""
     return _markdown(
-        ["scenario", "method", "response rate", "avg time", "time / Hungarian",
-         "overlapping pairs / episode", "s"],
-        [[r["scenario"], r["method"], f"{r['response_rate']:.2%}", f"{r['avg_time']:.1f}",
+        ["scenario", "method", "view (tasks:AGVs)", "response rate", "avg time",
+         "time / Hungarian", "overlapping pairs / episode", "s"],
+        [[r["scenario"], r["method"], r.get("view", ""), f"{r['response_rate']:.2%}",
+          f"{r['avg_time']:.1f}",
           f"{r['time_vs_hungarian']:.2f}", f"{r['overlaps']:.1f}", f"{r['seconds']:.1f}"]
          for r in rows])
 

@@ -11,6 +11,15 @@ Names: ``"<algo>-<reward>"`` for algo in {maddpg, bicnet} and reward in {minidis
 and ``"bicnet-ipf-time"``: BiCNet trained with the ``ipf-time`` variant of the IPF reward
 (issue 16's time terms), whose weights live in ``allocator/weights/<scenario>/time/``.
 
+**Taught, not trained on a reward** (:data:`TAUGHT`): ``"bicnet-dagger"`` is BiCNet-E taught
+by imitation (DAgger) of a whole-scene assignment rule, with its choice of task exchanged
+among the AGVs (``choice_sinkhorn``). Its weights ship for any N only
+(``allocator/weights/any/bicnet-dagger.safetensors``, whatever ``weights=`` says), and it was
+taught with the whole scene in view: its :attr:`LearnedAllocator.scenario` shows every task
+and every other AGV (``k_tasks = M``, ``k_agents = N - 1``), so run it on that scenario
+(``sim.evaluate(solver, solver.scenario, ...)``); :meth:`LearnedAllocator.reset` warns when an
+env shows it less. Best served ``shield=True, detour="discs"``.
+
 **Any fleet size.** ``allocator/weights/any/<algo>-<reward>.safetensors`` holds the weights of
 the entity-token learner of the same family (``maddpg-e`` for ``maddpg-*``, ``bicnet-e`` for
 ``bicnet-*``; :mod:`learners.entity`), trained over a curriculum of fleet sizes, when they
@@ -51,7 +60,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "any_n_weights_path",
-    "register_all", "ANY_N", "WEIGHT_CHOICES",
+    "register_all", "ANY_N", "WEIGHT_CHOICES", "TAUGHT", "whole_view",
 ]
 
 ALGOS = ("maddpg", "bicnet")
@@ -59,6 +68,10 @@ REWARDS = ("minidist", "greedy", "ipf")
 VARIANTS = {"bicnet": ("ipf-time",)}
 """Registered reward variants (:data:`sim.rewards.REWARD_VARIANTS`) served by a family: only
 those with shipped weights, so that every registered name has weights on 3v3 and 6v6."""
+TAUGHT = {"bicnet": ("dagger",)}
+"""Families taught by imitation instead of trained on a reward, by algorithm: registered as
+``<algo>-<how>``, their weights ship for any N only and they see the whole scene
+(:func:`whole_view`)."""
 VARIANT_FOLDERS = {"ipf-time": "time"}
 """The folder of a scenario's weights that holds a variant's weights."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -69,6 +82,15 @@ LIFELONG = "lifelong"
 WEIGHT_CHOICES = ("scenario", "auto", "any")
 """``weights=``: only the scenario's own (the default); the scenario's own if shipped, else the
 any-N ones (``auto``); only the any-N ones."""
+
+
+def whole_view(scenario: Any) -> Any:
+    """``scenario`` with every task and every other AGV in view (``k_tasks = M``,
+    ``k_agents = N - 1``): how a :data:`TAUGHT` family sees a scene."""
+    from sim.scenarios import get_scenario
+
+    return get_scenario(scenario, k_tasks=scenario.num_tasks,
+                        k_agents=max(scenario.num_agents - 1, 0))
 
 
 class MissingWeightsError(FileNotFoundError, ValueError):
@@ -118,13 +140,23 @@ class LearnedAllocator:
         :class:`allocator.detour.ParkedDetour`; default False). ``"discs"``: the planner
         that sees parked AGVs as discs with the shield's own gaps (``ParkedDetour``'s
         ``model``); True is ``"squares"``.
-    weights : {"scenario", "auto", "any"} or path-like
+    weights : {"scenario", "auto", "any"} or path-like, optional
         Which shipped weights (when no ``checkpoint`` is given): only the scenario's own
         (``"scenario"``, the default); the scenario's own if they exist, else the any-N ones
         (``"auto"``); only the any-N ones (``allocator/weights/any``, ``"any"``), which serve
         every ``NvM`` scenario (on a lifelong floor: ``allocator/weights/lifelong``). A path
         (a policy file or an ``agv train`` run folder that exists) is the same as
-        ``checkpoint=``.
+        ``checkpoint=``. A :data:`TAUGHT` family has only any-N weights: every choice (and
+        the default, None) is ``"any"`` for it.
+
+    Attributes
+    ----------
+    scenario : Scenario
+        The scenario the allocator serves; for a :data:`TAUGHT` family with the whole scene
+        in view (:func:`whole_view`), which is what it should be evaluated on.
+    taught : bool
+        Whether the family was taught by imitation (:data:`TAUGHT`) rather than trained on a
+        reward.
 
     Raises
     ------
@@ -143,7 +175,7 @@ class LearnedAllocator:
 
     def __init__(
         self, scenario: str = "3v3", checkpoint: str | os.PathLike[str] | None = None,
-        max_steps: int | None = None, shield: bool = False, weights: str = "scenario",
+        max_steps: int | None = None, shield: bool = False, weights: str | None = None,
         keep_right: float | None = None, detour: bool | str = False, **options: Any,
     ) -> None:
         from learners.policy import LearnedPolicy
@@ -171,6 +203,9 @@ class LearnedAllocator:
         detour = detour_model(detour)  # None, "squares" or "discs"
         if detour is not None and not shield:
             raise ValueError("detour is a stage of the shield: it needs shield=True")
+        self.taught = self.reward in TAUGHT.get(self.algo, ())
+        if weights is None:
+            weights = "any" if self.taught else "scenario"
         if isinstance(weights, (str, os.PathLike)) and weights not in WEIGHT_CHOICES \
                 and Path(weights).exists():
             if checkpoint is not None:
@@ -196,9 +231,17 @@ class LearnedAllocator:
             found = None  # LearnedPolicy.load names the missing file
         self.any_n = found in ENTITY_ALGORITHMS
         """Whether the weights are an entity learner's (one set for any N)."""
+        if self.taught and not self.any_n:
+            raise ValueError(f"{self.name!r} is taught for any N: it needs an entity learner's "
+                             f"({entity_algo!r}) policy file, got {found or 'no'} weights in "
+                             f"{self.checkpoint}")
+        if self.taught and not self.lifelong:
+            self.scenario = whole_view(self.scenario)
+        self._narrow_warned = False
         if self.any_n:
+            # a taught family's file records the reward its RL stage had, not how it was taught
             self.policy: LearnedPolicy = LearnedPolicy.load(
-                checkpoint, algo=entity_algo, reward=self.reward)
+                checkpoint, algo=entity_algo, reward=None if self.taught else self.reward)
             trained_lifelong = bool(getattr(self.policy.learner, "lifelong", False))
             if self.lifelong and not trained_lifelong:
                 raise ValueError(f"the any-N weights {self.checkpoint} of {self.name!r} serve "
@@ -242,10 +285,17 @@ class LearnedAllocator:
         anyn = any_n_weights_path(self.algo, self.reward,
                                   bool(getattr(self.scenario, "lifelong", False)))
         candidates = {"auto": [own, anyn], "scenario": [own], "any": [anyn]}[weights]
+        if self.taught:
+            candidates = [anyn]
         for path in candidates:
             if path.is_file():
                 return path
         looked = " nor ".join(str(p) for p in candidates)
+        if self.taught:
+            raise MissingWeightsError(
+                f"no weights for {self.name!r} on scenario {self.scenario.name!r}: expected "
+                f"{anyn}. It is taught by imitation (benchmarks/dagger_probe.py), for "
+                "episodic scenes (NvM) only; pass checkpoint=<a policy .safetensors file>")
         if weights == "scenario" and anyn.is_file():
             raise MissingWeightsError(
                 f"no trained weights for {self.name!r} on scenario {self.scenario.name!r}: "
@@ -299,6 +349,18 @@ class LearnedAllocator:
                              "scenes")
         if self.any_n:  # read the env's observations with its layout (its K slots)
             self.policy.learner.reset(env)
+        if self.taught and not self._narrow_warned and not getattr(env, "lifelong", False):
+            layout = env.obs_layout
+            if (layout.k_tasks < env.num_tasks or layout.k_agents < env.num_agents - 1):
+                import warnings
+
+                self._narrow_warned = True
+                warnings.warn(
+                    f"{self.name!r} was taught with the whole scene in view; this env shows "
+                    f"{layout.k_tasks} of {env.num_tasks} tasks and {layout.k_agents} of "
+                    f"{env.num_agents - 1} other AGVs, and the policy does worse on less. Run "
+                    "it on solver.scenario (sim.evaluate(solver, solver.scenario, ...))",
+                    UserWarning, stacklevel=2)
         if self.safety is not None:
             self.safety.reset(env)
 
@@ -317,9 +379,10 @@ class LearnedAllocator:
         """The trained scenario's sensing and step limit on the given scene, run as given
         (:meth:`sim.scenarios.Scenario.given_scene`)."""
         base = self.scenario
+        view = dict(k_tasks=len(tasks), k_agents=max(len(agents) - 1, 0)) if self.taught else {}
         return type(base).given_scene(
             base, agents, tasks, world or base.world,
-            max_steps=base.max_steps if self.max_steps is None else self.max_steps)
+            max_steps=base.max_steps if self.max_steps is None else self.max_steps, **view)
 
     def assign(
         self, agents: np.ndarray, tasks: np.ndarray, world: World | None = None
@@ -356,7 +419,8 @@ class LearnedAllocator:
         spawner could have drawn it (AGVs closer together than the spawn spacing, more AGVs or
         tasks than it could place). Scenes of another size keep the trained scenario's
         sensing (``k_tasks``, ``k_agents``), so the observation size matches; BiCNet runs at
-        any N, and MADDPG drives AGV i with actor ``i mod N_trained``.
+        any N, and MADDPG drives AGV i with actor ``i mod N_trained``. A :data:`TAUGHT` family
+        sees the whole given scene.
         """
         import torch
 
@@ -442,15 +506,18 @@ def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:
     name = f"{algo}-{reward}"
     pretty = {"maddpg": "MADDPG", "bicnet": "BiCNet"}[algo]
     cls_name = f"{pretty}{''.join(part.capitalize() for part in reward.split('-'))}Allocator"
-    doc = (f"The trained {pretty} policy with the {reward} reward (registry name {name!r}); "
-           "see :class:`LearnedAllocator`.")
+    how = ("taught by imitation (DAgger) of a whole-scene assignment rule"
+           if reward in TAUGHT.get(algo, ()) else f"trained with the {reward} reward")
+    doc = (f"The {pretty} policy {how} (registry name {name!r}); see "
+           ":class:`LearnedAllocator`.")
     return type(cls_name, (LearnedAllocator,),
                 {"name": name, "algo": algo, "reward": reward, "__doc__": doc,
                  "__module__": __name__})
 
 
 LEARNED: dict[str, type[LearnedAllocator]] = {
-    f"{a}-{r}": _make_class(a, r) for a in ALGOS for r in REWARDS + VARIANTS.get(a, ())
+    f"{a}-{r}": _make_class(a, r)
+    for a in ALGOS for r in REWARDS + VARIANTS.get(a, ()) + TAUGHT.get(a, ())
 }
 """The learned allocator classes by registry name."""
 globals().update({cls.__name__: cls for cls in LEARNED.values()})
