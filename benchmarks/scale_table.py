@@ -19,7 +19,9 @@ interventions per movable AGV-step, wall-clock seconds.
 
 Any-N rows (issue 17): ``maddpg-ipf`` / ``bicnet-ipf`` with the shipped any-N weights
 (``allocator/weights/any``, the entity-token learners of :mod:`learners.entity`) at every N,
-where they ship (``--no-any-n`` leaves them out), and ``--entity FILE`` the policy file of an
+where they ship (``--no-any-n`` leaves them out), the taught family ``bicnet-dagger``
+(``allocator.learned.TAUGHT``) too, always with the whole scene in view (its own view,
+whatever ``--view`` says), and ``--entity FILE`` the policy file of an
 entity learner run (e.g. ``runs/.../best.safetensors``), plain and shielded, named
 ``<algo>-<reward> any-N`` and ``FILE's algo-reward (FILE)``. ``--methods`` keeps only the
 named rows (``hungarian`` is always run: the time column is relative to it). ``--detour``
@@ -141,11 +143,12 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
     ``"discs"``: :class:`allocator.detour.ParkedDetour`'s model)."""
     rows = []
     learned = list(LEARNED)
-    if any_n:  # the families whose any-N weights ship
-        from allocator.learned import any_n_weights_path
+    if any_n:  # the families whose any-N weights ship, the taught ones too
+        from allocator.learned import TAUGHT, any_n_weights_path
 
-        learned += [f"{m} any-N" for m in LEARNED
-                    if any_n_weights_path(*m.split("-")).is_file()]
+        taught = tuple(f"{a}-{t}" for a, ts in TAUGHT.items() for t in ts)
+        learned += [f"{m} any-N" for m in LEARNED + taught
+                    if any_n_weights_path(*m.split("-", 1)).is_file()]
     learned += [f"entity:{p}" for p in entity or []]
     keep = None if methods is None else set(methods) | {"hungarian"}
     for n, eps in zip(sizes, episodes, strict=True):
@@ -165,7 +168,10 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
         for name, shield, det in variants:
             ctl = episodic_method(name, n, shield, rng, det)
             t = time.perf_counter()
-            scen = base if name in LEARNED else viewed
+            # the paper's weights see the scenario's own slots; a taught family its own view
+            # (the whole scene); every other row --view
+            scen = base if name in LEARNED else ctl.scenario if getattr(ctl, "taught",
+                                                                        False) else viewed
             m = sim.evaluate(ctl, scen, episodes=eps, seed=seed, batch_size=eps)
             seconds = time.perf_counter() - t
             safety = getattr(ctl, "safety", None)
@@ -276,7 +282,8 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
         "plain and shielded (`shield=True`; `yes + detour`: with the shield's detours round "
         "parked AGVs, `detour=True`; `yes + discs detour`: `detour=\"discs\"`); `any-N` "
         "rows: the shipped any-N weights "
-        "(`allocator/weights/any`), `entity:FILE` rows: an entity learner's policy file, "
+        "(`allocator/weights/any`; `bicnet-dagger`, taught by DAgger, with the whole scene "
+        "in view), `entity:FILE` rows: an entity learner's policy file, "
         "both run zero-shot at every N. Auction: radio range = the scenario's sensing "
         "range (episodic), 3.0 (lifelong `auction`), unlimited (lifelong `auction+safe`, as "
         "the learned lifelong policies sense the whole floor); `+safe`: driven by SafeDriver.",
