@@ -22,14 +22,15 @@ intention round the obstacle:
 
 Two models of the parked AGVs (``model``):
 
-- ``"squares"`` (the default, the first version): every parked AGV a square shelf of side
+- ``"squares"`` (the first version, the default until 2026-12-07): every parked AGV a square
+  shelf of side
   ``2 r`` on the floor's grid (cells of ``r / 2``); blocked means within ``2 r``. Squares
   close diagonal gaps that discs leave open (two parked AGVs 0.72 apart on a diagonal leave
   no path between them, where the shield passes at 0.62), and the shield's margins close
   gaps the squares leave open (a straight line 0.303 from a parked centre counts as free,
   and the shield stops the AGV there). Where the goal cannot be reached on the grid the
   intention is kept, and the AGV wedges.
-- ``"discs"``: every parked AGV a disc that keeps centres ``2 r + clearance`` away
+- ``"discs"`` (the default): every parked AGV a disc that keeps centres ``2 r + clearance`` away
   (``clearance`` 0.011 by default, a hair above the QP's static margin of 0.01, so the
   planner's gaps are the shield's), on a grid of ``r / 6`` cells (0.025 at ``r`` = 0.15) so
   that gaps a few hundredths wider than that are found; blocked means within ``2 r +
@@ -56,10 +57,13 @@ import torch
 
 from sim.floor_paths import FloorWaypoints
 
-__all__ = ["DETOUR_MODELS", "ParkedDetour", "blocked_segments", "detour_model"]
+__all__ = ["DEFAULT_MODEL", "DETOUR_MODELS", "ParkedDetour", "blocked_segments", "detour_model"]
 
 DETOUR_MODELS = ("squares", "discs")
 """How :class:`ParkedDetour` can see parked AGVs (see ``model``)."""
+DEFAULT_MODEL = "discs"
+"""The model of ``detour=True`` and of a bare :class:`ParkedDetour` (``"squares"`` before
+2026-12-07: every table made then with ``detour=True`` used squares)."""
 
 
 def blocked_segments(start: np.ndarray, end: np.ndarray, centres: np.ndarray,
@@ -91,8 +95,8 @@ def blocked_segments(start: np.ndarray, end: np.ndarray, centres: np.ndarray,
 
 
 def detour_model(detour: Any) -> str | None:
-    """The model a ``detour`` argument asks for: None (False: no detours), ``"squares"``
-    (True) or the model named (one of :data:`DETOUR_MODELS`).
+    """The model a ``detour`` argument asks for: None (False: no detours), ``"discs"``
+    (True: the default model) or the model named (one of :data:`DETOUR_MODELS`).
 
     Raises
     ------
@@ -100,7 +104,7 @@ def detour_model(detour: Any) -> str | None:
         For anything else (the message names the valid values).
     """
     if isinstance(detour, (bool, np.bool_)):
-        return "squares" if detour else None
+        return DEFAULT_MODEL if detour else None
     if isinstance(detour, str) and detour in DETOUR_MODELS:
         return detour
     raise ValueError(f"detour must be True, False or one of "
@@ -140,7 +144,8 @@ class ParkedDetour:
         the shield: 99.6% response in 51.6 steps at 1.5 against 99.3% in 56.4 at the intended
         speed capped at 1.5.)
     model : str
-        ``"squares"`` (default) or ``"discs"``: how the planner sees parked AGVs (above).
+        ``"discs"`` (default, :data:`DEFAULT_MODEL`) or ``"squares"``: how the planner sees
+        parked AGVs (above).
     clearance : float, optional
         ``"discs"`` only: the gap kept beyond ``2 r`` between an AGV's centre and a parked
         one's (in [0, 1]; default 0.011).
@@ -158,7 +163,7 @@ class ParkedDetour:
 
     def __init__(self, cone: float = 0.7, distance_weight: float = 0.05,
                  min_speed: float = 0.05, lookahead: int | None = None,
-                 speed: float | None = 1.5, model: str = "squares",
+                 speed: float | None = 1.5, model: str = DEFAULT_MODEL,
                  clearance: float | None = None) -> None:
         if model not in DETOUR_MODELS:
             raise ValueError(f"model must be one of {', '.join(map(repr, DETOUR_MODELS))}, "

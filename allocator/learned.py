@@ -139,7 +139,7 @@ class LearnedAllocator:
         at a task through a parked AGV round it (``SafetyShield(detour=True)``,
         :class:`allocator.detour.ParkedDetour`; default False). ``"discs"``: the planner
         that sees parked AGVs as discs with the shield's own gaps (``ParkedDetour``'s
-        ``model``); True is ``"squares"``.
+        ``model``; the default of True); ``"squares"``: the first model.
     weights : {"scenario", "auto", "any"} or path-like, optional
         Which shipped weights (when no ``checkpoint`` is given): only the scenario's own
         (``"scenario"``, the default); the scenario's own if they exist, else the any-N ones

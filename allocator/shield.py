@@ -122,9 +122,10 @@ class SafetyShield:
     detour : bool or str
         Episodic scenes: turn intentions that drive at an open task through a parked AGV round
         it first (:class:`~allocator.detour.ParkedDetour`; default False). True is the
-        ``"squares"`` model; ``"discs"`` plans round discs with the shield's own gaps and
-        keeps an AGV's goal while it is turned (see ``ParkedDetour``'s ``model``). A lifelong
-        env refuses it at :meth:`reset`.
+        ``"discs"`` model, which plans round discs with the shield's own gaps and keeps an
+        AGV's goal while it is turned; ``"squares"`` is the first model, the default of True
+        before 2026-12-07 (see ``ParkedDetour``'s ``model``). A lifelong env refuses it at
+        :meth:`reset`.
 
     Attributes
     ----------

@@ -6,7 +6,7 @@
 Runs the whole-scene assignment rule (``local_information.LocalAssignment``, a Hungarian
 dispatcher that re-plans every step) behind :class:`allocator.shield.SafetyShield` on the same
 ``--episodes`` episodes of ``--size``, without detours, with the squares model
-(``detour=True``) and with the discs model (``detour="discs"``), alternating, ``--repeats``
+(``detour="squares"``) and with the discs model (``detour="discs"``), alternating, ``--repeats``
 times, on one torch thread. Reports the median seconds of each, their ratio to the shield
 without detours, the seconds per batch step (the batch steps until its last scene ends, so a
 setting that finishes scenes sooner also runs fewer steps) and its ratio, and what each does
@@ -36,7 +36,7 @@ from allocator.shield import SafetyShield
 from sim.io import atomic_write_text
 
 OUT = Path(__file__).parent / "results" / "scale" / "detour_speed"
-DETOURS = (False, True, "discs")
+DETOURS = (False, "squares", "discs")
 """The shield's settings compared: none, squares, discs."""
 
 

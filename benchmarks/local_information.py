@@ -147,8 +147,8 @@ def view(n: int, spec: str) -> tuple[int, int]:
 def rows_for(n: int, episodes: int, views: list[str], seed: int,
              detour: bool | str = False) -> list[dict]:
     """The rows of one NvN scene: ``hungarian``, then the rule at every view, plain and
-    shielded (``detour``: also shielded with the shield's detours round parked AGVs, True or
-    ``"squares"``, or ``"discs"``)."""
+    shielded (``detour``: also shielded with the shield's detours round parked AGVs,
+    ``"squares"`` or ``"discs"``; True: the default model, discs)."""
     name = f"{n}v{n}"
     rows: list[dict] = []
     hung = None
@@ -179,15 +179,16 @@ def rows_for(n: int, episodes: int, views: list[str], seed: int,
 
 def detour_label(detour: bool | str | None) -> str:
     """The shield column's suffix for a row's ``detour``: ``""`` (none), ``" + detour"``
-    (True, the squares model) or ``" + discs detour"``."""
+    (True: rows written before 2026-12-07, when True meant the squares model) or
+    ``" + squares detour"`` / ``" + discs detour"`` (the model named)."""
     if not detour:
         return ""
-    return " + detour" if detour in (True, "squares") else f" + {detour} detour"
+    return " + detour" if detour is True else f" + {detour} detour"
 
 
 def guard(row: dict) -> str:
-    """The shield column of a row: ``no``, ``yes``, ``yes + detour`` or ``yes + discs
-    detour``."""
+    """The shield column of a row: ``no``, ``yes``, ``yes + detour`` (rows written before
+    2026-12-07), ``yes + squares detour`` or ``yes + discs detour``."""
     return "yes" + detour_label(row.get("detour")) if row["shield"] else "no"
 
 
@@ -222,8 +223,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--detour", nargs="?", const="squares", default=False,
                         choices=("squares", "discs"),
-                        help="also run the rule shielded with detours round parked AGVs "
-                             "(SafetyShield(detour=True); 'discs': detour='discs')")
+                        help="also run the rule shielded with detours round parked AGVs: "
+                             "squares (a bare --detour, as recorded before 2026-12-07) or "
+                             "discs (detour=True's model now)")
     args = parser.parse_args(argv)
     if len(args.sizes) != len(args.episodes):
         parser.error("--sizes and --episodes need one value each per size")
@@ -239,7 +241,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     rows = [r for n, e in zip(args.sizes, args.episodes, strict=True)
             for r in rows_for(n, e, args.views, args.seed,
-                              True if args.detour == "squares" else args.detour)]
+                              args.detour)]
     command = recorded_command(__file__, argv)
     write(rows, args.out, command.strip(), args.seed)
     print(f"wrote {args.out / 'local.md'}")

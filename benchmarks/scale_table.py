@@ -26,9 +26,11 @@ entity learner run (e.g. ``runs/.../best.safetensors``), plain and shielded, nam
 ``<algo>-<reward> any-N`` and ``FILE's algo-reward (FILE)``. ``--methods`` keeps only the
 named rows (``hungarian`` is always run: the time column is relative to it). ``--detour``
 adds a third row for every learned method: shielded, with the shield's detours round parked
-AGVs (``allocator.make(..., shield=True, detour=True)``, :mod:`allocator.detour`);
-``--detour discs`` runs that row with the planner that sees parked AGVs as discs with the
-shield's own gaps (``detour="discs"``).
+AGVs (:mod:`allocator.detour`): a bare ``--detour`` (or ``--detour squares``) with the first
+model, squares (``detour="squares"``, what ``detour=True`` meant before 2026-12-07, so that
+the commands recorded then still give their tables); ``--detour discs`` with the planner that
+sees parked AGVs as discs with the shield's own gaps (``detour="discs"``, ``detour=True``'s
+model now).
 
 Lifelong rows (``warehouse-N``, a backlog of 1.5 N orders): the dispatchers ``hungarian``,
 ``fifo``, ``greedy`` and ``auction`` (range 3.0, as in ``load_curve.py``) with their default
@@ -139,8 +141,8 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
     """The episodic rows; ``view`` (K_t, K_a): the task and AGV slots every row observes
     (capped at M and N - 1), except the paper's weights (``LEARNED``), whose input size is
     fixed; None: the scenarios' own (6 and 5). ``detour``: every learned row also runs
-    shielded with the shield's detours round parked AGVs (True or ``"squares"``, or
-    ``"discs"``: :class:`allocator.detour.ParkedDetour`'s model)."""
+    shielded with the shield's detours round parked AGVs (``"squares"`` or ``"discs"``:
+    :class:`allocator.detour.ParkedDetour`'s model; True: its default, discs)."""
     rows = []
     learned = list(LEARNED)
     if any_n:  # the families whose any-N weights ship, the taught ones too
@@ -279,8 +281,8 @@ def write(rows: list[dict], out: Path, command: str, seed: int) -> None:
         f"`{command}` on {platform.machine()}, Python {platform.python_version()}, torch "
         f"{torch.__version__}, {stamp}; seed {seed} (the same episodes and orders for every "
         "method). Learned rows: the shipped weights (3v3 at N = 3, 6v6 zero-shot above), "
-        "plain and shielded (`shield=True`; `yes + detour`: with the shield's detours round "
-        "parked AGVs, `detour=True`; `yes + discs detour`: `detour=\"discs\"`); `any-N` "
+        "plain and shielded (`shield=True`; `yes + squares detour` / `yes + discs detour`: with "
+        "the shield's detours round parked AGVs, `detour=\"squares\"` / `\"discs\"`); `any-N` "
         "rows: the shipped any-N weights "
         "(`allocator/weights/any`; `bicnet-dagger`, taught by DAgger, with the whole scene "
         "in view), `entity:FILE` rows: an entity learner's policy file, "
@@ -385,8 +387,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--detour", nargs="?", const="squares", default=False,
                    choices=("squares", "discs"),
                    help="learned episodic rows also run shielded with detours round parked "
-                        "AGVs (SafetyShield(detour=True); 'discs': detour='discs', the "
-                        "planner with the shield's own gaps)")
+                        "AGVs: squares (a bare --detour, as in the commands recorded before "
+                        "2026-12-07) or discs (the planner with the shield's own gaps, "
+                        "detour=True's model now)")
     p.add_argument("--lifelong-weights", nargs="+", default=[], metavar="RUN_OR_FILE",
                    help="add lifelong rows for these lifelong entity runs or policy files")
     p.add_argument("--dispatchers", nargs="+", default=None, choices=BASELINES,
@@ -416,7 +419,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     np.seterr(all="ignore")
     rows = episodic_rows(args.sizes, episodes, args.seed, args.methods, args.any_n,
-                         args.entity, view, True if args.detour == "squares" else args.detour)
+                         args.entity, view, args.detour)
     for w in args.lifelong_weights:
         if not policy_file(w).is_file():
             p.error(f"--lifelong-weights {w}: no policy file there")

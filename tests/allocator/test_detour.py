@@ -36,7 +36,7 @@ def _wall_scene(num_envs: int = 1):
 
 def test_an_intention_through_a_parked_agv_is_turned_round_it() -> None:
     env = _wall_scene()
-    detour = ParkedDetour()
+    detour = ParkedDetour(model="squares")  # the discs model keeps the goal: see below
     detour.reset(env)
     intended = np.zeros((1, 2, 2))
     intended[0, 0] = [1.0, 0.0]  # straight at task 1, through the parked AGV
@@ -51,10 +51,11 @@ def test_an_intention_through_a_parked_agv_is_turned_round_it() -> None:
     assert not turned.any() and np.array_equal(out, intended)
 
 
-def test_a_free_line_or_no_parked_agv_changes_nothing() -> None:
+@pytest.mark.parametrize("model", ["squares", "discs"])
+def test_a_free_line_or_no_parked_agv_changes_nothing(model) -> None:
     env = sim.make_env("2v2", num_envs=1, seed=0)
     env.set_state(np.array([[[-0.8, 0.0], [0.0, 0.6]]]), np.array([[[0.0, 0.6], [0.8, 0.0]]]))
-    detour = ParkedDetour()
+    detour = ParkedDetour(model=model)
     detour.reset(env)
     intended = np.array([[[1.0, 0.0], [0.0, 0.0]]])
     out, turned = detour.redirect(intended, movable_agents(env))  # nobody parked yet
@@ -74,12 +75,12 @@ def _drive(env, detour, steps: int) -> SafetyShield:
 
 def test_the_shield_with_detours_reaches_the_task_that_it_is_held_from_without() -> None:
     reached = {}
-    for detour in (False, True):
+    for detour in (False, "squares", "discs"):
         env = _wall_scene(num_envs=2)
         shield = _drive(env, detour, 30)
         reached[detour] = bool(env.task_claimed[:, 1].all())
-        assert (shield.interventions["detour"] > 0) == detour
-    assert reached == {False: False, True: True}
+        assert (shield.interventions["detour"] > 0) == bool(detour)
+    assert reached == {False: False, "squares": True, "discs": True}
 
 
 def test_bad_settings_and_modes_name_the_problem() -> None:
@@ -120,7 +121,10 @@ def test_detour_flag_takes_a_bool_or_a_model_name(value) -> None:
 
 
 def test_detour_models_reach_the_shield() -> None:
-    assert SafetyShield(NearestTaskController(), detour=True).detour_model == "squares"
+    # True is the default model, discs since 2026-12-07 (squares before)
+    assert SafetyShield(NearestTaskController(), detour=True).detour_model == "discs"
+    assert ParkedDetour().model == "discs" == allocator.detour.DEFAULT_MODEL
+    assert SafetyShield(NearestTaskController(), detour="squares").detour_model == "squares"
     assert SafetyShield(NearestTaskController()).detour_model is None
     ctl = allocator.make("bicnet-ipf", scenario="6v6", shield=True, detour="discs")
     assert ctl.safety.detour is True and ctl.safety.detour_model == "discs"
@@ -131,7 +135,7 @@ def test_detour_models_reach_the_shield() -> None:
 
 def test_discs_model_settings_name_the_problem() -> None:
     for kwargs, word in ((dict(model="circles"), "model"), (dict(model=None), "model"),
-                         (dict(clearance=0.02), "needs model='discs'"),
+                         (dict(model="squares", clearance=0.02), "needs model='discs'"),
                          (dict(model="discs", clearance=-0.01), "clearance"),
                          (dict(model="discs", clearance=float("nan")), "clearance"),
                          (dict(model="discs", clearance="wide"), "clearance"),
@@ -139,7 +143,7 @@ def test_discs_model_settings_name_the_problem() -> None:
         with pytest.raises(ValueError, match=word):
             ParkedDetour(**kwargs)
     assert ParkedDetour(model="discs").clearance == pytest.approx(0.011)
-    assert ParkedDetour(model="discs").lookahead == 18 and ParkedDetour().lookahead == 6
+    assert ParkedDetour().lookahead == 18 and ParkedDetour(model="squares").lookahead == 6
 
 
 def _slot_scene(num_envs: int = 1):

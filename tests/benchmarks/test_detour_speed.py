@@ -14,14 +14,14 @@ speed = load("detour_speed")
 def test_detour_speed_writes_three_timings_and_their_ratios(tmp_path: Path) -> None:
     speed.main(["--size", "10v10", "--episodes", "3", "--repeats", "2", "--out", str(tmp_path)])
     data = json.loads((tmp_path / "detour_speed.json").read_text())
-    assert set(data["seconds"]) == {"False", "True", "discs"}
+    assert set(data["seconds"]) == {"False", "squares", "discs"}
     assert all(len(v) == 2 and min(v) > 0 for v in data["seconds"].values())
     assert data["ratio"]["False"] == 1.0 and data["ratio_per_step"]["False"] == 1.0
     assert data["ratio"]["discs"] == pytest.approx(data["median"]["discs"]
                                                    / data["median"]["False"])
     assert all(1 <= s <= 32 for s in data["batch_steps"].values())  # 10v10: 32-step limit
     text = (tmp_path / "detour_speed.md").read_text()
-    assert "| yes + discs detour |" in text and "| yes + detour |" in text
+    assert "| yes + discs detour |" in text and "| yes + squares detour |" in text
 
 
 @pytest.mark.parametrize("bad", [["--episodes", "0"], ["--repeats", "0"], ["--seed", "-1"],

@@ -88,9 +88,9 @@ def test_detour_adds_a_shielded_detour_row_per_view(tmp_path: Path) -> None:
                 "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "local.json").read_text())["rows"]
     assert [(r["shield"], r["detour"]) for r in rows] == [
-        (False, False), (False, False), (True, False), (True, True)]
+        (False, False), (False, False), (True, False), (True, "squares")]
     assert rows[-1]["overlaps"] == 0
-    assert "| 3:2 | yes + detour |" in (tmp_path / "local.md").read_text()
+    assert "| 3:2 | yes + squares detour |" in (tmp_path / "local.md").read_text()
     local.main(["--sizes", "3", "--episodes", "2", "--views", "full", "--detour", "discs",
                 "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "local.json").read_text())["rows"]
@@ -261,3 +261,10 @@ def test_imitation_loss_counts_only_movable_agvs_and_their_labels() -> None:
     no_choice = dagger.imitation_loss(act, target, movable, None, labels, choice_weight=2.0)
     torch.testing.assert_close(no_choice, torch.tensor(0.125))
     assert dagger.imitation_loss(act, target, torch.zeros_like(movable), w, labels, 1.0) == 0
+
+
+def test_detour_labels_name_the_model() -> None:
+    """True in a row means the squares model (rows written before discs became its
+    default); a named model is named."""
+    assert [local.detour_label(d) for d in (False, None, True, "squares", "discs")] == [
+        "", "", " + detour", " + squares detour", " + discs detour"]

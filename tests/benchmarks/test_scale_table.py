@@ -18,10 +18,10 @@ def test_tiny_run_writes_table_json_and_figure(tmp_path: Path) -> None:
     rows = meta["rows"]
     episodic = [r for r in rows if r["kind"] == "episodic"]
     # 4 classical methods, 2 learned ones plain and shielded, and by default the shipped
-    # any-N weights plain and shielded
+    # any-N weights plain and shielded, the taught family's too
     from allocator.learned import any_n_weights_path
 
-    any_n = [m for m in ("maddpg-ipf", "bicnet-ipf")
+    any_n = [m for m in ("maddpg-ipf", "bicnet-ipf", "bicnet-dagger")
              if any_n_weights_path(*m.split("-")).is_file()]
     assert any_n, "the any-N weights ship (allocator/weights/any)"
     assert len(episodic) == 4 + 2 * 2 + 2 * len(any_n)
@@ -69,11 +69,12 @@ def test_detour_adds_a_shielded_detour_row_per_learned_method(tmp_path: Path) ->
     bench.main(["--sizes", "6", "--episodes", "2", "--floors", "--no-any-n", "--detour",
                 "--methods", "hungarian", "bicnet-ipf", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
+    # a bare --detour is the squares model, as in the commands recorded before 2026-12-07
     assert [(r["method"], r["shield"], r["detour"]) for r in rows] == [
         ("hungarian", False, False), ("bicnet-ipf", False, False), ("bicnet-ipf", True, False),
-        ("bicnet-ipf", True, True)]
+        ("bicnet-ipf", True, "squares")]
     assert rows[-1]["overlaps"] == 0
-    assert "| 6v6 | bicnet-ipf | yes + detour |" in (tmp_path / "scale.md").read_text()
+    assert "| 6v6 | bicnet-ipf | yes + squares detour |" in (tmp_path / "scale.md").read_text()
 
 
 def test_detour_discs_names_its_row(tmp_path: Path) -> None:

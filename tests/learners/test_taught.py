@@ -122,3 +122,16 @@ def test_the_demo_and_agv_evaluate_run_it_at_its_view(shipped, tmp_path, capsys)
                  "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["scenario"] == "6v6" and 0.0 <= out["response_rate"] <= 1.0
+
+
+def test_scale_table_runs_it_at_its_view_whatever_view_says(shipped, tmp_path):
+    from tests.benchmarks.benchmark_scripts import load
+
+    load("scale_table").main(["--sizes", "6", "--episodes", "2", "--floors", "--methods",
+                              "hungarian", "bicnet-dagger", "--view", "3:2", "--out",
+                              str(tmp_path)])
+    rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
+    assert [(r["method"], r["shield"], r["view"]) for r in rows] == [
+        ("hungarian", False, "3:2"), ("bicnet-dagger any-N", False, "6:5"),
+        ("bicnet-dagger any-N", True, "6:5")]
+    assert rows[2]["overlaps"] == 0
