@@ -289,7 +289,8 @@ def evaluation_scenes(
 
     All E scenes are drawn at once, as an environment of E environments reset with the
     generator seed ``seed * 1_000_003`` (modulo 2**63) draws them, so that the scenes do not
-    depend on the batch size they are run with. The draw needs memory for all of them at once
+    depend on the batch size they are run with. They do depend on E: the spawner draws all E
+    at once, so the first 20 scenes of E = 200 are not those of E = 20. The draw needs memory for all of them at once
     (positions and the spawner's candidates): about 0.6 kB per episode for ``6v6`` and 1.7 kB
     for ``warehouse`` at its peak, e.g. 0.6 GB and 1.7 GB for a million episodes.
 
@@ -342,7 +343,9 @@ def evaluate(
         Number of test episodes E, run ``batch_size`` at a time in parallel environments.
     seed : int
         Seed of the test episodes, in [0, 2**63): the same seed gives the same scenes for
-        every controller and every ``batch_size`` (see :func:`evaluation_scenes`).
+        every controller and every ``batch_size`` (see :func:`evaluation_scenes`), for the
+        same ``episodes``; another count draws other scenes (the first 20 of 200 episodes
+        are not the 20 of a 20-episode run).
     batch_size : int
         Parallel environments per batch.
     device : str or torch.device
