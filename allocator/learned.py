@@ -231,7 +231,7 @@ class LearnedAllocator:
             found = None  # LearnedPolicy.load names the missing file
         self.any_n = found in ENTITY_ALGORITHMS
         """Whether the weights are an entity learner's (one set for any N)."""
-        if self.taught and not self.any_n:
+        if self.taught and found is not None and not self.any_n:  # (missing: named below)
             raise ValueError(f"{self.name!r} is taught for any N: it needs an entity learner's "
                              f"({entity_algo!r}) policy file, got {found or 'no'} weights in "
                              f"{self.checkpoint}")

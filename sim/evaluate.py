@@ -290,9 +290,10 @@ def evaluation_scenes(
     All E scenes are drawn at once, as an environment of E environments reset with the
     generator seed ``seed * 1_000_003`` (modulo 2**63) draws them, so that the scenes do not
     depend on the batch size they are run with. They do depend on E: the spawner draws all E
-    at once, so the first 20 scenes of E = 200 are not those of E = 20. The draw needs memory for all of them at once
-    (positions and the spawner's candidates): about 0.6 kB per episode for ``6v6`` and 1.7 kB
-    for ``warehouse`` at its peak, e.g. 0.6 GB and 1.7 GB for a million episodes.
+    at once, so the first 20 scenes of E = 200 are not those of E = 20. The draw needs memory
+    for all of them at once (positions and the spawner's candidates): about 0.6 kB per
+    episode for ``6v6`` and 1.7 kB for ``warehouse`` at its peak, e.g. 0.6 GB and 1.7 GB for a
+    million episodes.
 
     Parameters
     ----------

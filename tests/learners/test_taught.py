@@ -135,3 +135,9 @@ def test_scale_table_runs_it_at_its_view_whatever_view_says(shipped, tmp_path):
         ("hungarian", False, "3:2"), ("bicnet-dagger any-N", False, "6:5"),
         ("bicnet-dagger any-N", True, "6:5")]
     assert rows[2]["overlaps"] == 0
+
+
+def test_a_missing_checkpoint_is_named(tmp_path):
+    missing = tmp_path / "nowhere.safetensors"
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        allocator.make("bicnet-dagger", scenario="20v20", checkpoint=missing)
