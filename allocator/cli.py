@@ -347,7 +347,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=seed, default=0,
                    help="seed of the test episodes, in [0, 2**63) (default 0)")
     p.add_argument("--scale-episodes", type=non_negative_int, default=None,
-                   help="episodes of the scale headline on 20v20 (default 20, 4 with --quick; "
+                   help="episodes of the scale headline on 20v20 (default 50, 4 with --quick; "
                         "0 skips it)")
     p.add_argument("--lifelong-steps", type=non_negative_int, default=None,
                    help="steps of the lifelong row on warehouse-20 (default 500, 200 with "

@@ -148,6 +148,9 @@ def format_lifelong_table(rows: list[dict[str, Any]]) -> str:
 
 
 SCALE_SCENARIO = "20v20"
+SCALE_EPISODES = 50
+"""The scale headline's episodes by default (one 20v20 episode's time swings by several
+steps: over 20 episodes a policy's time against Hungarian's moves by about a tenth)."""
 
 
 def scale_methods() -> list[tuple[str, Callable[[], Any]]]:
@@ -214,8 +217,8 @@ def run_demo(args: argparse.Namespace) -> int:
     args : argparse.Namespace
         ``episodes`` (a positive int, or None: 30 with ``quick``, else 300), ``quick``,
         ``out`` (the folder), ``seed``, ``scale_episodes`` (the scale headline's 20v20
-        episodes; None: 20, 4 with ``quick``; 0 skips it) and ``lifelong_steps`` (None: 500,
-        200 with ``quick``; 0 skips the lifelong row).
+        episodes; None: :data:`SCALE_EPISODES`, 4 with ``quick``; 0 skips it) and
+        ``lifelong_steps`` (None: 500, 200 with ``quick``; 0 skips the lifelong row).
 
     Returns
     -------
@@ -258,12 +261,15 @@ def run_demo(args: argparse.Namespace) -> int:
                                    still=out / f"episode_{scenario}_{name}.png", title=name)
     scale_episodes = getattr(args, "scale_episodes", None)
     if scale_episodes is None:
-        scale_episodes = 4 if args.quick else 20
+        scale_episodes = 4 if args.quick else SCALE_EPISODES
     if scale_episodes:
         print()
         scale_rows = run_scale(out, episodes=scale_episodes, seed=args.seed)
         print()
         print(format_scale_table(scale_rows))
+        print(f"({scale_episodes} episodes, seed {args.seed}: one episode's time swings by "
+              "several steps, so few episodes are noisy; 200 per size and 3 seeds: "
+              "benchmarks/results/scale/taught/ and docs/learners.md)")
     steps = getattr(args, "lifelong_steps", None)
     if steps is None:
         steps = 200 if args.quick else 500
