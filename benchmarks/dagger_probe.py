@@ -141,13 +141,14 @@ def fitting_tensors(learner: Any, tensors: dict[str, torch.Tensor]
 
 def imitation_loss(act: torch.Tensor, target: torch.Tensor, movable: torch.Tensor,
                    w: torch.Tensor | None, labels: torch.Tensor,
-                   choice_weight: float) -> torch.Tensor:
-    """The student's loss on a batch: the squared error to the teacher's actions (B, N, 2)
-    summed over the two components and averaged over the AGVs that can move (``movable``,
-    (B, N) bool), plus ``choice_weight`` times the cross-entropy of the choice weights ``w``
-    (B, N, K; None: no such term) against the teacher's ``labels`` (B, N; -1: none),
-    averaged over the movable AGVs with a label."""
-    loss = (((act - target) ** 2).sum(-1) * movable).sum() / movable.sum().clamp_min(1)
+                   choice_weight: float, action_weight: float = 1.0) -> torch.Tensor:
+    """The student's loss on a batch: ``action_weight`` times the squared error to the
+    teacher's actions (B, N, 2) summed over the two components and averaged over the AGVs
+    that can move (``movable``, (B, N) bool), plus ``choice_weight`` times the cross-entropy
+    of the choice weights ``w`` (B, N, K; None: no such term) against the teacher's
+    ``labels`` (B, N; -1: none), averaged over the movable AGVs with a label."""
+    loss = action_weight * (((act - target) ** 2).sum(-1) * movable).sum() \
+        / movable.sum().clamp_min(1)
     if w is not None and choice_weight > 0:
         has = (labels >= 0) & movable
         picked = w.gather(-1, labels.clamp_min(0).unsqueeze(-1)).squeeze(-1)

@@ -3,7 +3,8 @@ on a warehouse floor (DAgger).
 
     python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50]
         [--iterations 8] [--envs 4] [--horizon 300] [--steps 300] [--lr 1e-3]
-        [--choice-weight 1.0] [--keep-right 0.5] [--validation-steps 600] [--seed 0]
+        [--choice-weight 1.0] [--action-weight 1.0] [--keep-right 0.5]
+        [--validation-steps 600] [--seed 0]
         [--out benchmarks/results/scale/lifelong/dagger]
 
 The teacher (:class:`PlanTeacher`) is :class:`allocator.HungarianDispatcher` whose plans are
@@ -25,7 +26,8 @@ floor driven by the teacher with probability 0.3, else by the student), every ro
 ``SafetyShield(keep_right=--keep-right)`` (the policy is served shielded); every state is
 labelled with the teacher's action and the teacher's candidate (the own target, or the pickup
 slot of the planned order when it is in view); the last 6 rollouts are kept and the actor takes
-``--steps`` Adam steps on the squared error of the actions of the AGVs that can move plus
+``--steps`` Adam steps on ``--action-weight`` times the squared error of the actions of the
+AGVs that can move (0: the choice alone is taught, the steering is left as it is) plus
 ``--choice-weight`` times the cross-entropy of the head's softmax against the teacher's
 candidate (a batch of 16 joint states per step).
 
@@ -199,6 +201,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=300, help="Adam steps per iteration")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--choice-weight", type=float, default=1.0)
+    parser.add_argument("--action-weight", type=float, default=1.0,
+                        help="weight of the squared error on the action (0: the choice only)")
     parser.add_argument("--keep-right", type=float, default=0.5,
                         help="the shield's lane angle in the rollouts and the validation")
     parser.add_argument("--validation-steps", type=int, default=600)
@@ -210,7 +214,7 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.seed < 0:
         parser.error(f"--seed must be >= 0, got {args.seed}")
-    for name in ("lr", "choice_weight"):
+    for name in ("lr", "choice_weight", "action_weight"):
         value = getattr(args, name)
         if not (np.isfinite(value) and value >= 0) or (name == "lr" and value == 0):
             parser.error(f"--{name.replace('_', '-')} must be a finite number "
@@ -253,7 +257,8 @@ def main(argv: list[str] | None = None) -> None:
         for _ in range(args.steps):
             idx = torch.randint(len(o), (BATCH,), generator=gen)
             act, w = learner.policy_and_choice(o[idx])
-            loss = imitation_loss(act, a[idx], m[idx], w, c[idx], args.choice_weight)
+            loss = imitation_loss(act, a[idx], m[idx], w, c[idx], args.choice_weight,
+                                  args.action_weight)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(learner.actor.parameters(), 1.0)
@@ -274,7 +279,8 @@ def main(argv: list[str] | None = None) -> None:
         {"command": command, "seed": args.seed, "start": str(args.start),
          "floor": args.floor, "iterations": args.iterations, "envs": args.envs,
          "horizon": args.horizon, "steps": args.steps, "lr": args.lr,
-         "choice_weight": args.choice_weight, "keep_right": args.keep_right,
+         "choice_weight": args.choice_weight, "action_weight": args.action_weight,
+         "keep_right": args.keep_right,
          "validation_steps": args.validation_steps,
          "teacher_share": TEACHER_SHARE, "keep": KEEP, "batch": BATCH,
          "start_throughput": start, "teacher_throughput": ceiling, "final": log[-1]},

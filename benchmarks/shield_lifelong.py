@@ -221,12 +221,16 @@ class _Recorder:
         return self.total / max(self.count, 1)
 
 
-BASELINES = ("path-follower", "hungarian", "fifo", "auction", "auction-3", "hungarian-shield")
+BASELINES = ("path-follower", "hungarian", "fifo", "auction", "auction-3", "hungarian-shield",
+             "hungarian-plan")
 """The reference rows (``--baselines``): the shielded path follower, the classical
 dispatchers driven by SafeDriver (``auction``: unlimited radio range, ``auction-3``: 3.0),
-and ``hungarian-shield``: Hungarian's choices driven by :class:`ShieldedIntent` at the first
-``--keep-right`` angle, with the action clipped and direction-keeping (two rows; not in the
-default set)."""
+``hungarian-shield``: Hungarian's choices driven by :class:`ShieldedIntent` at the first
+``--keep-right`` angle, with the action clipped and direction-keeping (two rows), and
+``hungarian-plan``: the lifelong DAgger probe's teacher (``lifelong_dagger.TeacherDriver``:
+Hungarian's plan kept to itself, the orders claimed by reaching them, as a decentralized
+policy claims them) behind :class:`allocator.SafetyShield` with the same lanes (the last two
+not in the default set)."""
 DEFAULT_BASELINES = BASELINES[:5]
 
 
@@ -246,6 +250,12 @@ def _baseline(name: str, keep_right: float = 0.0) -> list[tuple[str, str, Any]]:
             out.append((f"hungarian's choices, waypoint intent ({action}) + shield",
                         f"on, lanes {keep_right:g} rad", ctl))
         return out
+    if name == "hungarian-plan":
+        from lifelong_dagger import TeacherDriver
+
+        return [("hungarian's plan, not assigned (the DAgger teacher) + shield",
+                 f"on, lanes {keep_right:g} rad",
+                 allocator.SafetyShield(TeacherDriver(), keep_right=keep_right))]
     if name == "hungarian":
         ctl = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
     elif name == "fifo":

@@ -226,3 +226,16 @@ def test_hungarians_choices_behind_the_shield_deliver_without_overlaps() -> None
     clipped = b[~free] / np.linalg.norm(b[~free], axis=-1, keepdims=True)
     assert np.abs(a[~free]).max(-1).min() == pytest.approx(1.0)  # on the box's edge
     assert ((cmd * clipped).sum(-1) > 0.5).all()  # close to, not always equal to, the clip
+
+
+def test_the_benchmark_runs_the_dagger_teacher_behind_the_shield(tmp_path) -> None:
+    """``hungarian-plan``: Hungarian's plan kept to itself (the orders claimed by reaching
+    them), behind the shield with the lanes asked for: it delivers, with 0 overlaps."""
+    bench = _bench()
+    out = tmp_path / "t.md"
+    table = bench.main(["--floor", "warehouse-20", "--steps", "150", "--seeds", "0",
+                        "--baselines", "hungarian-plan", "--keep-right", "0.5",
+                        "--out", str(out)])
+    assert [(r["method"], r["liveness"]) for r in table] == [
+        ("hungarian's plan, not assigned (the DAgger teacher) + shield", "on, lanes 0.5 rad")]
+    assert table[0]["overlaps"] == 0 and table[0]["throughput"] > 0
