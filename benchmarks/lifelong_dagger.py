@@ -4,7 +4,7 @@ on a warehouse floor (DAgger).
     python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50]
         [--iterations 8] [--envs 4] [--horizon 300] [--steps 300] [--lr 1e-3]
         [--choice-weight 1.0] [--action-weight 1.0] [--keep-right 0.5]
-        [--validation-steps 600] [--seed 0]
+        [--validation-steps 1000] [--seed 0]
         [--out benchmarks/results/scale/lifelong/dagger]
 
 The teacher (:class:`PlanTeacher`) is :class:`allocator.HungarianDispatcher` whose plans are
@@ -182,7 +182,7 @@ def rollout(learner: Any, floor: str, envs: int, horizon: int, seed: int, teache
     return tuple(torch.cat(x) for x in zip(*out, strict=True))
 
 
-def validate(learner: Any, floor: str, keep_right: float, steps: int = 600) -> float:
+def validate(learner: Any, floor: str, keep_right: float, steps: int = 1000) -> float:
     """Shielded deliveries per 1000 steps on ``floor`` (seed :data:`VALIDATION_SEED`, 2
     runs)."""
     shield = SafetyShield(learner, keep_right=keep_right)
@@ -205,7 +205,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="weight of the squared error on the action (0: the choice only)")
     parser.add_argument("--keep-right", type=float, default=0.5,
                         help="the shield's lane angle in the rollouts and the validation")
-    parser.add_argument("--validation-steps", type=int, default=600)
+    parser.add_argument("--validation-steps", type=int, default=1000,
+                        help="steps of each validation run (600 before 2026-12-07: too "
+                             "short to show the jams)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)

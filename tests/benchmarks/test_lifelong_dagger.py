@@ -100,9 +100,10 @@ def test_policy_and_choice_gives_the_waypoint_heads_candidates() -> None:
 def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     dagger.main(["--start", str(SHIPPED), "--floor", "warehouse-20", "--iterations", "1",
                  "--envs", "1", "--horizon", "6", "--steps", "2", "--validation-steps", "5",
-                 "--out", str(tmp_path)])
+                 "--action-weight", "0", "--out", str(tmp_path)])
     probe = json.loads((tmp_path / "dagger.probe.json").read_text())
     assert probe["floor"] == "warehouse-20" and "throughput" in probe["final"]
+    assert probe["action_weight"] == 0.0 and probe["validation_steps"] == 5
     assert probe["teacher_throughput"] >= 0.0
     assert (tmp_path / "progress.csv").read_text().startswith("iteration,loss,labelled")
     solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
@@ -116,6 +117,7 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--floor", "6v6"],
     ["--start", str(SHIPPED), "--keep-right", "2"],
     ["--start", str(SHIPPED), "--choice-weight", "nan"],
+    ["--start", str(SHIPPED), "--action-weight", "-1"],
     ["--start", str(SHIPPED), "--horizon", "0"],
     ["--start", "missing.safetensors"],
 ])

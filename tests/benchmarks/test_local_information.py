@@ -261,6 +261,12 @@ def test_imitation_loss_counts_only_movable_agvs_and_their_labels() -> None:
     no_choice = dagger.imitation_loss(act, target, movable, None, labels, choice_weight=2.0)
     torch.testing.assert_close(no_choice, torch.tensor(0.125))
     assert dagger.imitation_loss(act, target, torch.zeros_like(movable), w, labels, 1.0) == 0
+    # action_weight scales the action term only (0: the choice alone)
+    choice = dagger.imitation_loss(act, target, movable, w, labels, 2.0, action_weight=0.0)
+    torch.testing.assert_close(choice, expected - 0.125)
+    torch.testing.assert_close(
+        dagger.imitation_loss(act, target, movable, w, labels, 2.0, action_weight=3.0),
+        3.0 * no_choice + choice)
 
 
 def test_detour_labels_name_the_model() -> None:
