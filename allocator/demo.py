@@ -268,8 +268,8 @@ def run_demo(args: argparse.Namespace) -> int:
         print()
         print(format_scale_table(scale_rows))
         print(f"({scale_episodes} episodes, seed {args.seed}: one episode's time swings by "
-              "several steps, so few episodes are noisy; 200 per size and 3 seeds: "
-              "benchmarks/results/scale/taught/ and docs/learners.md)")
+              "several steps, so few episodes are noisy; every N with up to 200 episodes: "
+              "benchmarks/results/scale/taught/, three seeds: docs/learners.md)")
     steps = getattr(args, "lifelong_steps", None)
     if steps is None:
         steps = 200 if args.quick else 500
