@@ -10,7 +10,8 @@
 Episodic rows (``"NvN"``, the paper's open box scaled with N): ``hungarian``, ``greedy``,
 ``fifo`` and ``auction`` (its radio range equal to the scenario's sensing range, so that the
 decentralized peers see as far as each other), and the learned ``maddpg-ipf`` and
-``bicnet-ipf`` as shipped (the 3v3 weights at N = 3, the 6v6 weights zero-shot above), each
+``bicnet-ipf`` as shipped (the 3v3 weights at N = 3, the 6v6 weights zero-shot from N = 6;
+no such rows at N = 1, 2, 4 or 5, whose scenes cannot fill their fixed input), each
 plain and with ``shield=True`` (:class:`allocator.shield.SafetyShield`). Every method runs
 through :func:`sim.evaluate` on the same seeded episodes. Columns: task response, average
 time (steps until every task is claimed, the step limit where not), that time over
