@@ -222,14 +222,16 @@ class _Recorder:
 
 
 BASELINES = ("path-follower", "hungarian", "fifo", "auction", "auction-3", "hungarian-shield",
-             "hungarian-plan")
+             "hungarian-plan", "local-plan")
 """The reference rows (``--baselines``): the shielded path follower, the classical
 dispatchers driven by SafeDriver (``auction``: unlimited radio range, ``auction-3``: 3.0),
 ``hungarian-shield``: Hungarian's choices driven by :class:`ShieldedIntent` at the first
 ``--keep-right`` angle, with the action clipped and direction-keeping (two rows), and
 ``hungarian-plan``: the lifelong DAgger probe's teacher (``lifelong_dagger.TeacherDriver``:
 Hungarian's plan kept to itself, the orders claimed by reaching them, as a decentralized
-policy claims them) behind :class:`allocator.SafetyShield` with the same lanes (the last two
+policy claims them) behind :class:`allocator.SafetyShield` with the same lanes, and
+``local-plan``: ``lifelong_dagger.LocalTeacher``, each AGV's share of the assignment among
+the 16 open pickups and 16 idle AGVs nearest to it, behind the same shield (the last three
 not in the default set)."""
 DEFAULT_BASELINES = BASELINES[:5]
 
@@ -256,6 +258,12 @@ def _baseline(name: str, keep_right: float = 0.0) -> list[tuple[str, str, Any]]:
         return [("hungarian's plan, not assigned (the DAgger teacher) + shield",
                  f"on, lanes {keep_right:g} rad",
                  allocator.SafetyShield(TeacherDriver(), keep_right=keep_right))]
+    if name == "local-plan":
+        from lifelong_dagger import LOCAL_VIEW, TeacherDriver
+
+        return [(f"each AGV's local assignment, {LOCAL_VIEW} nearest (a teacher) + shield",
+                 f"on, lanes {keep_right:g} rad",
+                 allocator.SafetyShield(TeacherDriver(view=LOCAL_VIEW), keep_right=keep_right))]
     if name == "hungarian":
         ctl = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
     elif name == "fifo":

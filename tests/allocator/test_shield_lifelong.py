@@ -239,3 +239,13 @@ def test_the_benchmark_runs_the_dagger_teacher_behind_the_shield(tmp_path) -> No
     assert [(r["method"], r["liveness"]) for r in table] == [
         ("hungarian's plan, not assigned (the DAgger teacher) + shield", "on, lanes 0.5 rad")]
     assert table[0]["overlaps"] == 0 and table[0]["throughput"] > 0
+
+
+def test_the_benchmark_runs_the_local_teacher_behind_the_shield(tmp_path) -> None:
+    bench = _bench()
+    out = tmp_path / "t.md"
+    table = bench.main(["--floor", "warehouse-20", "--steps", "120", "--seeds", "0",
+                        "--baselines", "local-plan", "--keep-right", "0.5", "--out", str(out)])
+    assert [r["method"] for r in table] == [
+        "each AGV's local assignment, 16 nearest (a teacher) + shield"]
+    assert table[0]["overlaps"] == 0 and table[0]["throughput"] > 0

@@ -124,3 +124,41 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
 def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
         dagger.main([*bad, "--out", str(tmp_path)])
+
+
+def test_the_local_teacher_gives_each_idle_agv_an_open_order_from_its_view() -> None:
+    """``LocalTeacher``: every idle AGV gets an open order among its ``view`` nearest; with a
+    view wide enough to see each other, no pickup point is aimed at by more idle AGVs than it
+    has open orders; a view of 1 is each AGV's nearest open pickup."""
+    from sim.orders import IDLE
+
+    env = sim.make_env("warehouse-20", num_envs=2, seed=3)
+    wide, narrow = dagger.LocalTeacher(view=40), dagger.LocalTeacher(view=1)
+    wide.reset(env)
+    narrow.reset(env)
+    for _ in range(30):
+        action, _, _ = wide.teach(env)
+        narrow.teach(env)
+        status, st = env.agent_status.numpy(), env.orders.status.numpy()
+        pos, pickup = env.agent_pos.double().numpy(), env.orders.pickup.double().numpy()
+        for b in range(2):
+            idle = np.flatnonzero(status[b] == IDLE)
+            open_ = np.flatnonzero(st[b] == OPEN)
+            if len(open_) == 0:
+                continue
+            assert (wide.plan[b, idle] >= 0).all() and np.isin(wide.plan[b, idle], open_).all()
+            if len(open_) >= len(idle):  # no pickup point is aimed at by more idle AGVs
+                # than it has open orders (orders that share a point are ties, broken
+                # differently by each AGV's own assignment: harmless, there is one for each)
+                aimed = [tuple(pickup[b, j].round(6)) for j in wide.plan[b, idle]]
+                held = [tuple(pickup[b, j].round(6)) for j in open_]
+                assert all(aimed.count(x) <= held.count(x) for x in set(aimed))
+            for i in idle:  # view 1: the nearest open pickup
+                d = np.linalg.norm(pickup[b, open_] - pos[b, i], axis=-1)
+                assert narrow.plan[b, i] == open_[np.argmin(d)]
+        assert action.abs().max() <= 1.0 + 1e-6
+        env.step(action)
+    with pytest.raises(ValueError, match="view must be an integer >= 1"):
+        dagger.LocalTeacher(view=0)
+    with pytest.raises(ValueError, match="view must be an integer >= 1"):
+        dagger.LocalTeacher(view=2.5)
