@@ -163,19 +163,19 @@ class LocalTeacher(PlanTeacher):
         for b in range(status.shape[0]):
             idle = np.flatnonzero(status[b] == IDLE)
             open_ = np.flatnonzero(order_status[b] == OPEN)
-            if not len(open_):
+            if not len(open_) or not len(idle):
                 continue
-            for i in idle:
-                near = open_[np.argsort(np.linalg.norm(pickup[b, open_] - pos[b, i], axis=-1),
-                                        kind="stable")[:self.view]]
-                others = idle[idle != i]
-                rivals = others[np.argsort(np.linalg.norm(pos[b, others] - pos[b, i], axis=-1),
-                                           kind="stable")[:self.view]]
-                agents = np.concatenate([[i], rivals])
-                cost = np.linalg.norm(pos[b, agents][:, None] - pickup[b, near][None], axis=-1)
+            # every idle AGV's distances, once per floor: to the open pickups and to the others
+            to_pickup = np.linalg.norm(pos[b, idle][:, None] - pickup[b, open_][None], axis=-1)
+            to_agent = np.linalg.norm(pos[b, idle][:, None] - pos[b, idle][None], axis=-1)
+            for k, i in enumerate(idle):
+                near = np.argsort(to_pickup[k], kind="stable")[:self.view]  # into open_
+                others = np.delete(np.arange(len(idle)), k)
+                rivals = others[np.argsort(to_agent[k, others], kind="stable")[:self.view]]
+                cost = to_pickup[np.concatenate([[k], rivals])][:, near]
                 rows, cols = linear_sum_assignment(cost)
                 mine = cols[rows == 0]
-                self.plan[b, i] = near[mine[0] if len(mine) else np.argmin(cost[0])]
+                self.plan[b, i] = open_[near[mine[0] if len(mine) else np.argmin(cost[0])]]
         return super().teach(env)
 
 
