@@ -381,7 +381,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_evaluate(args: argparse.Namespace) -> int:
-    from allocator.learned import LEARNED
+    from allocator.learned import LEARNED, scenario_to_run
 
     name = args.checkpoint
     if name not in allocator.ALLOCATORS:
@@ -392,9 +392,8 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         return run_evaluate(args)
     scenario = args.scenario or "3v3"
     solver = allocator.make(name, **({"scenario": scenario} if name in LEARNED else {}))
-    # a taught family sees the whole scene (allocator.learned.TAUGHT): its own scenario
-    seen = solver.scenario if getattr(solver, "taught", False) else scenario
-    metrics = sim.evaluate(solver, seen, episodes=args.episodes, seed=args.seed)
+    metrics = sim.evaluate(solver, scenario_to_run(solver, scenario), episodes=args.episodes,
+                           seed=args.seed)
     print_metrics(name, {"method": name, "scenario": scenario}, metrics, args.seed, args.json)
     return 0
 

@@ -177,12 +177,13 @@ def run_scale(out: Path, episodes: int, seed: int) -> list[dict[str, Any]]:
     """The scale headline: every :func:`scale_methods` entry on ``episodes`` episodes of
     :data:`SCALE_SCENARIO` (the same scenes for all); writes ``table_scale.md`` to ``out``.
     The whole table, N = 3 to 100 and the lifelong floors: ``benchmarks/scale_table.py``."""
+    from allocator.learned import scenario_to_run  # a taught family: the whole scene
+
     rows: list[dict[str, Any]] = []
     hungarian_time = float("nan")
     for name, make in scale_methods():
-        solver = make()  # a taught family sees the whole scene: its own scenario
-        scenario = sim.get_scenario(
-            solver.scenario if getattr(solver, "taught", False) else SCALE_SCENARIO)
+        solver = make()
+        scenario = sim.get_scenario(scenario_to_run(solver, SCALE_SCENARIO))
         m = sim.evaluate(solver, scenario, episodes=episodes, seed=seed)
         if name == "hungarian":
             hungarian_time = m.avg_time

@@ -60,7 +60,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "any_n_weights_path",
-    "register_all", "ANY_N", "WEIGHT_CHOICES", "TAUGHT", "whole_view",
+    "register_all", "ANY_N", "WEIGHT_CHOICES", "TAUGHT", "whole_view", "scenario_to_run",
 ]
 
 ALGOS = ("maddpg", "bicnet")
@@ -84,13 +84,23 @@ WEIGHT_CHOICES = ("scenario", "auto", "any")
 any-N ones (``auto``); only the any-N ones."""
 
 
+def _whole(num_agents: int, num_tasks: int) -> dict[str, int]:
+    """The view fields that show every task and every other AGV of a scene."""
+    return dict(k_tasks=num_tasks, k_agents=max(num_agents - 1, 0))
+
+
 def whole_view(scenario: Any) -> Any:
     """``scenario`` with every task and every other AGV in view (``k_tasks = M``,
     ``k_agents = N - 1``): how a :data:`TAUGHT` family sees a scene."""
     from sim.scenarios import get_scenario
 
-    return get_scenario(scenario, k_tasks=scenario.num_tasks,
-                        k_agents=max(scenario.num_agents - 1, 0))
+    return get_scenario(scenario, **_whole(scenario.num_agents, scenario.num_tasks))
+
+
+def scenario_to_run(solver: Any, scenario: Any) -> Any:
+    """The scenario to evaluate ``solver`` on in place of ``scenario``: a :data:`TAUGHT`
+    family's own (the whole scene in view), any other solver's ``scenario`` as given."""
+    return solver.scenario if getattr(solver, "taught", False) else scenario
 
 
 class MissingWeightsError(FileNotFoundError, ValueError):
@@ -379,7 +389,7 @@ class LearnedAllocator:
         """The trained scenario's sensing and step limit on the given scene, run as given
         (:meth:`sim.scenarios.Scenario.given_scene`)."""
         base = self.scenario
-        view = dict(k_tasks=len(tasks), k_agents=max(len(agents) - 1, 0)) if self.taught else {}
+        view = _whole(len(agents), len(tasks)) if self.taught else {}
         return type(base).given_scene(
             base, agents, tasks, world or base.world,
             max_steps=base.max_steps if self.max_steps is None else self.max_steps, **view)

@@ -68,6 +68,7 @@ from provenance import recorded_command
 
 import allocator
 import sim
+from allocator.learned import scenario_to_run
 from sim import physics
 from sim.io import atomic_write_text
 
@@ -186,8 +187,7 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
             t = time.perf_counter()
             # the paper's weights see the scenario's own slots; a taught family its own view
             # (the whole scene); every other row --view
-            scen = base if name in LEARNED else ctl.scenario if getattr(ctl, "taught",
-                                                                        False) else viewed
+            scen = base if name in LEARNED else scenario_to_run(ctl, viewed)
             m = sim.evaluate(ctl, scen, episodes=eps, seed=seed, batch_size=eps)
             seconds = time.perf_counter() - t
             safety = getattr(ctl, "safety", None)

@@ -141,3 +141,11 @@ def test_a_missing_checkpoint_is_named(tmp_path):
     missing = tmp_path / "nowhere.safetensors"
     with pytest.raises(FileNotFoundError, match="nowhere"):
         allocator.make("bicnet-dagger", scenario="20v20", checkpoint=missing)
+
+
+def test_scenario_to_run_is_the_taught_familys_own_and_anyone_elses_as_given(shipped):
+    from allocator.learned import scenario_to_run
+
+    taught = allocator.make("bicnet-dagger", scenario="20v20")
+    assert scenario_to_run(taught, "20v20") is taught.scenario
+    assert scenario_to_run(allocator.make("hungarian"), "20v20") == "20v20"
