@@ -90,10 +90,21 @@ def _whole(num_agents: int, num_tasks: int) -> dict[str, int]:
 
 
 def whole_view(scenario: Any) -> Any:
-    """``scenario`` with every task and every other AGV in view (``k_tasks = M``,
-    ``k_agents = N - 1``): how a :data:`TAUGHT` family sees a scene."""
+    """``scenario`` (a name or a scenario) with every task and every other AGV in view
+    (``k_tasks = M``, ``k_agents = N - 1``): how a :data:`TAUGHT` family sees a scene.
+
+    Raises
+    ------
+    ValueError
+        For a scenario that is not one (:func:`sim.get_scenario`'s message) or a lifelong
+        floor, which has no task slots.
+    """
     from sim.scenarios import get_scenario
 
+    scenario = get_scenario(scenario)
+    if getattr(scenario, "lifelong", False):
+        raise ValueError(f"{scenario.name!r} is a lifelong floor: it has pickups, not the "
+                         "task slots of an episodic scene")
     return get_scenario(scenario, **_whole(scenario.num_agents, scenario.num_tasks))
 
 

@@ -118,6 +118,9 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--keep-right", "2"],
     ["--start", str(SHIPPED), "--choice-weight", "nan"],
     ["--start", str(SHIPPED), "--action-weight", "-1"],
+    ["--start", str(SHIPPED), "--action-weight", "nan"],
+    ["--start", str(SHIPPED), "--action-weight", ""],
+    ["--start", str(SHIPPED), "--action-weight", "1e400"],
     ["--start", str(SHIPPED), "--horizon", "0"],
     ["--start", "missing.safetensors"],
 ])
@@ -160,5 +163,7 @@ def test_the_local_teacher_gives_each_idle_agv_an_open_order_from_its_view() -> 
         env.step(action)
     with pytest.raises(ValueError, match="view must be an integer >= 1"):
         dagger.LocalTeacher(view=0)
-    with pytest.raises(ValueError, match="view must be an integer >= 1"):
-        dagger.LocalTeacher(view=2.5)
+    for bad in (2.5, float("nan"), "16", None, True, -3):
+        with pytest.raises(ValueError, match="view must be an integer >= 1"):
+            dagger.LocalTeacher(view=bad)
+    assert dagger.LocalTeacher(view=10**9).view == 10**9  # wider than any floor: all in view

@@ -56,6 +56,10 @@ def test_whole_view_shows_every_task_and_agent():
     assert (s.k_tasks, s.k_agents, s.num_agents, s.num_tasks) == (4, 8, 9, 4)
     s = whole_view(sim.get_scenario("1v1"))
     assert (s.k_tasks, s.k_agents) == (1, 0)
+    assert (whole_view("12v7").k_tasks, whole_view("12v7").k_agents) == (7, 11)  # a name
+    for bad in (3, None, float("nan"), "", "nope", "warehouse-20"):
+        with pytest.raises(ValueError):
+            whole_view(bad)
 
 
 def test_same_results_as_the_policy_file_at_the_same_view(shipped):
