@@ -121,8 +121,12 @@ def run_lifelong(out: Path, steps: int, seed: int) -> list[dict[str, Any]]:
     ``table_lifelong.md`` and ``lifelong_throughput.png`` (throughput and waits over time) to
     ``out``."""
     rows, runs = [], {}
+    from allocator.learned import scenario_to_run  # a taught family: its own view
+
     for name, make in lifelong_methods():
-        m = sim.evaluate_lifelong(make(), LIFELONG_FLOOR, steps=steps, seed=seed)
+        ctl = make()
+        m = sim.evaluate_lifelong(ctl, scenario_to_run(ctl, LIFELONG_FLOOR), steps=steps,
+                                  seed=seed)
         runs[name] = m
         rows.append({"floor": LIFELONG_FLOOR, "method": name, "steps": steps,
                      "throughput": m.throughput, "bound": m.throughput_bound,

@@ -18,7 +18,13 @@ among the AGVs (``choice_sinkhorn``). Its weights ship for any N only
 taught with the whole scene in view: its :attr:`LearnedAllocator.scenario` shows every task
 and every other AGV (``k_tasks = M``, ``k_agents = N - 1``), so run it on that scenario
 (``sim.evaluate(solver, solver.scenario, ...)``); :meth:`LearnedAllocator.reset` warns when an
-env shows it less. Best served ``shield=True, detour="discs"``.
+env shows it less. Best served ``shield=True, detour="discs"``. ``"maddpg-dagger"`` is its
+lifelong counterpart: MADDPG-E's actor taught by DAgger which open order each AGV should
+head for (``benchmarks/lifelong_dagger.py --teacher local``), choosing outright and driving
+as the classical dispatchers' driver does (``waypoint_drive``). Its weights ship for lifelong
+floors only (``allocator/weights/lifelong/maddpg-dagger.safetensors``), taught with
+:data:`TAUGHT_LIFELONG_VIEW` open pickups and other AGVs in view: run it on
+``solver.scenario`` (``sim.evaluate_lifelong(solver, solver.scenario, ...)``), shielded.
 
 **Any fleet size.** ``allocator/weights/any/<algo>-<reward>.safetensors`` holds the weights of
 the entity-token learner of the same family (``maddpg-e`` for ``maddpg-*``, ``bicnet-e`` for
@@ -61,6 +67,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "any_n_weights_path",
     "register_all", "ANY_N", "WEIGHT_CHOICES", "TAUGHT", "whole_view", "scenario_to_run",
+    "taught_view", "TAUGHT_LIFELONG_VIEW",
 ]
 
 ALGOS = ("maddpg", "bicnet")
@@ -68,10 +75,23 @@ REWARDS = ("minidist", "greedy", "ipf")
 VARIANTS = {"bicnet": ("ipf-time",)}
 """Registered reward variants (:data:`sim.rewards.REWARD_VARIANTS`) served by a family: only
 those with shipped weights, so that every registered name has weights on 3v3 and 6v6."""
-TAUGHT = {"bicnet": ("dagger",)}
+TAUGHT = {"bicnet": ("dagger",), "maddpg": ("dagger",)}
 """Families taught by imitation instead of trained on a reward, by algorithm: registered as
-``<algo>-<how>``, their weights ship for any N only and they see the whole scene
-(:func:`whole_view`)."""
+``<algo>-<how>``, their weights ship for any N only (``bicnet-dagger``: episodic scenes;
+``maddpg-dagger``: lifelong floors) and they see what they were taught with
+(:func:`taught_view`)."""
+TAUGHT_HOW = {
+    "bicnet-dagger": "taught by imitation (DAgger) of a whole-scene assignment rule, for "
+                     "episodic scenes",
+    "maddpg-dagger": "taught by imitation (DAgger) of a local assignment rule (each AGV's "
+                     "share of the least-distance assignment among what it sees), for "
+                     "lifelong floors",
+}
+"""How each :data:`TAUGHT` family was taught (its class docstring)."""
+TAUGHT_LIFELONG_VIEW = 16
+"""The open pickups and other AGVs a taught family sees on a lifelong floor (``k_pickups`` and
+``k_agents``): the view its lifelong weights were taught with
+(``benchmarks/lifelong_dagger.py --view 16``, the view of its teacher, ``LocalTeacher``)."""
 VARIANT_FOLDERS = {"ipf-time": "time"}
 """The folder of a scenario's weights that holds a variant's weights."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -108,9 +128,28 @@ def whole_view(scenario: Any) -> Any:
     return get_scenario(scenario, **_whole(scenario.num_agents, scenario.num_tasks))
 
 
+def taught_view(scenario: Any) -> Any:
+    """``scenario`` as a :data:`TAUGHT` family sees it: an episodic scene whole
+    (:func:`whole_view`), a lifelong floor with :data:`TAUGHT_LIFELONG_VIEW` open pickups and
+    other AGVs in view.
+
+    Raises
+    ------
+    ValueError
+        For a scenario that is not one (:func:`sim.get_scenario`'s message).
+    """
+    from sim.scenarios import get_scenario
+
+    scenario = get_scenario(scenario)
+    if getattr(scenario, "lifelong", False):
+        return get_scenario(scenario, k_pickups=TAUGHT_LIFELONG_VIEW,
+                            k_agents=TAUGHT_LIFELONG_VIEW)
+    return whole_view(scenario)
+
+
 def scenario_to_run(solver: Any, scenario: Any) -> Any:
     """The scenario to evaluate ``solver`` on in place of ``scenario``: a :data:`TAUGHT`
-    family's own (the whole scene in view), any other solver's ``scenario`` as given."""
+    family's own (:func:`taught_view`), any other solver's ``scenario`` as given."""
     return solver.scenario if getattr(solver, "taught", False) else scenario
 
 
@@ -256,8 +295,8 @@ class LearnedAllocator:
             raise ValueError(f"{self.name!r} is taught for any N: it needs an entity learner's "
                              f"({entity_algo!r}) policy file, got {found or 'no'} weights in "
                              f"{self.checkpoint}")
-        if self.taught and not self.lifelong:
-            self.scenario = whole_view(self.scenario)
+        if self.taught:
+            self.scenario = taught_view(self.scenario)
         self._narrow_warned = False
         if self.any_n:
             # a taught family's file records the reward its RL stage had, not how it was taught
@@ -313,10 +352,15 @@ class LearnedAllocator:
                 return path
         looked = " nor ".join(str(p) for p in candidates)
         if self.taught:
+            modes = ("episodic scenes (NvM)", "lifelong floors (warehouse-N)")
+            mode, other_mode = modes[::-1] if self.lifelong else modes
+            other = any_n_weights_path(self.algo, self.reward, not self.lifelong)
+            known = f" It ships for {other_mode} only ({other})." if other.is_file() else ""
             raise MissingWeightsError(
                 f"no weights for {self.name!r} on scenario {self.scenario.name!r}: expected "
-                f"{anyn}. It is taught by imitation (benchmarks/dagger_probe.py), for "
-                "episodic scenes (NvM) only; pass checkpoint=<a policy .safetensors file>")
+                f"{anyn}, its weights for {mode}.{known} It is taught by imitation "
+                "(benchmarks/dagger_probe.py, benchmarks/lifelong_dagger.py); pass "
+                "checkpoint=<a policy .safetensors file>")
         if weights == "scenario" and anyn.is_file():
             raise MissingWeightsError(
                 f"no trained weights for {self.name!r} on scenario {self.scenario.name!r}: "
@@ -370,18 +414,27 @@ class LearnedAllocator:
                              "scenes")
         if self.any_n:  # read the env's observations with its layout (its K slots)
             self.policy.learner.reset(env)
-        if self.taught and not self._narrow_warned and not getattr(env, "lifelong", False):
+        if self.taught and not self._narrow_warned:
             layout = env.obs_layout
-            if (layout.k_tasks < env.num_tasks or layout.k_agents < env.num_agents - 1):
+            if getattr(env, "lifelong", False):
+                want, seen = TAUGHT_LIFELONG_VIEW, (layout.k_pickups, layout.k_agents)
+                narrow = seen[0] < want or seen[1] < min(want, env.num_agents - 1)
+                what = (f"{want} open pickups and {want} other AGVs in view; this env shows "
+                        f"{seen[0]} and {seen[1]}")
+                run = "sim.evaluate_lifelong(solver, solver.scenario, ...)"
+            else:
+                narrow = layout.k_tasks < env.num_tasks or layout.k_agents < env.num_agents - 1
+                what = (f"the whole scene in view; this env shows {layout.k_tasks} of "
+                        f"{env.num_tasks} tasks and {layout.k_agents} of {env.num_agents - 1} "
+                        "other AGVs")
+                run = "sim.evaluate(solver, solver.scenario, ...)"
+            if narrow:
                 import warnings
 
                 self._narrow_warned = True
                 warnings.warn(
-                    f"{self.name!r} was taught with the whole scene in view; this env shows "
-                    f"{layout.k_tasks} of {env.num_tasks} tasks and {layout.k_agents} of "
-                    f"{env.num_agents - 1} other AGVs, and the policy does worse on less. Run "
-                    "it on solver.scenario (sim.evaluate(solver, solver.scenario, ...))",
-                    UserWarning, stacklevel=2)
+                    f"{self.name!r} was taught with {what}, and the policy does worse on "
+                    f"less. Run it on solver.scenario ({run})", UserWarning, stacklevel=2)
         if self.safety is not None:
             self.safety.reset(env)
 
@@ -527,8 +580,8 @@ def _make_class(algo: str, reward: str) -> type[LearnedAllocator]:
     name = f"{algo}-{reward}"
     pretty = {"maddpg": "MADDPG", "bicnet": "BiCNet"}[algo]
     cls_name = f"{pretty}{''.join(part.capitalize() for part in reward.split('-'))}Allocator"
-    how = ("taught by imitation (DAgger) of a whole-scene assignment rule"
-           if reward in TAUGHT.get(algo, ()) else f"trained with the {reward} reward")
+    how = TAUGHT_HOW[name] if reward in TAUGHT.get(algo, ()) \
+        else f"trained with the {reward} reward"
     doc = (f"The {pretty} policy {how} (registry name {name!r}); see "
            ":class:`LearnedAllocator`.")
     return type(cls_name, (LearnedAllocator,),

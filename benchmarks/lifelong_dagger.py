@@ -33,7 +33,8 @@ candidate (a batch of 16 joint states per step).
 
 Writes ``--out``/``dagger.safetensors`` (a policy file that ``allocator.make(...,
 weights=FILE)`` and ``shield_lifelong.py --weights FILE`` take; written after every
-validation), ``progress.csv`` (loss, and every second iteration the shielded throughput on
+validation), ``best.safetensors`` (the student of the best validation so far),
+``progress.csv`` (loss, and every second iteration the shielded throughput on
 the floor, seed 4242, ``--validation-steps`` steps, 2 runs) and ``dagger.probe.json``
 (command, seed, settings, the start's throughput and the teacher's own on the same
 validation, :class:`TeacherDriver`: the ceiling of the imitation).
@@ -190,7 +191,7 @@ class TeacherDriver:
 
     def reset(self, env: Any) -> None:
         self.env = env
-        self.teacher = PlanTeacher() if self.view is None else LocalTeacher(self.view)
+        self.teacher = make_teacher(self.view)
         self.teacher.reset(env)
 
     def act(self, obs: torch.Tensor) -> torch.Tensor:
@@ -217,14 +218,21 @@ def candidate_labels(obs: torch.Tensor, layout: Any, rel: np.ndarray,
     return out
 
 
-def rollout(learner: Any, floor: str, envs: int, horizon: int, seed: int, teacher_share: float,
-            keep_right: float, gen: torch.Generator) -> tuple[torch.Tensor, ...]:
-    """One batch of floors for ``horizon`` steps through the shield; returns the
-    observations (S, N, O), the teacher's actions (S, N, 2), which AGVs can move (S, N) and
-    the teacher's candidates (S, N; -1: none), S = envs x horizon."""
+def make_teacher(view: int | None = None) -> PlanTeacher:
+    """The teacher: :class:`PlanTeacher` (``view`` None) or ``LocalTeacher(view)``."""
+    return PlanTeacher() if view is None else LocalTeacher(view)
+
+
+def rollout(learner: Any, floor: Any, envs: int, horizon: int, seed: int, teacher_share: float,
+            keep_right: float, gen: torch.Generator, teacher_view: int | None = None
+            ) -> tuple[torch.Tensor, ...]:
+    """One batch of floors (a name or a lifelong scenario) for ``horizon`` steps through the
+    shield, taught by :func:`make_teacher` (``teacher_view``); returns the observations
+    (S, N, O), the teacher's actions (S, N, 2), which AGVs can move (S, N) and the teacher's
+    candidates (S, N; -1: none), S = envs x horizon."""
     env = sim.make_env(floor, num_envs=envs, seed=seed)
     obs = env.observe()
-    teacher = PlanTeacher()
+    teacher = make_teacher(teacher_view)
     teacher.reset(env)
     learner.reset(env)
     shield = SafetyShield(learner, keep_right=keep_right)
@@ -242,12 +250,16 @@ def rollout(learner: Any, floor: str, envs: int, horizon: int, seed: int, teache
     return tuple(torch.cat(x) for x in zip(*out, strict=True))
 
 
-def validate(learner: Any, floor: str, keep_right: float, steps: int = 1000) -> float:
-    """Shielded deliveries per 1000 steps on ``floor`` (seed :data:`VALIDATION_SEED`, 2
-    runs)."""
-    shield = SafetyShield(learner, keep_right=keep_right)
-    m = sim.evaluate_lifelong(shield, floor, steps=steps, seed=VALIDATION_SEED, runs=2)
-    return float(m.throughput)
+def validate(learner: Any, floor: Any, keep_right: float, steps: int = 1000,
+             seeds: tuple[int, ...] = (VALIDATION_SEED,), runs: int = 2) -> float:
+    """Shielded deliveries per 1000 steps on ``floor`` (a name or a lifelong scenario), the
+    mean over ``seeds`` (default :data:`VALIDATION_SEED`) of ``runs`` runs each."""
+    out = []
+    for seed in seeds:
+        shield = SafetyShield(learner, keep_right=keep_right)
+        m = sim.evaluate_lifelong(shield, floor, steps=steps, seed=seed, runs=runs)
+        out.append(float(m.throughput))
+    return float(np.mean(out))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -268,14 +280,35 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--validation-steps", type=int, default=1000,
                         help="steps of each validation run (600 before 2026-12-07: too "
                              "short to show the jams)")
+    parser.add_argument("--validation-seeds", type=int, nargs="+", default=[VALIDATION_SEED],
+                        help="floors of the validation (the mean is reported)")
+    parser.add_argument("--validation-runs", type=int, default=2,
+                        help="runs per validation seed")
+    parser.add_argument("--teacher", choices=("plan", "local"), default="plan",
+                        help="plan: Hungarian's plan (PlanTeacher); local: LocalTeacher")
+    parser.add_argument("--view", type=int, default=None,
+                        help="the student's pickup and AGV slots (the floor's own when "
+                             f"omitted), and LocalTeacher's view (default {LOCAL_VIEW})")
+    parser.add_argument("--waypoint-drive", action="store_true",
+                        help="the student chooses outright and drives as WaypointDriver "
+                             "(EntityConfig.waypoint_drive); its choice alone is taught")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    for name in ("iterations", "envs", "horizon", "steps", "validation_steps"):
+    for name in ("iterations", "envs", "horizon", "steps", "validation_steps",
+                 "validation_runs"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.seed < 0:
         parser.error(f"--seed must be >= 0, got {args.seed}")
+    if min(args.validation_seeds) < 0:
+        parser.error(f"--validation-seeds must be >= 0, got {args.validation_seeds}")
+    if args.view is not None and args.view < 1:
+        parser.error(f"--view must be >= 1, got {args.view}")
+    if args.waypoint_drive and args.action_weight:
+        parser.error("--waypoint-drive teaches the choice alone (no gradient reaches its "
+                     "action): pass --action-weight 0")
+    teacher_view = None if args.teacher == "plan" else (args.view or LOCAL_VIEW)
     for name in ("lr", "choice_weight", "action_weight"):
         value = getattr(args, name)
         if not (np.isfinite(value) and value >= 0) or (name == "lr" and value == 0):
@@ -284,7 +317,8 @@ def main(argv: list[str] | None = None) -> None:
     if not (np.isfinite(args.keep_right) and 0 <= args.keep_right < np.pi / 2):
         parser.error(f"--keep-right must be in [0, pi/2), got {args.keep_right}")
     try:
-        scenario = sim.get_scenario(args.floor)
+        scenario = sim.get_scenario(args.floor) if args.view is None else \
+            sim.get_scenario(args.floor, k_pickups=args.view, k_agents=args.view)
         tensors, meta = load_checkpoint(args.start, kind="policy")
     except (ValueError, KeyError, FileNotFoundError) as err:
         parser.error(str(err))
@@ -296,26 +330,32 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
+    config = dict(meta["config"], waypoint_drive=True) if args.waypoint_drive \
+        else meta["config"]
     learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
-                           meta["num_agents"], meta["config"])
+                           meta["num_agents"], config)
     learner.load_policy_tensors(tensors)
     opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
     args.out.mkdir(parents=True, exist_ok=True)
     data: list[tuple[torch.Tensor, ...]] = []
     log = []
+    best: dict[str, Any] | None = None
     t0 = time.perf_counter()
-    start = validate(learner, args.floor, args.keep_right, args.validation_steps)
-    ceiling = validate(TeacherDriver(), args.floor, args.keep_right, args.validation_steps)
+    checks = dict(steps=args.validation_steps, seeds=tuple(args.validation_seeds),
+                  runs=args.validation_runs)
+    start = validate(learner, scenario, args.keep_right, **checks)
+    ceiling = validate(TeacherDriver(teacher_view), scenario, args.keep_right, **checks)
     print(json.dumps({"iteration": 0, "throughput": start, "teacher_throughput": ceiling}),
           flush=True)
     for it in range(args.iterations):
         share = 1.0 if it == 0 else TEACHER_SHARE
-        data = (data + [rollout(learner, args.floor, args.envs, args.horizon,
-                                args.seed * 100_000 + it, share, args.keep_right, gen)])[-KEEP:]
+        data = (data + [rollout(learner, scenario, args.envs, args.horizon,
+                                args.seed * 100_000 + it, share, args.keep_right, gen,
+                                teacher_view)])[-KEEP:]
         o, a, m, c = (torch.cat(x) for x in zip(*data, strict=True))
-        env = sim.make_env(args.floor, num_envs=1, seed=0)
+        env = sim.make_env(scenario, num_envs=1, seed=0)
         learner.reset(env)  # the floor's layout and waypoints for the tokens
-        total = 0.0
+        total = hits = labelled = 0.0
         for _ in range(args.steps):
             idx = torch.randint(len(o), (BATCH,), generator=gen)
             act, w = learner.policy_and_choice(o[idx])
@@ -326,13 +366,19 @@ def main(argv: list[str] | None = None) -> None:
             torch.nn.utils.clip_grad_norm_(learner.actor.parameters(), 1.0)
             opt.step()
             total += float(loss.detach())
+            has = (c[idx] >= 0) & m[idx]
+            hits += float(((w.argmax(-1) == c[idx]) & has).sum())
+            labelled += float(has.sum())
         row: dict[str, Any] = dict(iteration=it + 1, loss=total / args.steps,
+                                   accuracy=round(hits / max(labelled, 1.0), 4),
                                    labelled=round(float((c >= 0).float().mean()), 3),
                                    seconds=round(time.perf_counter() - t0, 1))
         if it % 2 == 1 or it == args.iterations - 1:
-            row["throughput"] = validate(learner, args.floor, args.keep_right,
-                                         args.validation_steps)
+            row["throughput"] = validate(learner, scenario, args.keep_right, **checks)
             save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
+            if best is None or row["throughput"] > best["throughput"]:
+                best = row
+                save_policy(learner, meta, args.out / "best.safetensors", args.seed)
         log.append(row)
         print(json.dumps(row), flush=True)
     write_progress(args.out / "progress.csv", log)
@@ -344,8 +390,12 @@ def main(argv: list[str] | None = None) -> None:
          "choice_weight": args.choice_weight, "action_weight": args.action_weight,
          "keep_right": args.keep_right,
          "validation_steps": args.validation_steps,
+         "validation_seeds": args.validation_seeds, "validation_runs": args.validation_runs,
+         "teacher": args.teacher, "teacher_view": teacher_view, "view": args.view,
+         "waypoint_drive": args.waypoint_drive,
          "teacher_share": TEACHER_SHARE, "keep": KEEP, "batch": BATCH,
-         "start_throughput": start, "teacher_throughput": ceiling, "final": log[-1]},
+         "start_throughput": start, "teacher_throughput": ceiling, "final": log[-1],
+         "best": best},
         indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")
 

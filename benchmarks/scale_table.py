@@ -43,7 +43,9 @@ pickup, then its drop-off; no dispatcher). **Learned
 lifelong rows** (issue 17): the entity learners trained on a lifelong floor
 (``agv train --algo maddpg-e --scenario warehouse-20 ...``), plain and shielded, on every
 floor: the shipped lifelong weights where they exist (``allocator/weights/<floor>/`` or
-``allocator/weights/lifelong/``) and every ``--lifelong-weights`` run folder or policy file.
+``allocator/weights/lifelong/``; the taught ``maddpg-dagger`` at its own view of 16 pickups
+and 16 AGVs, ``allocator.learned.TAUGHT_LIFELONG_VIEW``) and every ``--lifelong-weights`` run
+folder or policy file.
 The paper's (episodic) weights have no lifelong rows: their observations differ.
 
 Writes ``scale.md``, ``scale.json`` and ``scale.png`` (response and time over Hungarian's
@@ -217,12 +219,14 @@ def policy_file(path: str | Path) -> Path:
 
 def lifelong_learned(floor: str, weights: list[str]) -> list[tuple[str, dict]]:
     """(row name, ``allocator.make`` keywords) of the learned rows on a floor: shipped
-    lifelong weights where they exist, then every ``--lifelong-weights`` entry."""
-    from allocator.learned import any_n_weights_path, weights_path
+    lifelong weights where they exist (a taught family's too), then every
+    ``--lifelong-weights`` entry."""
+    from allocator.learned import TAUGHT, any_n_weights_path, weights_path
     from learners.checkpoint import read_metadata
 
     out = []
-    for name in ALL_LEARNED:
+    taught = tuple(f"{a}-{t}" for a, ts in TAUGHT.items() for t in ts)
+    for name in ALL_LEARNED + taught:
         algo, reward = name.split("-")
         if weights_path(algo, reward, floor).is_file() or \
                 any_n_weights_path(algo, reward, lifelong=True).is_file():
@@ -265,11 +269,13 @@ def lifelong_rows(floors: list[str], steps: int, seed: int, weights: list[str] |
         for name, shield, inner in variants:
             ctl = OverlapCounter(inner)
             t = time.perf_counter()
-            m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed)
+            scen = sim.get_scenario(scenario_to_run(inner, floor))  # a taught family: its view
+            m = sim.evaluate_lifelong(ctl, scen, steps=steps, seed=seed)
             seconds = time.perf_counter() - t
             safety = getattr(inner, "safety", None)
             row = dict(kind="lifelong", scenario=floor, n=int(floor.split("-")[1]),
-                       method=name, shield=shield, steps=steps, throughput=m.throughput,
+                       method=name, shield=shield, view=f"{scen.k_pickups}:{scen.k_agents}",
+                       steps=steps, throughput=m.throughput,
                        throughput_bound=m.throughput_bound, wait_p95=m.wait_p95,
                        lost=m.lost, overlaps_per_1000_steps=1000.0 * ctl.pairs / steps,
                        interventions=(safety.intervention_rate() if safety is not None

@@ -13,7 +13,8 @@ Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floors 
   none, along the floor's shortest path), behind :class:`allocator.SafetyShield` with
   ``liveness=False`` and ``liveness=True``;
 - the learned policy of every ``--weights`` entry (a lifelong entity run folder or policy
-  file; none by default), ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY,
+  file, or a taught family's name such as ``maddpg-dagger``, run at its own view; none by
+  default), ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY,
   shield=True)``, in each ``--variants`` form: without the shield (``none``), with the
   shield's liveness rules ``off`` and ``on``, and on with lanes (``lanes``: the intended
   velocities turned right by each ``--keep-right`` angle, ``SafetyShield.keep_right``) (a run
@@ -58,6 +59,7 @@ from torch import Tensor
 import allocator
 import sim
 from allocator.distances import FloorDistances
+from allocator.learned import scenario_to_run
 from sim.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -183,14 +185,26 @@ class ShieldedIntent:
         return self.shield.filter(self.intent(env))
 
 
+def taught_names() -> tuple[str, ...]:
+    """The taught families (``allocator.learned.TAUGHT``), which ``--weights`` may name."""
+    from allocator.learned import TAUGHT
+
+    return tuple(f"{a}-{t}" for a, ts in TAUGHT.items() for t in ts)
+
+
 def _learned(weights: str, floor: str, liveness: bool | None, keep_right: float = 0.0) -> Any:
-    """The learned policy of ``weights`` with ``shield=True``, its shield's liveness set
-    (``None``: no shield at all) and its lane angle ``keep_right``."""
+    """The learned policy of ``weights`` (a policy file or run folder, or the name of a
+    taught family, :func:`taught_names`, with its shipped weights) with ``shield=True``, its
+    shield's liveness set (``None``: no shield at all) and its lane angle ``keep_right``."""
     from learners.checkpoint import read_metadata
 
-    meta = read_metadata(weights)
-    name = f"{meta['algo'].removesuffix('-e')}-{meta['reward']}"
-    ctl = allocator.make(name, scenario=floor, weights=weights, shield=liveness is not None)
+    if weights in taught_names():
+        ctl = allocator.make(weights, scenario=floor, shield=liveness is not None)
+    else:
+        meta = read_metadata(weights)
+        name = f"{meta['algo'].removesuffix('-e')}-{meta['reward']}"
+        ctl = allocator.make(name, scenario=floor, weights=weights,
+                             shield=liveness is not None)
     if liveness is not None:
         assert ctl.safety.liveness is None  # the default reaches the learned allocator's shield
         ctl.safety.liveness = liveness
@@ -309,8 +323,9 @@ def rows(floor: str, steps: int, seeds: list[int], weights: list[str],
             else _Recorder(ctl, "act") if live == "no shield" else None
         per_seed, overlaps, rates, by_rules, yields = [], 0.0, [], [], 0
         t = time.perf_counter()
+        scen = scenario_to_run(ctl, floor)  # a taught family: its own view
         for seed in seeds:
-            m = sim.evaluate_lifelong(ctl, floor, steps=steps, seed=seed, runs=1)
+            m = sim.evaluate_lifelong(ctl, scen, steps=steps, seed=seed, runs=1)
             per_seed.append(m.throughput)
             overlaps += m.collisions_per_1000 * steps / 1000.0
             if shield is not None:
@@ -405,7 +420,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--seeds", type=int, nargs="+", default=[0], metavar="SEED",
                    help="seeds of the floor and orders, one run each (default 0)")
     p.add_argument("--weights", nargs="*", default=[], metavar="RUN_DIR_OR_FILE",
-                   help="lifelong entity run folders or policy files (none: no learned rows)")
+                   help="lifelong entity run folders or policy files, or a taught family's "
+                        f"name ({', '.join(taught_names())}: its shipped weights at its own "
+                        "view) (none: no learned rows)")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
                    metavar="V", help=f"learned rows, any of {' '.join(VARIANTS)} (default all)")
     p.add_argument("--keep-right", type=float, nargs="+", default=[0.3], metavar="RAD",
@@ -429,8 +446,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if not getattr(scenario, "lifelong", False):
         p.error(f"--floor {args.floor} is not a lifelong floor")
     for entry in args.weights:
-        if not Path(entry).exists():
-            p.error(f"--weights {entry}: no such file or folder")
+        if entry not in taught_names() and not Path(entry).exists():
+            p.error(f"--weights {entry}: no such file or folder (nor a taught family: "
+                    f"{', '.join(taught_names())})")
     table = rows(args.floor, args.steps, args.seeds, args.weights, args.baselines,
                  args.variants, args.keep_right)
     command = recorded_command(__file__, argv)

@@ -104,8 +104,16 @@ untrained head drives mostly at the nearest visible task)."""
 CHOICE_SPEED = 2.0
 """Speed cap of :func:`arrive_action` (the terminal speed of a unit action along a diagonal)."""
 EPISODIC_PHYSICS = Physics()
-"""The physics :func:`arrive_action` is computed for: the episodic scenarios' (the default);
-:meth:`EntityLearner.reset` refuses a choice-head learner an env with other physics."""
+"""The physics :func:`arrive_action` is computed for: the episodic scenarios' (the default,
+which the lifelong floors share); :meth:`EntityLearner.reset` refuses a choice-head or
+waypoint-drive learner an env with other physics."""
+DRIVE_GAIN = 4.0
+"""Velocity command per unit of offset to the next waypoint with
+:attr:`EntityConfig.waypoint_drive`: the gain of ``allocator.dispatch.WaypointDriver``, the
+classical dispatchers' driver (and the lifelong teachers'), so that the taught head drives
+as its teacher does."""
+DRIVE_SPEED = 1.2
+"""Speed cap with :attr:`EntityConfig.waypoint_drive`: ``WaypointDriver``'s."""
 
 
 # ---------------------------------------------------------------------- tokens
@@ -426,14 +434,22 @@ class WaypointHead(nn.Module):
     drives to its target, or when idle toward the nearest open pickup by path, and training
     changes which candidate, how fast, and how to pass the others (``docs/learners.md``,
     "Lifelong operation"). The gradient reaches every parameter through the softmax weights.
+
+    With ``drive`` (:attr:`EntityConfig.waypoint_drive`) the output is the action itself:
+    the candidate of the largest weight is chosen outright, and the AGV drives at its next
+    waypoint as ``allocator.dispatch.WaypointDriver`` does (:func:`arrive_action` at gain
+    :data:`DRIVE_GAIN`, capped at :data:`DRIVE_SPEED`; it brakes with no candidate in view).
+    ``gain`` and the residual are then not used, and no gradient reaches the action: such a
+    head is taught its choice by imitation (the weights' cross-entropy), not by a critic.
     """
 
-    def __init__(self, hidden: int) -> None:
+    def __init__(self, hidden: int, drive: bool = False) -> None:
         super().__init__()
         self.score, self.residual = _pointer_layers(hidden)
         self.gain = nn.Parameter(torch.tensor(HEAD_GAIN))
         self.target_bias = nn.Parameter(torch.tensor(HEAD_TARGET_BIAS))
         self.path_weight = nn.Parameter(torch.tensor(HEAD_PATH_WEIGHT))
+        self.drive = drive
 
     def forward(self, h: Tensor, task_emb: Tensor, target_emb: Tensor, tok: Tokens
                 ) -> tuple[Tensor, Tensor]:
@@ -450,17 +466,22 @@ class WaypointHead(nn.Module):
         prior = self.target_bias * kind - self.path_weight * length * (1.0 - kind)
         logits = self.score(torch.cat([h.unsqueeze(-2).expand_as(emb), emb], dim=-1))
         w = _masked_softmax(logits.squeeze(-1) + prior, mask)
+        if self.drive:
+            pick = nn.functional.one_hot(w.argmax(-1), w.shape[-1]).to(w.dtype) * mask
+            goal = (pick.unsqueeze(-1) * wp).sum(-2).detach()  # 0 (brake) with none in view
+            return arrive_action(goal, tok.own[..., 0:2], EPISODIC_PHYSICS, DRIVE_SPEED,
+                                 DRIVE_GAIN), w
         unit = wp / torch.linalg.vector_norm(wp, dim=-1, keepdim=True).clamp_min(1e-6)
         return self.gain * (w.unsqueeze(-1) * unit).sum(-2) + self.residual(h), w
 
 
 def arrive_action(rel: Tensor, vel: Tensor, physics: Physics = EPISODIC_PHYSICS,
-                  max_speed: float = CHOICE_SPEED) -> Tensor:
+                  max_speed: float = CHOICE_SPEED, gain: float | None = None) -> Tensor:
     """The action that drives an AGV at an offset and stops on it.
 
-    Velocity command ``rel / dt`` (arrive in one step) capped at ``max_speed``, turned into
-    the MPE acceleration for the AGV's velocity and scaled (not clipped: the direction is
-    kept) into [-1, 1]^2.
+    Velocity command ``gain x rel`` (by default ``rel / dt``: arrive in one step) capped at
+    ``max_speed``, turned into the MPE acceleration for the AGV's velocity and scaled (not
+    clipped: the direction is kept) into [-1, 1]^2.
 
     Parameters
     ----------
@@ -468,12 +489,16 @@ def arrive_action(rel: Tensor, vel: Tensor, physics: Physics = EPISODIC_PHYSICS,
         The goal relative to the AGV.
     vel : Tensor, shape (..., 2)
         The AGV's velocity (broadcast against ``rel``).
+    physics : Physics
+    max_speed : float
+    gain : float or None
+        Velocity per unit of offset (None: ``1 / physics.dt``).
 
     Returns
     -------
     Tensor, shape (..., 2)
     """
-    v = rel / physics.dt
+    v = rel / physics.dt if gain is None else rel * gain
     speed = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
     v = v * (max_speed / speed.clamp_min(1e-12)).clamp_max(1.0)
     a = (v - (1.0 - physics.damping) * vel) / (physics.sensitivity * physics.dt / physics.mass)
@@ -756,17 +781,17 @@ class EntityActor(nn.Module):
 
     Episodic: an MLP head on the encoder's embedding, or with ``choice_head`` a
     :class:`TaskChoiceHead` (whose output is the action itself). Lifelong:
-    :class:`WaypointHead`.
+    :class:`WaypointHead` (with ``waypoint_drive``, its output is the action itself).
     """
 
     def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False,
-                 choice_head: bool = False) -> None:
+                 choice_head: bool = False, waypoint_drive: bool = False) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.lifelong = lifelong
         self.choose = TaskChoiceHead(hidden) if choice_head and not lifelong else None
         if lifelong:
-            self.steer = WaypointHead(hidden)
+            self.steer = WaypointHead(hidden, waypoint_drive)
         elif self.choose is None:
             self.head = _mlp([hidden, hidden, 2], last_relu=False)
 
@@ -853,6 +878,9 @@ class SortedBiRNN(nn.Module):
         Rounds of the assignment exchange (:attr:`EntityConfig.choice_sinkhorn`).
     choice_sinkhorn_beta : float
         Its last round's inverse temperature (:attr:`EntityConfig.choice_sinkhorn_beta`).
+    waypoint_drive : bool
+        The lifelong actor's head drives at its chosen candidate
+        (:attr:`EntityConfig.waypoint_drive`); its output is then the action itself.
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
@@ -860,7 +888,8 @@ class SortedBiRNN(nn.Module):
                  choice_head: bool = False, choice_rounds: int = 0,
                  choice_regret: bool = False, choice_accumulate: bool = False,
                  choice_sinkhorn: int = 0,
-                 choice_sinkhorn_beta: float = SINKHORN_TEMPERATURES[1]) -> None:
+                 choice_sinkhorn_beta: float = SINKHORN_TEMPERATURES[1],
+                 waypoint_drive: bool = False) -> None:
         super().__init__()
         self.encoder = EntityEncoder(hidden, lifelong, parked_token)
         self.action_input = action_input
@@ -869,7 +898,7 @@ class SortedBiRNN(nn.Module):
         actor = not action_input and out_features == 2
         # the lifelong actor steers with a WaypointHead on the recurrence's output, an
         # episodic one with choice_head points with a TaskChoiceHead
-        self.steer = WaypointHead(hidden) if lifelong and actor else None
+        self.steer = WaypointHead(hidden, waypoint_drive) if lifelong and actor else None
         self.choose = None
         if choice_head and actor and not lifelong:
             self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret, choice_accumulate,
@@ -994,11 +1023,23 @@ class EntityConfig(OffPolicyConfig):
     needs ``choice_sinkhorn`` >= 1. 30 (the default, and what every run before this field
     did)."""
 
+    waypoint_drive: bool = False
+    """Lifelong actors: the :class:`WaypointHead` chooses one candidate outright (the own
+    target or an open pickup in view, the largest of its weights) and drives at its next
+    waypoint round the shelves as the classical dispatchers' ``WaypointDriver`` does (gain
+    :data:`DRIVE_GAIN`, speed :data:`DRIVE_SPEED`, the default physics); the actor's output
+    is then the action itself (no tanh), and the head's gain and residual are not used. No
+    gradient reaches the action through the choice, so such a policy is taught by
+    imitation of a teacher's choices (``benchmarks/lifelong_dagger.py --waypoint-drive``),
+    not trained by a critic. The weights are those without it, so a run may start from a
+    lifelong policy file trained without it. False (the default, and what every run before
+    this field did): the head steers along a softmax mix of the candidates' waypoints."""
+
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
         ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
         ``choice_head``, ``choice_rounds``, ``choice_regret``, ``choice_accumulate`` and
-        ``choice_sinkhorn`` and ``choice_sinkhorn_beta`` too."""
+        ``choice_sinkhorn``, ``choice_sinkhorn_beta`` and ``waypoint_drive`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
@@ -1031,6 +1072,7 @@ class EntityConfig(OffPolicyConfig):
                              f"choice_rounds >= 2, got {self.choice_rounds}")
         self.shield_penalty = check_real("shield_penalty", self.shield_penalty, 0.0, math.inf,
                                          high_open=True)
+        self.waypoint_drive = check_bool("waypoint_drive", self.waypoint_drive)
         if self.shield_penalty and not self.shield:
             raise ValueError(f"shield_penalty={self.shield_penalty} charges the shield's "
                              "changes to the actions; it needs shield=True")
@@ -1081,6 +1123,9 @@ class EntityLearner(ActorCritic):
         if self.lifelong and self.config.choice_head:
             raise ValueError("choice_head is for episodic scenarios; lifelong actors steer "
                              "with their own WaypointHead: leave it False")
+        if not self.lifelong and self.config.waypoint_drive:
+            raise ValueError("waypoint_drive is for lifelong floors (a WaypointHead); episodic "
+                             "actors drive at a chosen task with choice_head=True")
         self.layout: ObsLayout | LifelongObsLayout | None = None
         self.floor: FloorWaypoints | None = None
 
@@ -1119,8 +1164,10 @@ class EntityLearner(ActorCritic):
         """
         layout = getattr(env, "obs_layout", None)
         physics = getattr(getattr(env, "world", None), "physics", EPISODIC_PHYSICS)
-        if self.config.choice_head and physics != EPISODIC_PHYSICS:
-            raise ValueError(f"a choice-head actor drives with the default physics "
+        if (self.config.choice_head or self.config.waypoint_drive) \
+                and physics != EPISODIC_PHYSICS:
+            kind = "choice-head" if self.config.choice_head else "waypoint-drive"
+            raise ValueError(f"a {kind} actor drives with the default physics "
                              f"({EPISODIC_PHYSICS}); this env has {physics}")
         floor = None
         if isinstance(layout, LifelongObsLayout) and self.lifelong:
@@ -1246,9 +1293,10 @@ class EntityLearner(ActorCritic):
         return self._masked(obs, self._squash(a)), w
 
     def _squash(self, out: Tensor) -> Tensor:
-        """The actor's raw output -> the action: tanh, or nothing for a choice head (whose
-        output already is the action)."""
-        return out if self.config.choice_head else torch.tanh(out)
+        """The actor's raw output -> the action: tanh, or nothing for a choice head or a
+        waypoint drive (whose output already is the action)."""
+        return out if self.config.choice_head or self.config.waypoint_drive \
+            else torch.tanh(out)
 
     def _masked(self, obs: Tensor, a: Tensor) -> Tensor:
         return a * self._movable(obs) if self.config.mask_parked or self.lifelong else a
@@ -1303,7 +1351,7 @@ class MADDPGE(EntityLearner):
                              "between the actors, which MADDPG-E's do not have: use bicnet-e "
                              "or 0")
         self.actor = EntityActor(config.hidden, self.lifelong, config.parked_token,
-                                 config.choice_head)
+                                 config.choice_head, config.waypoint_drive)
         self.critic = PooledCritic(config.hidden, self.lifelong, config.parked_token)
         self._finish_init()
 
@@ -1359,7 +1407,8 @@ class BiCNetE(EntityLearner):
                                  choice_regret=config.choice_regret,
                                  choice_accumulate=config.choice_accumulate,
                                  choice_sinkhorn=config.choice_sinkhorn,
-                                 choice_sinkhorn_beta=config.choice_sinkhorn_beta)
+                                 choice_sinkhorn_beta=config.choice_sinkhorn_beta,
+                                 waypoint_drive=config.waypoint_drive)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
                                   parked_token=config.parked_token)
         self._finish_init()

@@ -105,7 +105,8 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     assert probe["floor"] == "warehouse-20" and "throughput" in probe["final"]
     assert probe["action_weight"] == 0.0 and probe["validation_steps"] == 5
     assert probe["teacher_throughput"] >= 0.0
-    assert (tmp_path / "progress.csv").read_text().startswith("iteration,loss,labelled")
+    assert (tmp_path / "progress.csv").read_text().startswith(
+        "iteration,loss,accuracy,labelled")
     solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
                             weights=tmp_path / "dagger.safetensors", shield=True)
     m = sim.evaluate_lifelong(solver, "warehouse-20", steps=20, seed=0)
@@ -123,6 +124,15 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--action-weight", "1e400"],
     ["--start", str(SHIPPED), "--horizon", "0"],
     ["--start", "missing.safetensors"],
+    ["--start", str(SHIPPED), "--view", "0"],
+    ["--start", str(SHIPPED), "--view", "-4"],
+    ["--start", str(SHIPPED), "--view", "four"],
+    ["--start", str(SHIPPED), "--teacher", "oracle"],
+    ["--start", str(SHIPPED), "--validation-seeds", "-1"],
+    ["--start", str(SHIPPED), "--validation-seeds"],
+    ["--start", str(SHIPPED), "--validation-runs", "0"],
+    ["--start", str(SHIPPED), "--waypoint-drive"],  # its action cannot be taught
+    ["--start", str(SHIPPED), "--waypoint-drive", "--action-weight", "0.5"],
 ])
 def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
@@ -167,3 +177,42 @@ def test_the_local_teacher_gives_each_idle_agv_an_open_order_from_its_view() -> 
         with pytest.raises(ValueError, match="view must be an integer >= 1"):
             dagger.LocalTeacher(view=bad)
     assert dagger.LocalTeacher(view=10**9).view == 10**9  # wider than any floor: all in view
+
+
+def test_main_teaches_the_local_teachers_choice_to_a_waypoint_drive_student(
+        tmp_path: Path) -> None:
+    """``--teacher local --view K --waypoint-drive``: the student sees K slots, is taught the
+    LocalTeacher's choice alone, and its file drives as WaypointDriver through the allocator
+    (the best validation kept as ``best.safetensors``)."""
+    from learners.checkpoint import read_metadata
+
+    dagger.main(["--start", str(SHIPPED), "--floor", "warehouse-20", "--iterations", "2",
+                 "--envs", "1", "--horizon", "6", "--steps", "3", "--validation-steps", "20",
+                 "--validation-seeds", "5", "6", "--validation-runs", "1",
+                 "--teacher", "local", "--view", "8", "--waypoint-drive",
+                 "--action-weight", "0", "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert (probe["teacher"], probe["teacher_view"], probe["view"]) == ("local", 8, 8)
+    assert probe["waypoint_drive"] is True and probe["validation_seeds"] == [5, 6]
+    assert probe["best"]["iteration"] == 2 and 0.0 <= probe["final"]["accuracy"] <= 1.0
+    for name in ("dagger.safetensors", "best.safetensors"):
+        meta = read_metadata(tmp_path / name)
+        assert meta["config"]["waypoint_drive"] is True
+    scen = sim.get_scenario("warehouse-20", k_pickups=8, k_agents=8)
+    solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
+                            weights=tmp_path / "best.safetensors", shield=True)
+    m = sim.evaluate_lifelong(solver, scen, steps=20, seed=0)
+    assert m.collisions_per_1000 == 0
+
+
+def test_validate_averages_the_seeds() -> None:
+    from allocator.shield import SafetyShield
+
+    one = [dagger.validate(dagger.TeacherDriver(8), "warehouse-20", 0.5, 60, seeds=(s,),
+                           runs=1) for s in (1, 2)]
+    both = dagger.validate(dagger.TeacherDriver(8), "warehouse-20", 0.5, 60, seeds=(1, 2),
+                           runs=1)
+    assert both == pytest.approx(np.mean(one))
+    m = sim.evaluate_lifelong(SafetyShield(dagger.TeacherDriver(8), keep_right=0.5),
+                              "warehouse-20", steps=60, seed=1, runs=1)
+    assert one[0] == m.throughput

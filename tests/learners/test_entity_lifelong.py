@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 
+import allocator
 import sim
-from learners.algorithms import make_learner
-from learners.entity import MADDPGE, lifelong_tokens
+from learners.algorithms import make_config, make_learner
+from learners.entity import DRIVE_GAIN, DRIVE_SPEED, MADDPGE, arrive_action, lifelong_tokens
 from learners.floor import OBSTACLE_SLOTS, FloorWaypoints, obstacle_points
 from learners.policy import build_learner
 
@@ -210,3 +214,65 @@ def test_parked_agv_settings_are_refused_on_a_lifelong_floor(algo, key):
     with pytest.raises(ValueError, match=f"{key} is for episodic scenarios"):
         build_learner(algo, env.obs_dim, env.global_state().shape[-1], env.num_agents,
                       {"hidden": 16, key: True}, lifelong=True)
+
+
+@pytest.mark.parametrize("algo", ["maddpg-e", "bicnet-e"])
+def test_waypoint_drive_chooses_one_candidate_and_drives_at_its_waypoint(algo):
+    """``waypoint_drive``: every AGV that can move drives as WaypointDriver would at the next
+    waypoint of the candidate of its largest weight (its own target, or an open pickup in
+    view), brakes with none in view, and the weights' cross-entropy still trains the choice."""
+    env = sim.make_env("warehouse-20", num_envs=2, seed=4)
+    torch.manual_seed(0)
+    learner = build_learner(algo, env.obs_dim, env.state_dim, env.num_agents,
+                            {"hidden": 16, "waypoint_drive": True}, lifelong=True)
+    learner.reset(env)
+    obs = env.observe()
+    for _ in range(40):  # some AGVs get orders
+        obs, *_ = env.step(learner.policy(obs))
+    tok, _ = learner._read(obs)
+    act, w = learner.policy_and_choice(obs)
+    wp = torch.cat([tok.target[..., 0:2], tok.task[..., 3:5]], dim=-2)
+    pick = w.argmax(-1)
+    goal = wp.gather(2, pick[..., None, None].expand(-1, -1, 1, 2))[..., 0, :]
+    goal = goal * w.sum(-1, keepdim=True).gt(0)  # none in view: stand still
+    want = arrive_action(goal, tok.own[..., 0:2], max_speed=DRIVE_SPEED, gain=DRIVE_GAIN)
+    want = want * learner._movable(obs)
+    torch.testing.assert_close(act.detach(), want.detach())
+    assert float(act.abs().max()) <= 1.0 + 1e-6
+    assert bool((tok.target_mask[..., 0] & (act.abs().sum(-1) > 0)).any())
+    # the driver's own constants, so that the taught head drives as its teacher
+    assert (DRIVE_GAIN, DRIVE_SPEED) == (allocator.WaypointDriver().gain,
+                                         allocator.WaypointDriver().max_speed)
+    # a far-off candidate: the speed cap; the same one nearby: slower
+    far = arrive_action(torch.tensor([[3.0, 4.0]]), torch.zeros(1, 2), max_speed=DRIVE_SPEED,
+                        gain=DRIVE_GAIN)
+    near = arrive_action(torch.tensor([[0.03, 0.04]]), torch.zeros(1, 2),
+                         max_speed=DRIVE_SPEED, gain=DRIVE_GAIN)
+    assert float(near.norm()) < float(far.norm())
+    # the choice is trained through the weights; the action carries no gradient
+    loss = -torch.log(w.clamp_min(1e-9)).mean()
+    loss.backward()
+    score = [p for n, p in learner.actor.named_parameters() if "score" in n]
+    assert score and all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in score)
+    assert not act.requires_grad
+    # the same parameters as without it: a policy file trained without it loads
+    plain = build_learner(algo, env.obs_dim, env.state_dim, env.num_agents, {"hidden": 16},
+                          lifelong=True)
+    plain.load_policy_tensors(learner.policy_tensors())
+
+
+def test_waypoint_drive_is_refused_where_it_cannot_drive():
+    epi = sim.make_env("6v6", num_envs=1, seed=0)
+    with pytest.raises(ValueError, match="waypoint_drive is for lifelong floors"):
+        build_learner("maddpg-e", epi.obs_dim, epi.state_dim, epi.num_agents,
+                      {"hidden": 16, "waypoint_drive": True}, lifelong=False)
+    for bad in ("yes", 1, None):
+        with pytest.raises(ValueError, match="waypoint_drive"):
+            make_config("maddpg-e", {"waypoint_drive": bad})
+    env = sim.make_env("warehouse-20", num_envs=1, seed=0)
+    learner = build_learner("bicnet-e", env.obs_dim, env.state_dim, env.num_agents,
+                            {"hidden": 16, "waypoint_drive": True}, lifelong=True)
+    other = SimpleNamespace(obs_layout=env.obs_layout, world=SimpleNamespace(
+        physics=dataclasses.replace(env.world.physics, damping=0.5)))
+    with pytest.raises(ValueError, match="waypoint-drive actor drives with the default"):
+        learner.reset(other)
