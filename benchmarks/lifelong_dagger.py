@@ -1,43 +1,57 @@
-"""Lifelong imitation probe for issue 17: a lifelong entity policy taught by Hungarian's plan
-on a warehouse floor (DAgger).
+"""Lifelong imitation for issue 17: a lifelong entity policy taught by a teacher on a
+warehouse floor (DAgger).
 
     python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50]
+        [--teacher plan|local] [--view K] [--waypoint-drive]
         [--iterations 8] [--envs 4] [--horizon 300] [--steps 300] [--lr 1e-3]
         [--choice-weight 1.0] [--action-weight 1.0] [--keep-right 0.5]
-        [--validation-steps 1000] [--seed 0]
-        [--out benchmarks/results/scale/lifelong/dagger]
+        [--validation-steps 1000] [--validation-seeds 4242 ...] [--validation-runs 2]
+        [--seed 0] [--out benchmarks/results/scale/lifelong/dagger]
 
-The teacher (:class:`PlanTeacher`) is :class:`allocator.HungarianDispatcher` whose plans are
-kept, not given: the student claims orders the way every decentralized policy does here, by
-reaching an open pickup, so the teacher only says where each AGV should go. Each step it
-re-plans the floors where something happened (as the dispatcher does), and each AGV's goal is
-its own drop-off when it carries an order, else the pickup of the open order the plan gives it;
-it heads there as ``WaypointDriver`` drives (the first corner of the floor's shortest path,
-gain 4, 1.2 units/s), the action scaled into [-1, 1]^2 with its direction kept. AGVs without a
-goal brake. That is the "hungarian-shield" row of ``shield_lifelong.py`` (202.6 deliveries per
-1000 steps on warehouse-50 behind the shield, 0.97x Hungarian + SafeDriver), minus the
-assignment.
+Two teachers, neither of which assigns anything: the student claims orders the way every
+decentralized policy does here, by reaching an open pickup, so a teacher only says where each
+AGV should go.
+
+- ``plan`` (:class:`PlanTeacher`, the default): :class:`allocator.HungarianDispatcher` whose
+  plans are kept, not given. Each step it re-plans the floors where something happened (as
+  the dispatcher does). That is the "hungarian-shield" row of ``shield_lifelong.py`` minus
+  the assignment.
+- ``local`` (:class:`LocalTeacher`): each idle AGV's share of the least-distance assignment
+  among what it could see (its ``--view`` nearest open pickups and idle AGVs; default
+  :data:`LOCAL_VIEW`), re-made every step: a choice that one AGV's surroundings decide.
+
+Each AGV's goal is its own drop-off when it carries an order, else the pickup the teacher
+gives it; it heads there as ``WaypointDriver`` drives (the first corner of the floor's
+shortest path, gain 4, 1.2 units/s), the action scaled into [-1, 1]^2 with its direction
+kept. AGVs without a goal brake.
 
 The student is the actor of a lifelong entity policy file (``--start``, e.g. the shipped
-``allocator/weights/lifelong/maddpg-greedy.safetensors``), which ends in a
-:class:`learners.entity.WaypointHead`: a softmax over its own target and its K nearest open
-pickups. DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix (each
-floor driven by the teacher with probability 0.3, else by the student), every rollout through
+``allocator/weights/lifelong/maddpg-greedy.safetensors``; its config's ``shield_keep_right``
+becomes ``--keep-right``, so that the file is served behind the lanes it was taught behind),
+which ends in a :class:`learners.entity.WaypointHead`: a softmax over its own target and its
+K nearest open pickups (``--view K``: K pickup and AGV slots; the floor's own 4 when
+omitted). With ``--waypoint-drive`` the head chooses its largest weight outright and drives
+as the teacher does (``EntityConfig.waypoint_drive``), so only the choice is taught
+(``--action-weight 0``).
+
+DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix (each floor
+driven by the teacher with probability 0.3, else by the student), every rollout through
 ``SafetyShield(keep_right=--keep-right)`` (the policy is served shielded); every state is
 labelled with the teacher's action and the teacher's candidate (the own target, or the pickup
-slot of the planned order when it is in view); the last 6 rollouts are kept and the actor takes
-``--steps`` Adam steps on ``--action-weight`` times the squared error of the actions of the
-AGVs that can move (0: the choice alone is taught, the steering is left as it is) plus
-``--choice-weight`` times the cross-entropy of the head's softmax against the teacher's
-candidate (a batch of 16 joint states per step).
+slot of the teacher's order when it is in view); the last 6 rollouts are kept and the actor
+takes ``--steps`` Adam steps on ``--action-weight`` times the squared error of the actions
+of the AGVs that can move (0: the choice alone is taught) plus ``--choice-weight`` times the
+cross-entropy of the head's softmax against the teacher's candidate (a batch of 16 joint
+states per step).
 
 Writes ``--out``/``dagger.safetensors`` (a policy file that ``allocator.make(...,
 weights=FILE)`` and ``shield_lifelong.py --weights FILE`` take; written after every
 validation), ``best.safetensors`` (the student of the best validation so far),
-``progress.csv`` (loss, and every second iteration the shielded throughput on
-the floor, seed 4242, ``--validation-steps`` steps, 2 runs) and ``dagger.probe.json``
-(command, seed, settings, the start's throughput and the teacher's own on the same
-validation, :class:`TeacherDriver`: the ceiling of the imitation).
+``progress.csv`` (loss, the share of the labelled AGVs whose largest weight is the teacher's
+candidate, and every second iteration the shielded throughput on the floor: the mean over
+``--validation-seeds`` of ``--validation-runs`` runs of ``--validation-steps`` steps) and
+``dagger.probe.json`` (command, seed, settings, the start's throughput and the teacher's own
+on the same validation, :class:`TeacherDriver`: the ceiling of the imitation).
 """
 
 from __future__ import annotations
@@ -330,8 +344,10 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
-    config = dict(meta["config"], waypoint_drive=True) if args.waypoint_drive \
-        else meta["config"]
+    # the student is served behind the lanes it was taught behind
+    config = dict(meta["config"], shield_keep_right=args.keep_right,
+                  waypoint_drive=args.waypoint_drive or meta["config"].get("waypoint_drive",
+                                                                           False))
     learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
                            meta["num_agents"], config)
     learner.load_policy_tensors(tensors)

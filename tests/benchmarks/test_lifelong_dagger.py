@@ -198,6 +198,7 @@ def test_main_teaches_the_local_teachers_choice_to_a_waypoint_drive_student(
     for name in ("dagger.safetensors", "best.safetensors"):
         meta = read_metadata(tmp_path / name)
         assert meta["config"]["waypoint_drive"] is True
+        assert meta["config"]["shield_keep_right"] == 0.5  # the lanes it was taught behind
     scen = sim.get_scenario("warehouse-20", k_pickups=8, k_agents=8)
     solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
                             weights=tmp_path / "best.safetensors", shield=True)
