@@ -28,17 +28,20 @@ def test_lifelong_weights_rows(tmp_path: Path, run_dir: Path) -> None:
                 "--dispatchers", "fifo", "nearest", "--lifelong-weights", str(run_dir),
                 "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "scale.json").read_text())["rows"]
-    # the baselines, the shipped lifelong weights (allocator/weights/lifelong), then the run's
-    assert [(r["method"], r["shield"]) for r in rows] == [
-        ("fifo", False), ("nearest", False), ("maddpg-greedy (shipped)", False),
-        ("maddpg-greedy (shipped)", True), (f"maddpg-greedy ({run_dir})", False),
-        (f"maddpg-greedy ({run_dir})", True)]
+    # the baselines, the shipped lifelong weights (allocator/weights/lifelong; the taught
+    # family at its own view), then the run's
+    assert [(r["method"], r["shield"], r["view"]) for r in rows] == [
+        ("fifo", False, "4:4"), ("nearest", False, "4:4"),
+        ("maddpg-greedy (shipped)", False, "4:4"), ("maddpg-greedy (shipped)", True, "4:4"),
+        ("maddpg-dagger (shipped)", False, "16:16"), ("maddpg-dagger (shipped)", True, "16:16"),
+        (f"maddpg-greedy ({run_dir})", False, "4:4"),
+        (f"maddpg-greedy ({run_dir})", True, "4:4")]
     assert all(r["kind"] == "lifelong" and r["lost"] == 0 for r in rows)
     shielded = rows[-1]
     assert shielded["overlaps_per_1000_steps"] == 0 and shielded["interventions"] is not None
     assert rows[0]["interventions"] is None
     md = (tmp_path / "scale.md").read_text()
-    assert "## Episodic" not in md and md.count("| warehouse-20 |") == 6
+    assert "## Episodic" not in md and md.count("| warehouse-20 |") == 8
 
 
 def test_bad_lifelong_weights(tmp_path: Path) -> None:
