@@ -35,11 +35,14 @@ def test_tiny_run_writes_table_json_and_figure(tmp_path: Path) -> None:
     lifelong = [r for r in rows if r["kind"] == "lifelong"]
     assert {r["method"] for r in lifelong} == {"hungarian", "fifo", "greedy", "auction",
                                               "hungarian+safe", "fifo+safe", "auction+safe",
-                                              "maddpg-greedy (shipped)"}
+                                              "maddpg-greedy (shipped)",
+                                              "maddpg-dagger (shipped)"}
     assert all(r["lost"] == 0 for r in lifelong)
     # the shipped lifelong weights, plain and shielded: the shield leaves no overlap
-    shipped = {r["shield"]: r for r in lifelong if r["method"] == "maddpg-greedy (shipped)"}
-    assert shipped[True]["overlaps_per_1000_steps"] == 0 and shipped[True]["interventions"] > 0
+    for name in ("maddpg-greedy (shipped)", "maddpg-dagger (shipped)"):
+        shipped = {r["shield"]: r for r in lifelong if r["method"] == name}
+        assert shipped[True]["overlaps_per_1000_steps"] == 0
+        assert shipped[True]["interventions"] > 0
     safe = [r for r in lifelong if r["method"].endswith("+safe")]
     assert len(safe) == 3 and all(r["overlaps_per_1000_steps"] == 0 for r in safe)
     md = (tmp_path / "scale.md").read_text()
