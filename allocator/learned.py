@@ -67,7 +67,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "any_n_weights_path",
     "register_all", "ANY_N", "WEIGHT_CHOICES", "TAUGHT", "whole_view", "scenario_to_run",
-    "taught_view", "TAUGHT_LIFELONG_VIEW",
+    "taught_view", "TAUGHT_LIFELONG_VIEW", "LIFELONG_ONLY",
 ]
 
 ALGOS = ("maddpg", "bicnet")
@@ -88,6 +88,9 @@ TAUGHT_HOW = {
                      "lifelong floors",
 }
 """How each :data:`TAUGHT` family was taught (its class docstring)."""
+LIFELONG_ONLY = ("maddpg-dagger",)
+"""Registered names whose weights serve lifelong floors only: on an episodic scene they raise
+:class:`MissingWeightsError` (they have no one-shot ``assign``)."""
 TAUGHT_LIFELONG_VIEW = 16
 """The open pickups and other AGVs a taught family sees on a lifelong floor (``k_pickups`` and
 ``k_agents``): the view its lifelong weights were taught with

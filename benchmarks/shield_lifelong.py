@@ -3,7 +3,8 @@ learned policies against the dispatchers driven by SafeDriver, over seeds.
 
     nice python benchmarks/shield_lifelong.py [--floor warehouse-20] [--steps 1000]
         [--seeds 0 1 2] [--weights RUN_DIR_OR_FILE ...] [--variants none off on lanes]
-        [--keep-right 0.3 ...] [--baselines path-follower hungarian ...] [--out FILE]
+        [--keep-right 0.3 ...] [--baselines path-follower hungarian ...] [--view K]
+        [--out FILE]
 
 Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floors and orders
 (one run per seed):
@@ -13,7 +14,8 @@ Rows, every one through :func:`sim.evaluate_lifelong` on the same seeded floors 
   none, along the floor's shortest path), behind :class:`allocator.SafetyShield` with
   ``liveness=False`` and ``liveness=True``;
 - the learned policy of every ``--weights`` entry (a lifelong entity run folder or policy
-  file, or a taught family's name such as ``maddpg-dagger``, run at its own view; none by
+  file, or a taught family's name such as ``maddpg-dagger``, run at its own view; a file
+  sees ``--view`` open pickups and other AGVs, the floor's own 4 by default; none by
   default), ``allocator.make(NAME, scenario=FLOOR, weights=ENTRY,
   shield=True)``, in each ``--variants`` form: without the shield (``none``), with the
   shield's liveness rules ``off`` and ``on``, and on with lanes (``lanes``: the intended
@@ -297,10 +299,15 @@ and on with lanes (the intended velocities turned right by each ``--keep-right``
 def rows(floor: str, steps: int, seeds: list[int], weights: list[str],
          baselines: tuple[str, ...] | list[str] = DEFAULT_BASELINES,
          variants: tuple[str, ...] | list[str] = VARIANTS,
-         keep_right: tuple[float, ...] | list[float] = (0.3,)) -> list[dict]:
+         keep_right: tuple[float, ...] | list[float] = (0.3,),
+         view: int | None = None) -> list[dict]:
     """Run every row on every seed; returns one dict per row (also printed as it finishes):
     the mean throughput over the seeds, its 95% t-interval, the per-seed values, the
-    overlapping pairs summed over all runs, and the shield's counters averaged over them."""
+    overlapping pairs summed over all runs, and the shield's counters averaged over them.
+    ``view``: the learned policy files' rows see that many open pickups and other AGVs (None:
+    the floor's own; a taught family always sees its own)."""
+    viewed = sim.get_scenario(floor) if view is None else \
+        sim.get_scenario(floor, k_pickups=view, k_agents=view)
     runs: list[tuple[str, str, Any]] = []
     if "path-follower" in baselines:
         runs += _baseline("path-follower")
@@ -323,7 +330,8 @@ def rows(floor: str, steps: int, seeds: list[int], weights: list[str],
             else _Recorder(ctl, "act") if live == "no shield" else None
         per_seed, overlaps, rates, by_rules, yields = [], 0.0, [], [], 0
         t = time.perf_counter()
-        scen = scenario_to_run(ctl, floor)  # a taught family: its own view
+        # a taught family: its own view; a policy file: --view; a baseline: the floor's
+        scen = scenario_to_run(ctl, viewed if label.startswith("learned") else floor)
         for seed in seeds:
             m = sim.evaluate_lifelong(ctl, scen, steps=steps, seed=seed, runs=1)
             per_seed.append(m.throughput)
@@ -431,8 +439,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
                    choices=BASELINES, metavar="NAME",
                    help=f"reference rows, any of {' '.join(BASELINES)} (default "
                         f"{' '.join(DEFAULT_BASELINES)})")
+    p.add_argument("--view", type=int, default=None, metavar="K",
+                   help="the policy files' rows see K open pickups and K other AGVs (default: "
+                        "the floor's own 4; a taught family always sees its own)")
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
+    if args.view is not None and args.view < 1:
+        p.error(f"--view must be >= 1, got {args.view}")
     if args.steps < 1:
         p.error("--steps must be a positive integer")
     if min(args.seeds) < 0:
@@ -450,7 +463,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             p.error(f"--weights {entry}: no such file or folder (nor a taught family: "
                     f"{', '.join(taught_names())})")
     table = rows(args.floor, args.steps, args.seeds, args.weights, args.baselines,
-                 args.variants, args.keep_right)
+                 args.variants, args.keep_right, args.view)
     command = recorded_command(__file__, argv)
     write(table, args.out, command.strip(), args.floor, args.steps, args.seeds)
     return table

@@ -249,3 +249,26 @@ def test_the_benchmark_runs_the_local_teacher_behind_the_shield(tmp_path) -> Non
     assert [r["method"] for r in table] == [
         "each AGV's local assignment, 16 nearest (a teacher) + shield"]
     assert table[0]["overlaps"] == 0 and table[0]["throughput"] > 0
+
+
+def test_view_widens_the_policy_files_rows_only(tmp_path, monkeypatch) -> None:
+    """``--view K``: a policy file's row sees K pickups and AGVs, the baselines the floor's
+    own; a bad K is refused."""
+    from allocator.learned import any_n_weights_path
+
+    seen = []
+    run = sim.evaluate_lifelong
+
+    def spy(ctl, scenario, **kw):
+        seen.append(sim.get_scenario(scenario).k_pickups)
+        return run(ctl, scenario, **kw)
+
+    monkeypatch.setattr(sim, "evaluate_lifelong", spy)
+    weights = str(any_n_weights_path("maddpg", "greedy", lifelong=True))
+    _bench().main(["--steps", "10", "--weights", weights, "--variants", "lanes",
+                   "--keep-right", "0.5", "--baselines", "fifo", "--view", "8",
+                   "--out", str(tmp_path / "v.md")])
+    assert seen == [8, 4]
+    for bad in ("0", "-2", "x"):
+        with pytest.raises(SystemExit):
+            _bench().main(["--steps", "10", "--view", bad, "--out", str(tmp_path / "b.md")])

@@ -14,6 +14,7 @@ import allocator
 import sim
 from allocator.learned import (
     LEARNED,
+    LIFELONG_ONLY,
     TAUGHT,
     MissingWeightsError,
     any_n_weights_path,
@@ -107,6 +108,11 @@ def test_missing_shipped_weights_fail_instead_of_skipping_under_ci(tmp_path, mon
 @pytest.mark.parametrize("name", sorted(LEARNED))
 def test_shipped_weights_load_and_respond(name):
     algo, reward = name.split("-", 1)
+    if name in LIFELONG_ONLY:  # its lifelong floors: tests/learners/test_taught_lifelong.py
+        _require_shipped(any_n_weights_path(algo, reward, lifelong=True))
+        with pytest.raises(MissingWeightsError, match="lifelong floors"):
+            allocator.make(name, scenario="3v3")
+        return
     taught = reward in TAUGHT.get(algo, ())  # these ship for any N only
     path = any_n_weights_path(algo, reward) if taught else weights_path(algo, reward, "3v3")
     _require_shipped(path)

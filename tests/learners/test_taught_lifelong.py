@@ -13,6 +13,7 @@ import allocator
 import sim
 from allocator.learned import (
     LEARNED,
+    LIFELONG_ONLY,
     TAUGHT,
     TAUGHT_LIFELONG_VIEW,
     MissingWeightsError,
@@ -34,6 +35,10 @@ def shipped():
 
 def test_registered_with_how_it_was_taught():
     assert TAUGHT["maddpg"] == ("dagger",) and "maddpg-dagger" in allocator.ALLOCATORS
+    for name in LIFELONG_ONLY:  # what the episodic registry tests leave out: lifelong only
+        algo, how = name.split("-")
+        assert any_n_weights_path(algo, how, lifelong=True).is_file()
+        assert not any_n_weights_path(algo, how).is_file()
     doc = LEARNED["maddpg-dagger"].__doc__
     assert "imitation" in doc and "lifelong floors" in doc and "reward" not in doc
 
@@ -48,7 +53,7 @@ def test_every_weights_choice_loads_the_lifelong_file_at_its_view(shipped, weigh
     assert view == (TAUGHT_LIFELONG_VIEW, TAUGHT_LIFELONG_VIEW) == (16, 16)
     assert solver.policy.learner.config.waypoint_drive is True
     # the view it was taught with, as recorded beside the weights
-    record = json.loads((ROOT / "benchmarks/results/scale/lifelong/taught/dagger.probe.json")
+    record = json.loads((ROOT / "benchmarks/results/scale/lifelong/taught/seed2/dagger.probe.json")
                         .read_text())
     assert record["view"] == TAUGHT_LIFELONG_VIEW and record["waypoint_drive"] is True
 
