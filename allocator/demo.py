@@ -28,15 +28,18 @@ __all__ = ["run_demo", "available_methods", "format_table", "run_lifelong",
 def available_methods(scenario: str) -> Iterator[tuple[str, Callable[[], Any]]]:
     """Yield ``(name, factory)`` for every method that can run on ``scenario`` here: the
     scripted nearest-task baseline, the classical allocators, and each learned allocator whose
-    weights ship for the scenario (the others are reported as missing)."""
+    weights ship for the scenario (the others are reported as missing; the lifelong-only
+    families, ``allocator.learned.LIFELONG_ONLY``, are left to the lifelong rows)."""
     import allocator
+    from allocator.learned import LIFELONG_ONLY
 
     yield "nearest-task", NearestTaskController
     registry = allocator.ALLOCATORS
     for name in ("hungarian", "greedy"):
         if name in registry:
             yield name, (lambda n=name: allocator.make(n))
-    for name in sorted(n for n in registry if n.split("-")[0] in ("maddpg", "bicnet")):
+    for name in sorted(n for n in registry if n.split("-")[0] in ("maddpg", "bicnet")
+                       and n not in LIFELONG_ONLY):
         try:
             solver = allocator.make(name, scenario=scenario)
         except (ValueError, FileNotFoundError) as err:

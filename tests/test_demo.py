@@ -16,12 +16,15 @@ def test_demo_quick_end_to_end(tmp_path, capsys) -> None:
     out = capsys.readouterr().out
     for name in ("hungarian", "greedy", "bicnet-ipf", "maddpg-ipf"):
         assert name in out
+    # a lifelong-only family is not tried on the paper's scenes, only in the lifelong rows
+    assert "maddpg-dagger: skipped" not in out
     assert (tmp_path / "table.md").exists()
     assert list(tmp_path.glob("*.gif")) and list(tmp_path.glob("*.png"))
     # The lifelong row: every dispatcher on warehouse-20, the same orders, none lost.
     lifelong = (tmp_path / "table_lifelong.md").read_text()
     for name in ("nearest-task", "hungarian", "fifo", "auction", "hungarian + SafeDriver"):
         assert f"| warehouse-20 | {name} | 200 |" in lifelong
+    assert "| warehouse-20 | maddpg-dagger (shielded) | 200 |" in lifelong
     # The scale headline: Hungarian and the shipped any-N weights, shielded, on 20v20.
     scale = (tmp_path / "table_scale.md").read_text()
     assert "| 20v20 | hungarian |" in scale and "maddpg-ipf (any-N, shielded)" in scale
