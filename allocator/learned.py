@@ -67,7 +67,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "LearnedAllocator", "LEARNED", "MissingWeightsError", "weights_path", "any_n_weights_path",
     "register_all", "ANY_N", "WEIGHT_CHOICES", "TAUGHT", "whole_view", "scenario_to_run",
-    "taught_view", "TAUGHT_LIFELONG_VIEW", "LIFELONG_ONLY",
+    "taught_view", "TAUGHT_LIFELONG_VIEW", "LIFELONG_ONLY", "TAUGHT_NAMES",
 ]
 
 ALGOS = ("maddpg", "bicnet")
@@ -80,6 +80,8 @@ TAUGHT = {"bicnet": ("dagger",), "maddpg": ("dagger",)}
 ``<algo>-<how>``, their weights ship for any N only (``bicnet-dagger``: episodic scenes;
 ``maddpg-dagger``: lifelong floors) and they see what they were taught with
 (:func:`taught_view`)."""
+TAUGHT_NAMES = tuple(f"{a}-{how}" for a, hows in TAUGHT.items() for how in hows)
+"""The registry names of the :data:`TAUGHT` families."""
 TAUGHT_HOW = {
     "bicnet-dagger": "taught by imitation (DAgger) of a whole-scene assignment rule, for "
                      "episodic scenes",

@@ -156,10 +156,9 @@ def episodic_rows(sizes: list[int], episodes: list[int], seed: int,
     rows = []
     learned = list(LEARNED)
     if any_n:  # the families whose any-N weights ship, the taught ones too
-        from allocator.learned import TAUGHT, any_n_weights_path
+        from allocator.learned import TAUGHT_NAMES, any_n_weights_path
 
-        taught = tuple(f"{a}-{t}" for a, ts in TAUGHT.items() for t in ts)
-        learned += [f"{m} any-N" for m in LEARNED + taught
+        learned += [f"{m} any-N" for m in LEARNED + TAUGHT_NAMES
                     if any_n_weights_path(*m.split("-", 1)).is_file()]
     learned += [f"entity:{p}" for p in entity or []]
     keep = None if methods is None else set(methods) | {"hungarian"}
@@ -221,12 +220,11 @@ def lifelong_learned(floor: str, weights: list[str]) -> list[tuple[str, dict]]:
     """(row name, ``allocator.make`` keywords) of the learned rows on a floor: shipped
     lifelong weights where they exist (a taught family's too), then every
     ``--lifelong-weights`` entry."""
-    from allocator.learned import TAUGHT, any_n_weights_path, weights_path
+    from allocator.learned import TAUGHT_NAMES, any_n_weights_path, weights_path
     from learners.checkpoint import read_metadata
 
     out = []
-    taught = tuple(f"{a}-{t}" for a, ts in TAUGHT.items() for t in ts)
-    for name in ALL_LEARNED + taught:
+    for name in ALL_LEARNED + TAUGHT_NAMES:
         algo, reward = name.split("-")
         if weights_path(algo, reward, floor).is_file() or \
                 any_n_weights_path(algo, reward, lifelong=True).is_file():

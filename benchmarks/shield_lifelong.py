@@ -188,10 +188,11 @@ class ShieldedIntent:
 
 
 def taught_names() -> tuple[str, ...]:
-    """The taught families (``allocator.learned.TAUGHT``), which ``--weights`` may name."""
-    from allocator.learned import TAUGHT
+    """The taught families (``allocator.learned.TAUGHT_NAMES``), which ``--weights`` may
+    name."""
+    from allocator.learned import TAUGHT_NAMES
 
-    return tuple(f"{a}-{t}" for a, ts in TAUGHT.items() for t in ts)
+    return TAUGHT_NAMES
 
 
 def _learned(weights: str, floor: str, liveness: bool | None, keep_right: float = 0.0) -> Any:
