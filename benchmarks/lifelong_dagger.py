@@ -338,6 +338,9 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(str(err))
     if not getattr(scenario, "lifelong", False):
         parser.error(f"--floor must be a lifelong floor (warehouse-N), got {args.floor}")
+    if args.view is not None and args.view > scenario.num_agents:
+        parser.error(f"--view must be at most the floor's fleet ({scenario.num_agents} on "
+                     f"{args.floor}), got {args.view}")
     if meta["algo"] not in ENTITY_ALGORITHMS or "actor.steer.gain" not in tensors:
         parser.error(f"--start must be a lifelong entity policy (its actor ends in a "
                      f"WaypointHead), got {meta['algo']} on {meta['scenario']}")

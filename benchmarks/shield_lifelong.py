@@ -459,6 +459,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         p.error(f"--floor {args.floor}: {err}")
     if not getattr(scenario, "lifelong", False):
         p.error(f"--floor {args.floor} is not a lifelong floor")
+    if args.view is not None and args.view > scenario.num_agents:
+        p.error(f"--view must be at most the floor's fleet ({scenario.num_agents} on "
+                f"{args.floor}), got {args.view}")
     for entry in args.weights:
         if entry not in taught_names() and not Path(entry).exists():
             p.error(f"--weights {entry}: no such file or folder (nor a taught family: "

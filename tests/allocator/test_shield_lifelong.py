@@ -269,6 +269,6 @@ def test_view_widens_the_policy_files_rows_only(tmp_path, monkeypatch) -> None:
                    "--keep-right", "0.5", "--baselines", "fifo", "--view", "8",
                    "--out", str(tmp_path / "v.md")])
     assert seen == [8, 4]
-    for bad in ("0", "-2", "x"):
+    for bad in ("0", "-2", "x", "", str(10**9)):
         with pytest.raises(SystemExit):
             _bench().main(["--steps", "10", "--view", bad, "--out", str(tmp_path / "b.md")])

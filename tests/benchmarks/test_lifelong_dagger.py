@@ -127,6 +127,7 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--view", "0"],
     ["--start", str(SHIPPED), "--view", "-4"],
     ["--start", str(SHIPPED), "--view", "four"],
+    ["--start", str(SHIPPED), "--view", str(10**9)],  # more slots than AGVs: no huge obs
     ["--start", str(SHIPPED), "--teacher", "oracle"],
     ["--start", str(SHIPPED), "--validation-seeds", "-1"],
     ["--start", str(SHIPPED), "--validation-seeds"],
