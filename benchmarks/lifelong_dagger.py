@@ -2,7 +2,7 @@
 warehouse floor (DAgger).
 
     python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50]
-        [--teacher plan|local] [--view K] [--waypoint-drive]
+        [--teacher plan|local] [--view K] [--waypoint-drive] [--drive-sight] [--idle-token]
         [--iterations 8] [--envs 4] [--horizon 300] [--steps 300] [--lr 1e-3]
         [--choice-weight 1.0] [--action-weight 1.0] [--keep-right 0.5]
         [--validation-steps 1000] [--validation-seeds 4242 ...] [--validation-runs 2]
@@ -32,7 +32,10 @@ which ends in a :class:`learners.entity.WaypointHead`: a softmax over its own ta
 K nearest open pickups (``--view K``: K pickup and AGV slots; the floor's own 4 when
 omitted). With ``--waypoint-drive`` the head chooses its largest weight outright and drives
 as the teacher does (``EntityConfig.waypoint_drive``), so only the choice is taught
-(``--action-weight 0``).
+(``--action-weight 0``); ``--drive-sight`` heads for the path's first corner, as the
+teacher's driver does (``EntityConfig.drive_sight``). ``--idle-token``: the student's AGV
+tokens carry each seen AGV's idle bit (``EntityConfig.idle_token``), which the teacher's
+choice depends on (its rivals are the idle AGVs).
 
 DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix (each floor
 driven by the teacher with probability 0.3, else by the student), every rollout through
@@ -306,6 +309,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--waypoint-drive", action="store_true",
                         help="the student chooses outright and drives as WaypointDriver "
                              "(EntityConfig.waypoint_drive); its choice alone is taught")
+    parser.add_argument("--drive-sight", action="store_true",
+                        help="the waypoint drive heads for the path's first corner "
+                             "(EntityConfig.drive_sight); needs --waypoint-drive or a start "
+                             "with it")
+    parser.add_argument("--idle-token", action="store_true",
+                        help="the student's AGV tokens carry the idle bit each AGV tells the "
+                             "AGVs that see it (EntityConfig.idle_token); the start may lack "
+                             "it (its new weights start at zero)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -323,6 +334,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--waypoint-drive teaches the choice alone (no gradient reaches its "
                      "action): pass --action-weight 0")
     teacher_view = None if args.teacher == "plan" else (args.view or LOCAL_VIEW)
+    flags = ("waypoint_drive", "drive_sight", "idle_token")
     for name in ("lr", "choice_weight", "action_weight"):
         value = getattr(args, name)
         if not (np.isfinite(value) and value >= 0) or (name == "lr" and value == 0):
@@ -349,11 +361,13 @@ def main(argv: list[str] | None = None) -> None:
     gen = torch.Generator().manual_seed(args.seed)
     # the student is served behind the lanes it was taught behind
     config = dict(meta["config"], shield_keep_right=args.keep_right,
-                  waypoint_drive=args.waypoint_drive or meta["config"].get("waypoint_drive",
-                                                                           False))
+                  **{k: getattr(args, k) or meta["config"].get(k, False) for k in flags})
+    if config["drive_sight"] and not config["waypoint_drive"]:
+        parser.error("--drive-sight chooses where the waypoint drive heads: pass "
+                     "--waypoint-drive too (the start has no waypoint drive)")
     learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
                            meta["num_agents"], config)
-    learner.load_policy_tensors(tensors)
+    learner.load_policy_tensors(learner.adapt_init_tensors(tensors))
     opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
     args.out.mkdir(parents=True, exist_ok=True)
     data: list[tuple[torch.Tensor, ...]] = []
@@ -411,7 +425,7 @@ def main(argv: list[str] | None = None) -> None:
          "validation_steps": args.validation_steps,
          "validation_seeds": args.validation_seeds, "validation_runs": args.validation_runs,
          "teacher": args.teacher, "teacher_view": teacher_view, "view": args.view,
-         "waypoint_drive": args.waypoint_drive,
+         **{k: config[k] for k in flags},
          "teacher_share": TEACHER_SHARE, "keep": KEEP, "batch": BATCH,
          "start_throughput": start, "teacher_throughput": ceiling, "final": log[-1],
          "best": best},

@@ -52,7 +52,8 @@ __all__ = [
 ADDED_CONFIG_FIELDS = ("shield_keep_right", "margin_moving", "parked_token",
                        "shield_penalty", "choice_head", "choice_rounds",
                        "choice_regret", "choice_accumulate", "choice_sinkhorn",
-                       "choice_sinkhorn_beta", "waypoint_drive")
+                       "choice_sinkhorn_beta", "waypoint_drive", "idle_token",
+                       "drive_sight")
 """Learner config fields added after checkpoints of this format were first written: a header
 without them is read with the field's default (which is what those runs did)."""
 

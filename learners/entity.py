@@ -59,7 +59,8 @@ __all__ = [
     "EntityActor", "WaypointHead", "TaskChoiceHead", "arrive_action", "PooledCritic",
     "SortedBiRNN", "Tokens", "tokens",
     "infer_layout", "agent_order", "SELF_FEATURES", "TASK_TOKEN_FEATURES", "AGENT_TOKEN_FEATURES",
-    "MARGIN_CLIP", "lifelong_tokens", "LIFELONG_SELF_FEATURES", "PICKUP_TOKEN_FEATURES",
+    "MARGIN_CLIP", "lifelong_tokens", "heard_idle", "LIFELONG_SELF_FEATURES",
+    "PICKUP_TOKEN_FEATURES",
     "TARGET_TOKEN_FEATURES", "OBSTACLE_TOKEN_FEATURES", "PATH_CLIP", "sizes_look_lifelong",
 ]
 
@@ -73,7 +74,8 @@ distance to the task minus this AGV's, clipped to [-MARGIN_CLIP, MARGIN_CLIP]; +
 when no other AGV is visible) and whether another AGV is visible at all."""
 AGENT_TOKEN_FEATURES = 5
 """AGV token: relative position (2), velocity (2), distance; with
-:attr:`EntityConfig.parked_token` a sixth feature, the parked bit."""
+:attr:`EntityConfig.parked_token` (episodic) a sixth feature, the parked bit, and with
+:attr:`EntityConfig.idle_token` (lifelong) the idle bit."""
 MARGIN_CLIP = 1.0
 """Clip of the task tokens' margin feature (world units)."""
 LIFELONG_SELF_FEATURES = 7
@@ -173,8 +175,12 @@ class Tokens:
     obstacle_mask: Tensor | None = None
     """Lifelong only: (B, N, OBSTACLE_SLOTS) bool"""
     pos: Tensor | None = None
-    """Episodic only: (B, N, 2) the AGV's own position, which the observation holds (read
-    only by the choice head's intent exchange, :attr:`EntityConfig.choice_rounds`)"""
+    """(B, N, 2) the AGV's own position, which the observation holds (read only by the
+    choice head's intent exchange, :attr:`EntityConfig.choice_rounds`, and the lifelong
+    drive's sight line, :attr:`EntityConfig.drive_sight`)"""
+    floor: FloorWaypoints | None = None
+    """Lifelong only: the floor the tokens were read on (its paths, for
+    :attr:`EntityConfig.drive_sight`)"""
 
 
 def _slots(obs: Tensor, tasks: slice, agents: slice, kt: int,
@@ -244,7 +250,8 @@ def _margin(t_rel: Tensor, t_dist: Tensor, a_rel: Tensor, a_mask: Tensor) -> tup
     return margin, seen
 
 
-def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoints) -> Tokens:
+def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoints,
+                    idle_token: bool = False) -> Tokens:
     """Split lifelong observations into masked tokens (``docs/learners.md``, "Lifelong
     operation").
 
@@ -258,6 +265,11 @@ def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoint
     layout : LifelongObsLayout
     floor : FloorWaypoints
         Of the floor the observations come from.
+    idle_token : bool
+        The AGV tokens get a sixth feature, the idle bit of the AGV in the slot, and the
+        pickup tokens' margin and "another AGV visible" count the idle AGVs only
+        (:attr:`EntityConfig.idle_token`). Each slot is matched to the AGV of the same floor
+        at its position (:func:`heard_idle`), so ``obs`` must hold whole floors.
 
     Returns
     -------
@@ -282,17 +294,55 @@ def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoint
     at = pos.unsqueeze(2).expand(B, N, kt, 2)
     p_wp, p_len = floor.query(at, at + t_rel, t_mask)
     p_wp_rel = p_wp - at
-    margin, seen = _margin(t_rel, t_dist, a_rel, a_mask)
+    parts = [a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)]
+    rivals = a_mask
+    if idle_token:
+        idle = heard_idle(obs, layout, a_rel, a_mask)
+        parts.append(idle.unsqueeze(-1).to(obs.dtype))
+        rivals = idle
+    margin, seen = _margin(t_rel, t_dist, a_rel, rivals)
     task = torch.cat([t_rel, t_dist.unsqueeze(-1), p_wp_rel,
                       p_len.clamp_max(PATH_CLIP).unsqueeze(-1), margin.unsqueeze(-1),
                       seen.unsqueeze(-1)], dim=-1)
-    agent = torch.cat([a_rel, a_vel, torch.linalg.vector_norm(a_rel, dim=-1, keepdim=True)],
-                      dim=-1)
+    agent = torch.cat(parts, dim=-1)
     o_rel, o_mask = obstacle_points(floor.world, pos)
     obstacle = torch.cat([o_rel, torch.linalg.vector_norm(o_rel, dim=-1, keepdim=True)], -1)
     return Tokens(own, task * t_mask.unsqueeze(-1), t_mask, agent * a_mask.unsqueeze(-1),
                   a_mask, (target * g_mask).unsqueeze(-2), g_mask,
-                  obstacle * o_mask.unsqueeze(-1), o_mask)
+                  obstacle * o_mask.unsqueeze(-1), o_mask, pos=pos, floor=floor)
+
+
+def heard_idle(obs: Tensor, layout: LifelongObsLayout, a_rel: Tensor, a_mask: Tensor) -> Tensor:
+    """Whether the AGV in each visible AGV slot is idle, as that AGV tells it
+    (:attr:`EntityConfig.idle_token`), (B, N, Ka) bool.
+
+    Each slot is matched to the AGV of the same floor nearest to the position the slot
+    gives (the observation's offsets are exact to float rounding, and no two AGVs share a
+    position), and that AGV's own status one-hot says whether it is idle.
+
+    Parameters
+    ----------
+    obs : Tensor, shape (B, N, layout.size)
+        Whole floors: every AGV's observation.
+    layout : LifelongObsLayout
+    a_rel : Tensor, shape (B, N, Ka, 2)
+        The AGV slots' offsets.
+    a_mask : Tensor of bool, shape (B, N, Ka)
+
+    Returns
+    -------
+    Tensor of bool, shape (B, N, Ka)
+        False in masked slots.
+    """
+    B, N, ka, _ = a_rel.shape
+    if not ka:
+        return a_mask
+    pos = obs[..., layout.pos]
+    seen = pos.unsqueeze(2) + a_rel  # (B, N, Ka, 2)
+    gap = torch.linalg.vector_norm(seen.unsqueeze(3) - pos[:, None, None], dim=-1)
+    who = gap.argmin(-1)  # (B, N, Ka)
+    idle = obs[..., layout.status][..., 0] > 0.5  # (B, N)
+    return idle.unsqueeze(1).expand(B, N, N).gather(2, who) & a_mask
 
 
 def agent_order(obs: Tensor, layout: ObsLayout | LifelongObsLayout) -> Tensor:
@@ -375,16 +425,17 @@ class EntityEncoder(nn.Module):
     Token encoders are shared by all slots (and all AGVs); each kind of token is pooled by
     masked attention with the own-state embedding as the query. With ``lifelong`` the tokens
     are :func:`lifelong_tokens`' (pickup tokens for task tokens) and two more kinds are pooled
-    the same way: the AGV's target (one slot) and the obstacle points. ``parked_token``: the
-    AGV tokens carry the parked bit (:attr:`EntityConfig.parked_token`).
+    the same way: the AGV's target (one slot) and the obstacle points. ``agent_bit``: the
+    AGV tokens carry a sixth feature, the parked bit (:attr:`EntityConfig.parked_token`,
+    episodic) or the idle bit (:attr:`EntityConfig.idle_token`, lifelong).
     """
 
-    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False, agent_bit: bool = False) -> None:
         super().__init__()
         self.lifelong = lifelong
         self.own = _mlp([LIFELONG_SELF_FEATURES if lifelong else SELF_FEATURES, hidden])
         self.task = _mlp([PICKUP_TOKEN_FEATURES if lifelong else TASK_TOKEN_FEATURES, hidden])
-        self.agent = _mlp([AGENT_TOKEN_FEATURES + int(parked_token), hidden])
+        self.agent = _mlp([AGENT_TOKEN_FEATURES + int(agent_bit), hidden])
         self.task_pool = _AttentionPool(hidden)
         self.agent_pool = _AttentionPool(hidden)
         kinds = 3
@@ -441,15 +492,19 @@ class WaypointHead(nn.Module):
     :data:`DRIVE_GAIN`, capped at :data:`DRIVE_SPEED`; it brakes with no candidate in view).
     ``gain`` and the residual are then not used, and no gradient reaches the action: such a
     head is taught its choice by imitation (the weights' cross-entropy), not by a critic.
+    With ``sight`` too (:attr:`EntityConfig.drive_sight`) it drives at the first corner of
+    the chosen candidate's path (:meth:`sim.floor_paths.FloorWaypoints.sight` on the tokens'
+    floor) instead of the token's waypoint.
     """
 
-    def __init__(self, hidden: int, drive: bool = False) -> None:
+    def __init__(self, hidden: int, drive: bool = False, sight: bool = False) -> None:
         super().__init__()
         self.score, self.residual = _pointer_layers(hidden)
         self.gain = nn.Parameter(torch.tensor(HEAD_GAIN))
         self.target_bias = nn.Parameter(torch.tensor(HEAD_TARGET_BIAS))
         self.path_weight = nn.Parameter(torch.tensor(HEAD_PATH_WEIGHT))
         self.drive = drive
+        self.sight = sight
 
     def forward(self, h: Tensor, task_emb: Tensor, target_emb: Tensor, tok: Tokens
                 ) -> tuple[Tensor, Tensor]:
@@ -469,6 +524,14 @@ class WaypointHead(nn.Module):
         if self.drive:
             pick = nn.functional.one_hot(w.argmax(-1), w.shape[-1]).to(w.dtype) * mask
             goal = (pick.unsqueeze(-1) * wp).sum(-2).detach()  # 0 (brake) with none in view
+            if self.sight:
+                if tok.floor is None or tok.pos is None:
+                    raise ValueError("a sight-line drive needs tokens read on a floor "
+                                     "(lifelong_tokens)")
+                off = torch.cat([tok.target[..., 4:6], tok.task[..., 0:2]], dim=-2)
+                off = (pick.unsqueeze(-1) * off).sum(-2).detach()
+                at = tok.pos.detach()
+                goal = tok.floor.sight(at, at + off, pick.sum(-1) > 0) - at
             return arrive_action(goal, tok.own[..., 0:2], EPISODIC_PHYSICS, DRIVE_SPEED,
                                  DRIVE_GAIN), w
         unit = wp / torch.linalg.vector_norm(wp, dim=-1, keepdim=True).clamp_min(1e-6)
@@ -784,14 +847,15 @@ class EntityActor(nn.Module):
     :class:`WaypointHead` (with ``waypoint_drive``, its output is the action itself).
     """
 
-    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False,
-                 choice_head: bool = False, waypoint_drive: bool = False) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False, agent_bit: bool = False,
+                 choice_head: bool = False, waypoint_drive: bool = False,
+                 drive_sight: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden, lifelong, parked_token)
+        self.encoder = EntityEncoder(hidden, lifelong, agent_bit)
         self.lifelong = lifelong
         self.choose = TaskChoiceHead(hidden) if choice_head and not lifelong else None
         if lifelong:
-            self.steer = WaypointHead(hidden, waypoint_drive)
+            self.steer = WaypointHead(hidden, waypoint_drive, drive_sight)
         elif self.choose is None:
             self.head = _mlp([hidden, hidden, 2], last_relu=False)
 
@@ -821,9 +885,9 @@ class PooledCritic(nn.Module):
     do not depend on N (Lowe et al. concatenate all N observations and actions instead).
     """
 
-    def __init__(self, hidden: int, lifelong: bool = False, parked_token: bool = False) -> None:
+    def __init__(self, hidden: int, lifelong: bool = False, agent_bit: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden, lifelong, parked_token)
+        self.encoder = EntityEncoder(hidden, lifelong, agent_bit)
         self.joint = _mlp([hidden + 2, hidden])
         self.head = _mlp([2 * hidden, hidden, 1], last_relu=False)
 
@@ -863,8 +927,9 @@ class SortedBiRNN(nn.Module):
         Whether the AGV's action joins its embedding before the recurrence (critic).
     lifelong : bool
         Read lifelong tokens (:func:`lifelong_tokens`).
-    parked_token : bool
-        AGV tokens with the parked bit (:attr:`EntityConfig.parked_token`).
+    agent_bit : bool
+        AGV tokens with a sixth feature, the parked bit (:attr:`EntityConfig.parked_token`)
+        or the idle bit (:attr:`EntityConfig.idle_token`).
     choice_head : bool
         The episodic actor ends in a :class:`TaskChoiceHead` on the recurrence's output
         (:attr:`EntityConfig.choice_head`); its output is then the action itself.
@@ -881,24 +946,27 @@ class SortedBiRNN(nn.Module):
     waypoint_drive : bool
         The lifelong actor's head drives at its chosen candidate
         (:attr:`EntityConfig.waypoint_drive`); its output is then the action itself.
+    drive_sight : bool
+        It drives at the path's first corner (:attr:`EntityConfig.drive_sight`).
     """
 
     def __init__(self, hidden: int, out_features: int, action_input: bool = False,
-                 lifelong: bool = False, parked_token: bool = False,
+                 lifelong: bool = False, agent_bit: bool = False,
                  choice_head: bool = False, choice_rounds: int = 0,
                  choice_regret: bool = False, choice_accumulate: bool = False,
                  choice_sinkhorn: int = 0,
                  choice_sinkhorn_beta: float = SINKHORN_TEMPERATURES[1],
-                 waypoint_drive: bool = False) -> None:
+                 waypoint_drive: bool = False, drive_sight: bool = False) -> None:
         super().__init__()
-        self.encoder = EntityEncoder(hidden, lifelong, parked_token)
+        self.encoder = EntityEncoder(hidden, lifelong, agent_bit)
         self.action_input = action_input
         self.inp = _mlp([hidden + (2 if action_input else 0), hidden])
         self.rnn = nn.GRU(hidden, hidden, batch_first=True, bidirectional=True)
         actor = not action_input and out_features == 2
         # the lifelong actor steers with a WaypointHead on the recurrence's output, an
         # episodic one with choice_head points with a TaskChoiceHead
-        self.steer = WaypointHead(hidden, waypoint_drive) if lifelong and actor else None
+        self.steer = WaypointHead(hidden, waypoint_drive, drive_sight) \
+            if lifelong and actor else None
         self.choose = None
         if choice_head and actor and not lifelong:
             self.choose = TaskChoiceHead(hidden, choice_rounds, choice_regret, choice_accumulate,
@@ -1023,6 +1091,17 @@ class EntityConfig(OffPolicyConfig):
     needs ``choice_sinkhorn`` >= 1. 30 (the default, and what every run before this field
     did)."""
 
+    idle_token: bool = False
+    """Lifelong AGV tokens get a sixth feature, the idle bit: 1.0 for a visible AGV that is
+    idle (no order; :data:`sim.observations.STATUS_FEATURES`), heard from that AGV. Each AGV
+    tells the AGVs that see it whether it is idle, so that an AGV weighing an open pickup can
+    tell a rival that may claim it from one carrying an order (a one-bit message over the
+    range of the view, made explicit; the observation itself does not carry the others'
+    status). :func:`lifelong_tokens` matches each AGV slot to the AGV at that position, so
+    observations are read as whole floors (B, N, O), as the learners always read them. It
+    widens the AGV token layer; a run may start from a lifelong checkpoint without it (the
+    new column starts at zero, :meth:`EntityLearner.adapt_init_tensors`). False (the default,
+    and what every run before this field did): five features."""
     waypoint_drive: bool = False
     """Lifelong actors: the :class:`WaypointHead` chooses one candidate outright (the own
     target or an open pickup in view, the largest of its weights) and drives at its next
@@ -1034,12 +1113,21 @@ class EntityConfig(OffPolicyConfig):
     not trained by a critic. The weights are those without it, so a run may start from a
     lifelong policy file trained without it. False (the default, and what every run before
     this field did): the head steers along a softmax mix of the candidates' waypoints."""
+    drive_sight: bool = False
+    """With ``waypoint_drive``: head for the first corner of the chosen candidate's shortest
+    path (the farthest path cell in a straight line of sight,
+    :meth:`sim.floor_paths.FloorWaypoints.sight`), as ``WaypointDriver`` heads for
+    ``FloorDistances.next_waypoint``, instead of the token's waypoint (a fixed number of
+    grid cells ahead, whose heading zig-zags along the 8-neighbour grid: 16 degrees off the
+    driver's on warehouse-50, median). It adds no parameter. False (the default, and what
+    every run before this field did): the token's waypoint."""
 
     def validate(self) -> None:
         """Check every field (see :meth:`OffPolicyConfig.validate`), ``shield``,
         ``shield_keep_right``, ``margin_moving``, ``parked_token``, ``shield_penalty`` and
         ``choice_head``, ``choice_rounds``, ``choice_regret``, ``choice_accumulate`` and
-        ``choice_sinkhorn``, ``choice_sinkhorn_beta`` and ``waypoint_drive`` too."""
+        ``choice_sinkhorn``, ``choice_sinkhorn_beta``, ``idle_token``, ``waypoint_drive`` and
+        ``drive_sight`` too."""
         super().validate()
         self.shield = check_bool("shield", self.shield)
         self.shield_keep_right = check_real("shield_keep_right", self.shield_keep_right, 0.0,
@@ -1073,6 +1161,11 @@ class EntityConfig(OffPolicyConfig):
         self.shield_penalty = check_real("shield_penalty", self.shield_penalty, 0.0, math.inf,
                                          high_open=True)
         self.waypoint_drive = check_bool("waypoint_drive", self.waypoint_drive)
+        self.drive_sight = check_bool("drive_sight", self.drive_sight)
+        if self.drive_sight and not self.waypoint_drive:
+            raise ValueError("drive_sight=True chooses where the waypoint drive heads; it "
+                             "needs waypoint_drive=True")
+        self.idle_token = check_bool("idle_token", self.idle_token)
         if self.shield_penalty and not self.shield:
             raise ValueError(f"shield_penalty={self.shield_penalty} charges the shield's "
                              "changes to the actions; it needs shield=True")
@@ -1126,6 +1219,11 @@ class EntityLearner(ActorCritic):
         if not self.lifelong and self.config.waypoint_drive:
             raise ValueError("waypoint_drive is for lifelong floors (a WaypointHead); episodic "
                              "actors drive at a chosen task with choice_head=True")
+        if not self.lifelong and self.config.idle_token:
+            raise ValueError("idle_token is for lifelong floors (AGV status); episodic AGV "
+                             "tokens may carry the parked bit instead (parked_token=True)")
+        self.agent_bit = self.config.parked_token or self.config.idle_token
+        """Whether the AGV tokens carry a sixth feature (the parked or the idle bit)."""
         self.layout: ObsLayout | LifelongObsLayout | None = None
         self.floor: FloorWaypoints | None = None
 
@@ -1190,7 +1288,8 @@ class EntityLearner(ActorCritic):
         layout = self._layout(obs)
         if isinstance(layout, LifelongObsLayout):
             assert self.floor is not None  # set_layout checks it
-            return lifelong_tokens(obs, layout, self.floor), agent_order(obs, layout)
+            return (lifelong_tokens(obs, layout, self.floor, self.config.idle_token),
+                    agent_order(obs, layout))
         return (tokens(obs, layout, self.config.margin_moving, self.config.parked_token),
                 agent_order(obs, layout))
 
@@ -1210,9 +1309,11 @@ class EntityLearner(ActorCritic):
     _AGENT_LAYER = "encoder.agent.0.weight"
 
     def adapt_init_tensors(self, tensors: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Training or policy tensors of a run without ``parked_token`` widened for networks
-        with it: a zero column for the parked bit in every AGV token layer (actor, critic and
-        their targets), so the networks compute what the checkpoint's did; in the Adam moments
+        """Training or policy tensors of a run without ``parked_token`` (or ``idle_token``)
+        widened for networks with it: a zero column for the bit in every AGV token layer
+        (actor, critic and their targets), so the networks compute what the checkpoint's did
+        (with ``idle_token`` the pickups' margin counts the idle AGVs only, which changes
+        them); in the Adam moments
         of that layer, a zero first moment and, as second moment, the mean of the row's other
         columns (the new weights then take steps of the size the others take). Tensors whose
         AGV token layer already fits are returned unchanged.
@@ -1220,19 +1321,20 @@ class EntityLearner(ActorCritic):
         Raises
         ------
         ValueError
-            For tensors with the parked bit into networks without it (the bit's weights would
-            be dropped).
+            For tensors with the bit into networks without it (the bit's weights would be
+            dropped).
         """
         key = f"actor.{self._AGENT_LAYER}"
         if key not in tensors:
             return tensors
-        have, want = tensors[key].shape[-1], AGENT_TOKEN_FEATURES + int(self.config.parked_token)
+        have, want = tensors[key].shape[-1], AGENT_TOKEN_FEATURES + int(self.agent_bit)
         if have == want:
             return tensors
         if have != AGENT_TOKEN_FEATURES or want != AGENT_TOKEN_FEATURES + 1:
+            bit = "idle_token" if self.lifelong else "parked_token"
             raise ValueError(f"these tensors' AGV tokens have {have} features, the networks "
-                             f"read {want} (parked_token={self.config.parked_token}); a run "
-                             "without parked_token cannot start from one with it")
+                             f"read {want} ({bit}={getattr(self.config, bit)}); a run "
+                             f"without {bit} cannot start from one with it")
         out = dict(tensors)
 
         def widen(name: str, fill: str) -> None:
@@ -1350,9 +1452,9 @@ class MADDPGE(EntityLearner):
             raise ValueError(f"choice_sinkhorn={config.choice_sinkhorn} is communication "
                              "between the actors, which MADDPG-E's do not have: use bicnet-e "
                              "or 0")
-        self.actor = EntityActor(config.hidden, self.lifelong, config.parked_token,
-                                 config.choice_head, config.waypoint_drive)
-        self.critic = PooledCritic(config.hidden, self.lifelong, config.parked_token)
+        self.actor = EntityActor(config.hidden, self.lifelong, self.agent_bit,
+                                 config.choice_head, config.waypoint_drive, config.drive_sight)
+        self.critic = PooledCritic(config.hidden, self.lifelong, self.agent_bit)
         self._finish_init()
 
     def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:
@@ -1401,16 +1503,17 @@ class BiCNetE(EntityLearner):
         config = config or BiCNetEConfig()
         super().__init__(obs_dim, state_dim, num_agents, config, lifelong)
         self.actor = SortedBiRNN(config.hidden, 2, lifelong=self.lifelong,
-                                 parked_token=config.parked_token,
+                                 agent_bit=self.agent_bit,
                                  choice_head=config.choice_head,
                                  choice_rounds=config.choice_rounds,
                                  choice_regret=config.choice_regret,
                                  choice_accumulate=config.choice_accumulate,
                                  choice_sinkhorn=config.choice_sinkhorn,
                                  choice_sinkhorn_beta=config.choice_sinkhorn_beta,
-                                 waypoint_drive=config.waypoint_drive)
+                                 waypoint_drive=config.waypoint_drive,
+                                 drive_sight=config.drive_sight)
         self.critic = SortedBiRNN(config.hidden, 1, action_input=True, lifelong=self.lifelong,
-                                  parked_token=config.parked_token)
+                                  agent_bit=self.agent_bit)
         self._finish_init()
 
     def q_values(self, obs: Tensor, action: Tensor, target: bool = False) -> Tensor:

@@ -15,7 +15,9 @@ target and kept (a floor's generated orders use its fixed pickups and stations o
 table stops growing quickly). The waypoint is the cell centre ``lookahead`` path cells ahead
 (the target itself once the rest of the path is shorter), so a policy heads round a shelf's
 corner rather than into it. It does not string-pull paths; the waypoint is a heading, not a
-plan.
+plan. :meth:`FloorWaypoints.sight` gives the path's first corner instead (the farthest path
+cell the AGV's disc reaches in a straight line), as the classical dispatchers' driver heads
+for it (``allocator.distances.FloorDistances.next_waypoint``).
 """
 
 from __future__ import annotations
@@ -29,11 +31,13 @@ from scipy import ndimage
 from scipy.sparse import csgraph
 from torch import Tensor
 
-from sim.world import World
+from sim.world import World, segments_clear
 
-__all__ = ["FloorWaypoints"]
+__all__ = ["FloorWaypoints", "SIGHT_CELLS"]
 
 _MAX_CELLS = 4_000_000
+SIGHT_CELLS = 64
+"""Path cells :meth:`FloorWaypoints.sight` looks along for the last one in sight."""
 
 
 class FloorWaypoints:
@@ -107,6 +111,7 @@ class FloorWaypoints:
         self._centres_t = torch.as_tensor(self._centres, dtype=torch.float32)
         self._row_of_cell = torch.full((cells,), -1, dtype=torch.int64)
         self._wp_cell = torch.zeros(0, cells, dtype=torch.int64)
+        self._pred = torch.zeros(0, cells, dtype=torch.int64)
         self._dist = torch.zeros(0, cells, dtype=torch.float32)
 
     def _clear_of(self, discs: np.ndarray, clearance: float) -> np.ndarray:
@@ -156,6 +161,7 @@ class FloorWaypoints:
             wp = pred[rows, wp]
         start = self._wp_cell.shape[0]
         self._wp_cell = torch.cat([self._wp_cell, torch.as_tensor(wp, dtype=torch.int64)])
+        self._pred = torch.cat([self._pred, torch.as_tensor(pred, dtype=torch.int64)])
         self._dist = torch.cat([self._dist, torch.as_tensor(dist, dtype=torch.float32)])
         self._row_of_cell[new] = torch.arange(start, start + len(new))
 
@@ -204,6 +210,74 @@ class FloorWaypoints:
             return wp.reshape(*shape, 2), length.reshape(shape)
         wp, length = self._plan(p, t)
         return wp.reshape(*shape, 2), length.reshape(shape)
+
+    def sight(self, points: Tensor, targets: Tensor, mask: Tensor | None = None,
+              reach: int = SIGHT_CELLS) -> Tensor:
+        """The first corner of the shortest path from each point toward its target.
+
+        The target itself when the AGV's disc reaches it in a straight line
+        (:func:`sim.world.segments_clear`); else the farthest of the next ``reach`` cells
+        along the grid path that the disc reaches in a straight line with every cell before
+        it, the path's next cell when none is (the point stands too close to a shelf for any
+        straight line), or the target when it cannot be reached. What a driver heads for
+        (``allocator.distances.FloorDistances.next_waypoint`` on the dispatchers' finer
+        table); :meth:`query`'s waypoint is a fixed number of cells ahead instead.
+
+        Parameters
+        ----------
+        points, targets : Tensor, shape (..., 2)
+            World units; the same shape.
+        mask : Tensor of bool, shape (...), optional
+            Pairs to plan; elsewhere the waypoint is the target (no field is computed).
+        reach : int
+            Path cells looked along (>= 1).
+
+        Returns
+        -------
+        Tensor, shape (..., 2), float32
+
+        Raises
+        ------
+        ValueError
+            If the shapes differ or do not end in 2, or for a ``reach`` below 1.
+        """
+        if points.shape != targets.shape or points.shape[-1:] != (2,):
+            raise ValueError(f"points and targets must have the same shape (..., 2), got "
+                             f"{tuple(points.shape)} and {tuple(targets.shape)}")
+        if isinstance(reach, bool) or not isinstance(reach, int) or reach < 1:
+            raise ValueError(f"reach must be an integer >= 1, got {reach!r}")
+        shape = points.shape[:-1]
+        if mask is not None and mask.shape != shape:
+            raise ValueError(f"mask must have shape {tuple(shape)}, got {tuple(mask.shape)}")
+        p = points.reshape(-1, 2).float()
+        t = targets.reshape(-1, 2).float()
+        out = t.clone()
+        todo = torch.ones(len(p), dtype=torch.bool) if mask is None else mask.reshape(-1).clone()
+        if bool(todo.any()):
+            p64, t64 = p[todo].double().numpy(), t[todo].double().numpy()
+            blocked = torch.as_tensor(~segments_clear(p64, t64, self.world))
+            todo[todo.clone()] = blocked
+        if bool(todo.any()):
+            out[todo] = self._corner(p[todo], t[todo], reach)
+        return out.reshape(*shape, 2)
+
+    def _corner(self, p: Tensor, t: Tensor, reach: int) -> Tensor:
+        """:meth:`sight` for pairs (P, 2) whose target is out of sight."""
+        pc, tc = self.cell_of(p), self.cell_of(t)
+        self._add_targets(tc)
+        row = self._row_of_cell[tc]
+        cells = [pc]
+        for _ in range(reach):
+            cells.append(self._pred[row, cells[-1]])
+        chain = torch.stack(cells[1:], dim=1)  # (P, reach), the target cell repeats at the end
+        ends = self._centres[chain.numpy()].reshape(-1, 2)
+        starts = np.repeat(p.double().numpy(), reach, axis=0)
+        seen = torch.as_tensor(segments_clear(starts, ends, self.world)).reshape(-1, reach)
+        last = seen.long().cumprod(dim=1).sum(dim=1) - 1  # the last cell of the seen prefix
+        cell = chain.gather(1, last.clamp_min(0).unsqueeze(1)).squeeze(1)
+        wp = self._centres_t[cell]
+        reached = torch.isfinite(self._dist[row, pc])
+        return torch.where(reached.unsqueeze(-1), wp, t)
 
     def _plan(self, p: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """Waypoints (P, 2) and path lengths (P,) for points and targets (P, 2), float32."""

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["World", "Physics"]
+__all__ = ["World", "Physics", "segments_clear"]
 
 
 @dataclass(frozen=True)
@@ -418,3 +418,93 @@ class World:
             if inside.size:
                 raise ValueError(f"{what} rows {inside.tolist()} lie inside a shelf (obstacle)")
         return arr
+
+
+# ---------------------------------------------------------------------- segments
+_SEGMENT_TOL = 1e-9
+"""Slack of :func:`segments_clear`'s clearance test (as in ``allocator.distances``)."""
+
+
+def _point_rect_distance(p: np.ndarray, rect: np.ndarray) -> np.ndarray:
+    """Distance (>= 0) from points (..., 2) to rectangles (..., 4); 0 inside."""
+    gap = np.maximum(np.maximum(rect[..., :2] - p, p - rect[..., 2:]), 0.0)
+    return np.hypot(gap[..., 0], gap[..., 1])
+
+
+def _point_segment_distance(q: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Distance from points q (..., 2) to segments p0-p1 (..., 2)."""
+    d = p1 - p0
+    dd = np.einsum("...i,...i->...", d, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(dd > 0, np.einsum("...i,...i->...", q - p0, d) / dd, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    foot = p0 + t[..., None] * d
+    return np.linalg.norm(q - foot, axis=-1)
+
+
+def _segment_rect_distance(p0: np.ndarray, p1: np.ndarray, rect: np.ndarray) -> np.ndarray:
+    """Exact distance between segments p0-p1 (E, 2) and rectangles (E, 4); 0 if they meet.
+
+    Two disjoint convex sets are closest at a vertex of one of them, so the distance is the
+    least of the endpoints' distances to the rectangle and the corners' distances to the
+    segment; a slab test tells whether the segment meets the rectangle.
+    """
+    lo, hi = rect[:, :2], rect[:, 2:]
+    d = p1 - p0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo - p0) / d
+        t2 = (hi - p0) / d
+    zero = d == 0
+    inside = (p0 >= lo) & (p0 <= hi)
+    tmin = np.where(zero, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=1)
+    tmax = np.where(zero, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=1)
+    meets = (tmin <= tmax) & (tmax >= 0.0) & (tmin <= 1.0)
+    best = np.minimum(_point_rect_distance(p0, rect), _point_rect_distance(p1, rect))
+    for cx, cy in ((0, 1), (2, 1), (0, 3), (2, 3)):
+        corner = np.stack([rect[:, cx], rect[:, cy]], axis=1)
+        best = np.minimum(best, _point_segment_distance(corner, p0, p1))
+    return np.where(meets, 0.0, best)
+
+
+def segments_clear(starts: np.ndarray, ends: np.ndarray, world: World,
+                   clearance: float | None = None) -> np.ndarray:
+    """Whether a disc of radius ``clearance`` swept along each segment touches no shelf or wall.
+
+    Exact for rectangular shelves (rounded corners, unlike the conservative boxes of
+    :func:`allocator.paths.segment_clear`), with the tolerance of :meth:`sim.World.is_free`.
+
+    Parameters
+    ----------
+    starts, ends : np.ndarray, shape (E, 2)
+    world : sim.World
+    clearance : float, optional
+        Disc radius, default the AGV radius.
+
+    Returns
+    -------
+    np.ndarray of bool, shape (E,)
+    """
+    p0 = np.asarray(starts, dtype=np.float64).reshape(-1, 2)
+    p1 = np.asarray(ends, dtype=np.float64).reshape(-1, 2)
+    r = world.agent_radius if clearance is None else float(clearance)
+    ok = (world.wall_distance(p0) >= r - _SEGMENT_TOL) \
+        & (world.wall_distance(p1) >= r - _SEGMENT_TOL)
+    obs = world.obstacles
+    if not len(obs) or not len(p0):
+        return ok
+    # Candidate pairs: the shelf's box grown by r meets the segment's bounding box.
+    seg_lo = np.minimum(p0, p1) - r
+    seg_hi = np.maximum(p0, p1) + r
+    chunk = max(1, 4_000_000 // len(obs))
+    for s in range(0, len(p0), chunk):
+        lo, hi = seg_lo[s:s + chunk], seg_hi[s:s + chunk]
+        near = ((obs[None, :, 0] <= hi[:, None, 0]) & (obs[None, :, 2] >= lo[:, None, 0])
+                & (obs[None, :, 1] <= hi[:, None, 1]) & (obs[None, :, 3] >= lo[:, None, 1]))
+        seg, rect = np.nonzero(near)
+        if not seg.size:
+            continue
+        dist = _segment_rect_distance(p0[s + seg], p1[s + seg], obs[rect])
+        blocked = np.zeros(len(lo), dtype=bool)
+        blocked[seg[dist < r - _SEGMENT_TOL]] = True
+        ok[s:s + chunk] &= ~blocked
+    return ok

@@ -134,6 +134,7 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--validation-runs", "0"],
     ["--start", str(SHIPPED), "--waypoint-drive"],  # its action cannot be taught
     ["--start", str(SHIPPED), "--waypoint-drive", "--action-weight", "0.5"],
+    ["--start", str(SHIPPED), "--drive-sight", "--action-weight", "0"],  # no waypoint drive
 ])
 def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
@@ -200,6 +201,28 @@ def test_main_teaches_the_local_teachers_choice_to_a_waypoint_drive_student(
         meta = read_metadata(tmp_path / name)
         assert meta["config"]["waypoint_drive"] is True
         assert meta["config"]["shield_keep_right"] == 0.5  # the lanes it was taught behind
+    scen = sim.get_scenario("warehouse-20", k_pickups=8, k_agents=8)
+    solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
+                            weights=tmp_path / "best.safetensors", shield=True)
+    m = sim.evaluate_lifelong(solver, scen, steps=20, seed=0)
+    assert m.collisions_per_1000 == 0
+
+
+def test_main_teaches_an_idle_token_student_from_a_start_without_it(tmp_path: Path) -> None:
+    """``--idle-token --drive-sight``: the start (without the bit) is widened, the file
+    records both, and the allocator serves it behind the shield."""
+    from learners.checkpoint import load_checkpoint
+
+    dagger.main(["--start", str(SHIPPED), "--floor", "warehouse-20", "--iterations", "1",
+                 "--envs", "1", "--horizon", "6", "--steps", "3", "--validation-steps", "20",
+                 "--validation-seeds", "5", "--validation-runs", "1", "--teacher", "local",
+                 "--view", "8", "--waypoint-drive", "--action-weight", "0", "--idle-token",
+                 "--drive-sight", "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["idle_token"] is True and probe["drive_sight"] is True
+    tensors, meta = load_checkpoint(tmp_path / "best.safetensors", kind="policy")
+    assert meta["config"]["idle_token"] is True and meta["config"]["drive_sight"] is True
+    assert tensors["actor.encoder.agent.0.weight"].shape[-1] == 6
     scen = sim.get_scenario("warehouse-20", k_pickups=8, k_agents=8)
     solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
                             weights=tmp_path / "best.safetensors", shield=True)

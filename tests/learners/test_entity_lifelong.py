@@ -12,7 +12,14 @@ import torch
 import allocator
 import sim
 from learners.algorithms import make_config, make_learner
-from learners.entity import DRIVE_GAIN, DRIVE_SPEED, MADDPGE, arrive_action, lifelong_tokens
+from learners.entity import (
+    AGENT_TOKEN_FEATURES,
+    DRIVE_GAIN,
+    DRIVE_SPEED,
+    MADDPGE,
+    arrive_action,
+    lifelong_tokens,
+)
 from learners.floor import OBSTACLE_SLOTS, FloorWaypoints, obstacle_points
 from learners.policy import build_learner
 
@@ -60,6 +67,47 @@ def test_waypoint_walk_reaches_the_target(floor):
         if float((p - goal).norm()) < 0.05:
             break
     assert float((p - goal).norm()) < 0.05
+
+
+def test_sight_gives_the_paths_first_corner(floor):
+    """``FloorWaypoints.sight``: the target when in a straight line of sight, else a path
+    corner the disc reaches in a straight line, heading where the dispatchers' driver heads
+    (``FloorDistances.next_waypoint``); walking to it again and again reaches the target."""
+    from allocator.distances import FloorDistances
+
+    world = floor.world
+    starts = torch.tensor([[0.4, 1.2], [0.4, 5.2], [6.9, 0.6], [3.0, 1.0], [3.0, 3.0]])
+    goals = torch.tensor([[3.1, 3.2], [4.3, 2.8], [1.9, 4.6], [3.1, 3.2], [3.1, 3.2]])
+    wp = floor.sight(starts, goals)
+    assert torch.equal(wp[-1], goals[-1])  # in sight: the target itself
+    lookahead, _ = floor.query(starts, goals)
+    driver = FloorDistances(world).next_waypoint(starts.double().numpy(), goals.double().numpy())
+    for a, w, near, d in zip(starts.numpy(), wp.numpy(), lookahead.numpy(), driver,
+                             strict=True):
+        assert sim.world.segments_clear(a[None], w[None].astype(np.float64), world)[0]
+        assert np.linalg.norm(w - a) >= np.linalg.norm(near - a) - 1e-6  # at least as far
+        cos = np.dot(w - a, d - a) / max(np.linalg.norm(w - a) * np.linalg.norm(d - a), 1e-9)
+        assert cos > 0.98  # within 11 degrees of the driver's heading
+    p, goal = torch.tensor([[0.4, 0.4]]), torch.tensor([[4.9, 4.2]])
+    for _ in range(60):
+        step = floor.sight(p, goal) - p
+        p = p + step * min(1.0, 0.3 / max(float(step.norm()), 1e-9))
+        assert _clear(world, p.numpy()[0], p.numpy()[0], 0.1)  # no corner cut
+        if float((p - goal).norm()) < 0.05:
+            break
+    assert float((p - goal).norm()) < 0.05
+    # masked pairs: the target, and no field computed
+    n = floor.cached_targets
+    pts = torch.tensor([[0.4, 1.2], [0.4, 5.2]])
+    far = torch.tensor([[9.5, 0.3], [9.5, 7.7]])
+    assert torch.equal(floor.sight(pts, far, torch.zeros(2, dtype=torch.bool)), far)
+    assert floor.cached_targets == n
+    with pytest.raises(ValueError, match="reach must be an integer >= 1"):
+        floor.sight(pts, far, reach=0)
+    with pytest.raises(ValueError, match="same shape"):
+        floor.sight(pts, far[:1])
+    with pytest.raises(ValueError, match="mask must have shape"):
+        floor.sight(pts, far, torch.ones(3, dtype=torch.bool))
 
 
 def test_floor_bad_inputs(floor):
@@ -259,6 +307,116 @@ def test_waypoint_drive_chooses_one_candidate_and_drives_at_its_waypoint(algo):
     plain = build_learner(algo, env.obs_dim, env.state_dim, env.num_agents, {"hidden": 16},
                           lifelong=True)
     plain.load_policy_tensors(learner.policy_tensors())
+
+
+def _floor_after(steps: int, seed: int = 3) -> tuple[sim.LifelongEnv, torch.Tensor]:
+    """warehouse-20 with 8 pickup and AGV slots after ``steps`` steps of random actions (the
+    AGVs that ran into an open pickup carry its order, the others are idle)."""
+    env = sim.make_env(sim.get_scenario("warehouse-20", k_pickups=8, k_agents=8), num_envs=2,
+                       seed=seed)
+    gen = torch.Generator().manual_seed(seed)
+    obs = env.observe()
+    for _ in range(steps):
+        obs, *_ = env.step(torch.rand(2, env.num_agents, 2, generator=gen) * 2 - 1)
+    return env, obs
+
+
+def test_idle_token_hears_each_visible_agvs_status(floor):
+    """``idle_token``: each AGV slot's sixth feature is the idle bit of the AGV at that
+    position (told by it), and the pickups' margin counts only the idle AGVs."""
+    from sim.orders import IDLE
+
+    env, obs = _floor_after(60)
+    status = env.agent_status
+    assert bool((status == IDLE).any()) and bool((status != IDLE).any())
+    lay = env.obs_layout
+    plain = lifelong_tokens(obs, lay, floor)
+    heard = lifelong_tokens(obs, lay, floor, idle_token=True)
+    assert heard.agent.shape[-1] == AGENT_TOKEN_FEATURES + 1
+    assert torch.equal(heard.agent[..., :-1], plain.agent)
+    slots = obs[..., lay.agents].reshape(2, env.num_agents, 8, 5)
+    pos = env.agent_pos
+    checked = 0
+    for b in range(2):
+        for i in range(env.num_agents):
+            for k in range(8):
+                if slots[b, i, k, 4] < 0.5:
+                    assert heard.agent[b, i, k, -1] == 0  # masked slot
+                    continue
+                j = int((pos[b] - pos[b, i] - slots[b, i, k, :2]).norm(dim=-1).argmin())
+                assert j != i
+                assert float(heard.agent[b, i, k, -1]) == float(status[b, j] == IDLE)
+                checked += 1
+    assert checked > 100
+    # margin: the nearest idle AGV's distance to the pickup minus the AGV's own
+    idle_rel = torch.where(heard.agent[..., -1:] > 0.5, heard.agent[..., :2],
+                           torch.full_like(heard.agent[..., :2], 1e6))
+    other = (heard.task[..., None, :2] - idle_rel[..., None, :, :]).norm(dim=-1).amin(-1)
+    want = (other - heard.task[..., 2]).clamp(-1.0, 1.0) * heard.task_mask
+    torch.testing.assert_close(heard.task[..., 6], want)
+    assert not torch.equal(heard.task[..., 6], plain.task[..., 6])
+    # renumbering the AGVs renumbers the bits
+    perm = torch.randperm(env.num_agents, generator=torch.Generator().manual_seed(0))
+    again = lifelong_tokens(obs[:, perm], lay, floor, idle_token=True)
+    assert torch.equal(again.agent, heard.agent[:, perm])
+
+
+@pytest.mark.parametrize("algo", ["maddpg-e", "bicnet-e"])
+def test_idle_token_networks_start_from_a_lifelong_policy_without_it(algo):
+    env, obs = _floor_after(30)
+    sizes = (env.obs_dim, env.state_dim, env.num_agents)
+    old = build_learner(algo, *sizes, {"hidden": 16, "waypoint_drive": True}, lifelong=True)
+    new = build_learner(algo, *sizes, {"hidden": 16, "waypoint_drive": True,
+                                       "idle_token": True}, lifelong=True)
+    for learner in (old, new):
+        learner.reset(env)
+    new.load_policy_tensors(new.adapt_init_tensors(old.policy_tensors()))
+    assert new.actor.encoder.agent[0].weight.shape[-1] == AGENT_TOKEN_FEATURES + 1
+    assert float(new.actor.encoder.agent[0].weight[:, -1].detach().abs().sum()) == 0.0
+    act, w = new.policy_and_choice(obs)
+    assert act.shape == (2, env.num_agents, 2) and bool(torch.isfinite(act).all())
+    with pytest.raises(ValueError, match="without idle_token cannot start from one with it"):
+        old.adapt_init_tensors(new.policy_tensors())
+    with pytest.raises(ValueError, match="idle_token is for lifelong floors"):
+        epi = sim.make_env("6v6", num_envs=1, seed=0)
+        build_learner(algo, epi.obs_dim, epi.state_dim, epi.num_agents,
+                      {"hidden": 16, "idle_token": True}, lifelong=False)
+    for bad in ("yes", 1, None):
+        with pytest.raises(ValueError, match="idle_token"):
+            make_config(algo, {"idle_token": bad})
+
+
+@pytest.mark.parametrize("algo", ["maddpg-e", "bicnet-e"])
+def test_drive_sight_heads_for_the_chosen_candidates_first_corner(algo):
+    """``drive_sight``: the same choice as the token drive, but each AGV heads for the first
+    corner of its chosen candidate's path (``FloorWaypoints.sight``); no parameter added."""
+    env, obs = _floor_after(40, seed=5)
+    sizes = (env.obs_dim, env.state_dim, env.num_agents)
+    torch.manual_seed(0)
+    token = build_learner(algo, *sizes, {"hidden": 16, "waypoint_drive": True},
+                          lifelong=True)
+    sight = build_learner(algo, *sizes, {"hidden": 16, "waypoint_drive": True,
+                                         "drive_sight": True}, lifelong=True)
+    sight.load_policy_tensors(token.policy_tensors())
+    for learner in (token, sight):
+        learner.reset(env)
+    act, w = sight.policy_and_choice(obs)
+    _, w_token = token.policy_and_choice(obs)
+    torch.testing.assert_close(w, w_token)
+    tok, _ = sight._read(obs)
+    off = torch.cat([tok.target[..., 4:6], tok.task[..., 0:2]], dim=-2)
+    mask = torch.cat([tok.target_mask, tok.task_mask], dim=-1)
+    pick = w.argmax(-1)
+    has = mask.gather(-1, pick.unsqueeze(-1)).squeeze(-1)
+    chosen = off.gather(2, pick[..., None, None].expand(-1, -1, 1, 2))[..., 0, :]
+    pos = obs[..., env.obs_layout.pos]
+    goal = sight.floor.sight(pos, pos + chosen, has) - pos
+    want = arrive_action(goal, tok.own[..., 0:2], max_speed=DRIVE_SPEED, gain=DRIVE_GAIN)
+    torch.testing.assert_close(act.detach(), want * sight._movable(obs))
+    assert not torch.equal(act, token.policy(obs))  # the corners differ from the waypoints
+    for bad in ({"drive_sight": True}, {"drive_sight": 1, "waypoint_drive": True}):
+        with pytest.raises(ValueError, match="drive_sight"):
+            make_config(algo, bad)
 
 
 def test_waypoint_drive_is_refused_where_it_cannot_drive():
