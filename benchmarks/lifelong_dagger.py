@@ -1,7 +1,7 @@
 """Lifelong imitation for issue 17: a lifelong entity policy taught by a teacher on a
 warehouse floor (DAgger).
 
-    python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50]
+    python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50 ...]
         [--teacher plan|local] [--view K] [--waypoint-drive] [--drive-sight] [--idle-token]
         [--iterations 8] [--envs 4] [--horizon 300] [--steps 300] [--lr 1e-3]
         [--choice-weight 1.0] [--action-weight 1.0] [--keep-right 0.5]
@@ -41,20 +41,24 @@ DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix 
 driven by the teacher with probability 0.3, else by the student), every rollout through
 ``SafetyShield(keep_right=--keep-right)`` (the policy is served shielded); every state is
 labelled with the teacher's action and the teacher's candidate (the own target, or the pickup
-slot of the teacher's order when it is in view); the last 6 rollouts are kept and the actor
-takes ``--steps`` Adam steps on ``--action-weight`` times the squared error of the actions
-of the AGVs that can move (0: the choice alone is taught) plus ``--choice-weight`` times the
-cross-entropy of the head's softmax against the teacher's candidate (a batch of 16 joint
-states per step).
+slot of the teacher's order when it is in view); the last 6 rollouts of each floor are kept
+(with several ``--floor``, each iteration rolls out on every floor, and each Adam step draws
+its batch from one floor, each as likely) and the actor takes ``--steps`` Adam steps on
+``--action-weight`` times the squared error of the actions of the AGVs that can move (0: the
+choice alone is taught) plus ``--choice-weight`` times the cross-entropy of the head's
+softmax against the teacher's candidate (a batch of 16 joint states per step).
 
 Writes ``--out``/``dagger.safetensors`` (a policy file that ``allocator.make(...,
 weights=FILE)`` and ``shield_lifelong.py --weights FILE`` take; written after every
-validation), ``best.safetensors`` (the student of the best validation so far),
-``progress.csv`` (loss, the share of the labelled AGVs whose largest weight is the teacher's
-candidate, and every second iteration the shielded throughput on the floor: the mean over
-``--validation-seeds`` of ``--validation-runs`` runs of ``--validation-steps`` steps) and
+validation), ``best.safetensors`` (the student of the best validation so far: the largest
+``share``), ``progress.csv`` (loss, the share of the labelled AGVs whose largest weight is
+the teacher's candidate, and every second iteration the shielded throughput on each floor:
+the mean over ``--validation-seeds`` of ``--validation-runs`` runs of ``--validation-steps``
+steps, ``throughput`` for the first floor and ``throughput_<floor>`` for the others, and
+``share``, the mean over the floors of the student's throughput over the teacher's) and
 ``dagger.probe.json`` (command, seed, settings, the start's throughput and the teacher's own
-on the same validation, :class:`TeacherDriver`: the ceiling of the imitation).
+on the same validation, :class:`TeacherDriver`: the ceiling of the imitation; per floor in
+``start_by_floor`` and ``teacher_by_floor``).
 """
 
 from __future__ import annotations
@@ -283,7 +287,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--start", required=True, type=Path,
                         help="a lifelong entity learner's policy file")
-    parser.add_argument("--floor", default="warehouse-50")
+    parser.add_argument("--floor", nargs="+", default=["warehouse-50"],
+                        help="the lifelong floors taught on (each iteration rolls out on "
+                             "every one; the first is the primary floor)")
     parser.add_argument("--iterations", type=int, default=8)
     parser.add_argument("--envs", type=int, default=4, help="floors per rollout")
     parser.add_argument("--horizon", type=int, default=300, help="steps per rollout")
@@ -342,17 +348,22 @@ def main(argv: list[str] | None = None) -> None:
                          f"{'> 0' if name == 'lr' else '>= 0'}, got {value}")
     if not (np.isfinite(args.keep_right) and 0 <= args.keep_right < np.pi / 2):
         parser.error(f"--keep-right must be in [0, pi/2), got {args.keep_right}")
+    if len(set(args.floor)) < len(args.floor):
+        parser.error(f"--floor names a floor twice: {args.floor}")
+    scenarios = []
     try:
-        scenario = sim.get_scenario(args.floor) if args.view is None else \
-            sim.get_scenario(args.floor, k_pickups=args.view, k_agents=args.view)
+        for floor in args.floor:
+            scenarios.append(sim.get_scenario(floor) if args.view is None else
+                             sim.get_scenario(floor, k_pickups=args.view, k_agents=args.view))
         tensors, meta = load_checkpoint(args.start, kind="policy")
     except (ValueError, KeyError, FileNotFoundError) as err:
         parser.error(str(err))
-    if not getattr(scenario, "lifelong", False):
-        parser.error(f"--floor must be a lifelong floor (warehouse-N), got {args.floor}")
-    if args.view is not None and args.view > scenario.num_agents:
-        parser.error(f"--view must be at most the floor's fleet ({scenario.num_agents} on "
-                     f"{args.floor}), got {args.view}")
+    for floor, scenario in zip(args.floor, scenarios, strict=True):
+        if not getattr(scenario, "lifelong", False):
+            parser.error(f"--floor must name lifelong floors (warehouse-N), got {floor}")
+        if args.view is not None and args.view > scenario.num_agents:
+            parser.error(f"--view must be at most each floor's fleet ({scenario.num_agents} "
+                         f"on {floor}), got {args.view}")
     if meta["algo"] not in ENTITY_ALGORITHMS or "actor.steer.gain" not in tensors:
         parser.error(f"--start must be a lifelong entity policy (its actor ends in a "
                      f"WaypointHead), got {meta['algo']} on {meta['scenario']}")
@@ -370,26 +381,44 @@ def main(argv: list[str] | None = None) -> None:
     learner.load_policy_tensors(learner.adapt_init_tensors(tensors))
     opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
     args.out.mkdir(parents=True, exist_ok=True)
-    data: list[tuple[torch.Tensor, ...]] = []
+    data: list[list[tuple[torch.Tensor, ...]]] = [[] for _ in scenarios]
+    reading: list[tuple[Any, Any]] = []  # each floor's layout and waypoints, for the tokens
+    for scenario in scenarios:
+        learner.reset(sim.make_env(scenario, num_envs=1, seed=0))
+        reading.append((learner.layout, learner.floor))
     log = []
     best: dict[str, Any] | None = None
     t0 = time.perf_counter()
     checks = dict(steps=args.validation_steps, seeds=tuple(args.validation_seeds),
                   runs=args.validation_runs)
-    start = validate(learner, scenario, args.keep_right, **checks)
-    ceiling = validate(TeacherDriver(teacher_view), scenario, args.keep_right, **checks)
-    print(json.dumps({"iteration": 0, "throughput": start, "teacher_throughput": ceiling}),
+    start = [validate(learner, sc, args.keep_right, **checks) for sc in scenarios]
+    ceiling = [validate(TeacherDriver(teacher_view), sc, args.keep_right, **checks)
+               for sc in scenarios]
+
+    def columns(values: list[float]) -> dict[str, float]:
+        """The primary floor's throughput, the others' (``throughput_<floor>``) and the
+        mean share of the teacher's throughput over the floors (what selects the best)."""
+        out = {"throughput": values[0]}
+        out.update({f"throughput_{f}": v for f, v in zip(args.floor[1:], values[1:],
+                                                          strict=True)})
+        out["share"] = round(float(np.mean([v / max(c, 1e-9) for v, c in
+                                            zip(values, ceiling, strict=True)])), 4)
+        return out
+
+    print(json.dumps({"iteration": 0, **columns(start), "teacher_throughput": ceiling[0]}),
           flush=True)
     for it in range(args.iterations):
         share = 1.0 if it == 0 else TEACHER_SHARE
-        data = (data + [rollout(learner, scenario, args.envs, args.horizon,
-                                args.seed * 100_000 + it, share, args.keep_right, gen,
-                                teacher_view)])[-KEEP:]
-        o, a, m, c = (torch.cat(x) for x in zip(*data, strict=True))
-        env = sim.make_env(scenario, num_envs=1, seed=0)
-        learner.reset(env)  # the floor's layout and waypoints for the tokens
+        for f, scenario in enumerate(scenarios):
+            data[f] = (data[f] + [rollout(learner, scenario, args.envs, args.horizon,
+                                          args.seed * 100_000 + it + 1000 * f, share,
+                                          args.keep_right, gen, teacher_view)])[-KEEP:]
+        pooled = [tuple(torch.cat(x) for x in zip(*d, strict=True)) for d in data]
         total = hits = labelled = 0.0
         for _ in range(args.steps):
+            f = int(torch.randint(len(pooled), (1,), generator=gen)) if len(pooled) > 1 else 0
+            learner.set_layout(*reading[f])
+            o, a, m, c = pooled[f]
             idx = torch.randint(len(o), (BATCH,), generator=gen)
             act, w = learner.policy_and_choice(o[idx])
             loss = imitation_loss(act, a[idx], m[idx], w, c[idx], args.choice_weight,
@@ -402,14 +431,16 @@ def main(argv: list[str] | None = None) -> None:
             has = (c[idx] >= 0) & m[idx]
             hits += float(((w.argmax(-1) == c[idx]) & has).sum())
             labelled += float(has.sum())
+        seen = torch.cat([p[3].reshape(-1) for p in pooled])
         row: dict[str, Any] = dict(iteration=it + 1, loss=total / args.steps,
                                    accuracy=round(hits / max(labelled, 1.0), 4),
-                                   labelled=round(float((c >= 0).float().mean()), 3),
+                                   labelled=round(float((seen >= 0).float().mean()), 3),
                                    seconds=round(time.perf_counter() - t0, 1))
         if it % 2 == 1 or it == args.iterations - 1:
-            row["throughput"] = validate(learner, scenario, args.keep_right, **checks)
+            row.update(columns([validate(learner, sc, args.keep_right, **checks)
+                                for sc in scenarios]))
             save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
-            if best is None or row["throughput"] > best["throughput"]:
+            if best is None or row["share"] > best["share"]:
                 best = row
                 save_policy(learner, meta, args.out / "best.safetensors", args.seed)
         log.append(row)
@@ -418,7 +449,8 @@ def main(argv: list[str] | None = None) -> None:
     command = recorded_command(__file__, sys.argv[1:] if argv is None else argv)
     atomic_write_text(args.out / "dagger.probe.json", json.dumps(
         {"command": command, "seed": args.seed, "start": str(args.start),
-         "floor": args.floor, "iterations": args.iterations, "envs": args.envs,
+         "floor": args.floor[0], "floors": args.floor, "iterations": args.iterations,
+         "envs": args.envs,
          "horizon": args.horizon, "steps": args.steps, "lr": args.lr,
          "choice_weight": args.choice_weight, "action_weight": args.action_weight,
          "keep_right": args.keep_right,
@@ -427,7 +459,9 @@ def main(argv: list[str] | None = None) -> None:
          "teacher": args.teacher, "teacher_view": teacher_view, "view": args.view,
          **{k: config[k] for k in flags},
          "teacher_share": TEACHER_SHARE, "keep": KEEP, "batch": BATCH,
-         "start_throughput": start, "teacher_throughput": ceiling, "final": log[-1],
+         "start_throughput": start[0], "teacher_throughput": ceiling[0],
+         "start_by_floor": dict(zip(args.floor, start, strict=True)),
+         "teacher_by_floor": dict(zip(args.floor, ceiling, strict=True)), "final": log[-1],
          "best": best},
         indent=2) + "\n")
     print(f"wrote {args.out / 'dagger.safetensors'}")

@@ -135,6 +135,9 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--waypoint-drive"],  # its action cannot be taught
     ["--start", str(SHIPPED), "--waypoint-drive", "--action-weight", "0.5"],
     ["--start", str(SHIPPED), "--drive-sight", "--action-weight", "0"],  # no waypoint drive
+    ["--start", str(SHIPPED), "--floor", "warehouse-20", "warehouse-20"],
+    ["--start", str(SHIPPED), "--floor", "warehouse-20", "6v6"],
+    ["--start", str(SHIPPED), "--floor", "warehouse-50", "warehouse-20", "--view", "30"],
 ])
 def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
@@ -228,6 +231,34 @@ def test_main_teaches_an_idle_token_student_from_a_start_without_it(tmp_path: Pa
                             weights=tmp_path / "best.safetensors", shield=True)
     m = sim.evaluate_lifelong(solver, scen, steps=20, seed=0)
     assert m.collisions_per_1000 == 0
+
+
+def test_main_teaches_on_several_floors(tmp_path: Path) -> None:
+    """``--floor A B``: rollouts on both floors, a validation column per floor and the mean
+    share of the teacher's throughput, which selects the best."""
+    import csv
+
+    dagger.main(["--start", str(SHIPPED), "--floor", "warehouse-20", "warehouse-50",
+                 "--iterations", "2", "--envs", "1", "--horizon", "6", "--steps", "4",
+                 "--validation-steps", "40", "--validation-seeds", "5", "--validation-runs",
+                 "1", "--teacher", "local", "--view", "8", "--waypoint-drive",
+                 "--action-weight", "0", "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert list(probe["teacher_by_floor"]) == ["warehouse-20", "warehouse-50"]
+    assert probe["teacher_throughput"] == probe["teacher_by_floor"]["warehouse-20"]
+    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    last = rows[-1]
+    assert {"throughput", "throughput_warehouse-50", "share"} <= set(last)
+    teacher = probe["teacher_by_floor"]
+    want = np.mean([float(last["throughput"]) / max(teacher["warehouse-20"], 1e-9),
+                    float(last["throughput_warehouse-50"]) / max(teacher["warehouse-50"],
+                                                                 1e-9)])
+    assert abs(float(last["share"]) - want) < 1e-3
+    assert probe["best"]["share"] == max(float(r["share"]) for r in rows if r["share"])
+    solver = allocator.make("maddpg-greedy", scenario="warehouse-50",
+                            weights=tmp_path / "best.safetensors", shield=True)
+    scen = sim.get_scenario("warehouse-50", k_pickups=8, k_agents=8)
+    assert sim.evaluate_lifelong(solver, scen, steps=10, seed=0).collisions_per_1000 == 0
 
 
 def test_validate_averages_the_seeds() -> None:
