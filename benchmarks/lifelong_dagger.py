@@ -19,6 +19,7 @@ AGV should go.
 - ``local`` (:class:`LocalTeacher`): each idle AGV's share of the least-distance assignment
   among what it could see (its ``--view`` nearest open pickups and idle AGVs; default
   :data:`LOCAL_VIEW`), re-made every step: a choice that one AGV's surroundings decide.
+  ``local-path``: the same, priced by the travel distances round the shelves.
 
 Each AGV's goal is its own drop-off when it carries an order, else the pickup the teacher
 gives it; it heads there as ``WaypointDriver`` drives (the first corner of the floor's
@@ -158,19 +159,24 @@ class LocalTeacher(PlanTeacher):
     assignment (straight lines), and the AGV takes its own share (its nearest pickup when it
     is left out). Driven as :class:`PlanTeacher` drives; no central plan, so its labels are
     a function of one AGV's surroundings, which a student with as wide a view can learn.
-    A Python loop over the idle AGVs: a teacher for probes, not a hot path.
+    With ``path`` the assignment's costs are the floor's travel distances round the shelves
+    (``FloorDistances.distance``) instead of straight lines; the pickups in view are still the
+    straight-line nearest (the observation's). A Python loop over the idle AGVs: a teacher
+    for probes, not a hot path.
 
     Raises
     ------
     ValueError
-        For a ``view`` that is not an integer >= 1.
+        For a ``view`` that is not an integer >= 1, or a ``path`` that is not a bool.
     """
 
-    def __init__(self, view: int = LOCAL_VIEW) -> None:
+    def __init__(self, view: int = LOCAL_VIEW, path: bool = False) -> None:
         if isinstance(view, bool) or not isinstance(view, int) or view < 1:
             raise ValueError(f"view must be an integer >= 1, got {view!r}")
+        if not isinstance(path, bool):
+            raise ValueError(f"path must be a bool, got {path!r}")
         super().__init__()
-        self.view = view
+        self.view, self.path = view, path
 
     def _replan(self, floors: np.ndarray) -> None:
         pass  # the plan is made every step, in teach
@@ -190,11 +196,13 @@ class LocalTeacher(PlanTeacher):
             # every idle AGV's distances, once per floor: to the open pickups and to the others
             to_pickup = np.linalg.norm(pos[b, idle][:, None] - pickup[b, open_][None], axis=-1)
             to_agent = np.linalg.norm(pos[b, idle][:, None] - pos[b, idle][None], axis=-1)
+            price = self.distances.distance(pos[b, idle], pickup[b, open_]) if self.path \
+                else to_pickup
             for k, i in enumerate(idle):
                 near = np.argsort(to_pickup[k], kind="stable")[:self.view]  # into open_
                 others = np.delete(np.arange(len(idle)), k)
                 rivals = others[np.argsort(to_agent[k, others], kind="stable")[:self.view]]
-                cost = to_pickup[np.concatenate([[k], rivals])][:, near]
+                cost = price[np.concatenate([[k], rivals])][:, near]
                 rows, cols = linear_sum_assignment(cost)
                 mine = cols[rows == 0]
                 self.plan[b, i] = open_[near[mine[0] if len(mine) else np.argmin(cost[0])]]
@@ -204,15 +212,15 @@ class LocalTeacher(PlanTeacher):
 class TeacherDriver:
     """A teacher driving by itself, a controller for :func:`validate`: what the student could
     reach by imitating it perfectly (the claims made by reaching a pickup, as the
-    student's). ``view``: a :class:`LocalTeacher` of that view; None (default): the
-    :class:`PlanTeacher`."""
+    student's). ``view``: a :class:`LocalTeacher` of that view (``path``: its costs along
+    the floor's paths); None (default): the :class:`PlanTeacher`."""
 
-    def __init__(self, view: int | None = None) -> None:
-        self.view = view
+    def __init__(self, view: int | None = None, path: bool = False) -> None:
+        self.view, self.path = view, path
 
     def reset(self, env: Any) -> None:
         self.env = env
-        self.teacher = make_teacher(self.view)
+        self.teacher = make_teacher(self.view, self.path)
         self.teacher.reset(env)
 
     def act(self, obs: torch.Tensor) -> torch.Tensor:
@@ -239,21 +247,21 @@ def candidate_labels(obs: torch.Tensor, layout: Any, rel: np.ndarray,
     return out
 
 
-def make_teacher(view: int | None = None) -> PlanTeacher:
-    """The teacher: :class:`PlanTeacher` (``view`` None) or ``LocalTeacher(view)``."""
-    return PlanTeacher() if view is None else LocalTeacher(view)
+def make_teacher(view: int | None = None, path: bool = False) -> PlanTeacher:
+    """The teacher: :class:`PlanTeacher` (``view`` None) or ``LocalTeacher(view, path)``."""
+    return PlanTeacher() if view is None else LocalTeacher(view, path)
 
 
 def rollout(learner: Any, floor: Any, envs: int, horizon: int, seed: int, teacher_share: float,
-            keep_right: float, gen: torch.Generator, teacher_view: int | None = None
-            ) -> tuple[torch.Tensor, ...]:
+            keep_right: float, gen: torch.Generator, teacher_view: int | None = None,
+            teacher_path: bool = False) -> tuple[torch.Tensor, ...]:
     """One batch of floors (a name or a lifelong scenario) for ``horizon`` steps through the
-    shield, taught by :func:`make_teacher` (``teacher_view``); returns the observations
-    (S, N, O), the teacher's actions (S, N, 2), which AGVs can move (S, N) and the teacher's
-    candidates (S, N; -1: none), S = envs x horizon."""
+    shield, taught by :func:`make_teacher` (``teacher_view``, ``teacher_path``); returns the
+    observations (S, N, O), the teacher's actions (S, N, 2), which AGVs can move (S, N) and
+    the teacher's candidates (S, N; -1: none), S = envs x horizon."""
     env = sim.make_env(floor, num_envs=envs, seed=seed)
     obs = env.observe()
-    teacher = make_teacher(teacher_view)
+    teacher = make_teacher(teacher_view, teacher_path)
     teacher.reset(env)
     learner.reset(env)
     shield = SafetyShield(learner, keep_right=keep_right)
@@ -307,8 +315,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="floors of the validation (the mean is reported)")
     parser.add_argument("--validation-runs", type=int, default=2,
                         help="runs per validation seed")
-    parser.add_argument("--teacher", choices=("plan", "local"), default="plan",
-                        help="plan: Hungarian's plan (PlanTeacher); local: LocalTeacher")
+    parser.add_argument("--teacher", choices=("plan", "local", "local-path"), default="plan",
+                        help="plan: Hungarian's plan (PlanTeacher); local: LocalTeacher; "
+                             "local-path: LocalTeacher pricing by path length")
     parser.add_argument("--view", type=int, default=None,
                         help="the student's pickup and AGV slots (the floor's own when "
                              f"omitted), and LocalTeacher's view (default {LOCAL_VIEW})")
@@ -340,6 +349,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--waypoint-drive teaches the choice alone (no gradient reaches its "
                      "action): pass --action-weight 0")
     teacher_view = None if args.teacher == "plan" else (args.view or LOCAL_VIEW)
+    teacher_path = args.teacher == "local-path"
     flags = ("waypoint_drive", "drive_sight", "idle_token")
     for name in ("lr", "choice_weight", "action_weight"):
         value = getattr(args, name)
@@ -392,7 +402,8 @@ def main(argv: list[str] | None = None) -> None:
     checks = dict(steps=args.validation_steps, seeds=tuple(args.validation_seeds),
                   runs=args.validation_runs)
     start = [validate(learner, sc, args.keep_right, **checks) for sc in scenarios]
-    ceiling = [validate(TeacherDriver(teacher_view), sc, args.keep_right, **checks)
+    ceiling = [validate(TeacherDriver(teacher_view, teacher_path), sc, args.keep_right,
+                        **checks)
                for sc in scenarios]
 
     def columns(values: list[float]) -> dict[str, float]:
@@ -412,7 +423,8 @@ def main(argv: list[str] | None = None) -> None:
         for f, scenario in enumerate(scenarios):
             data[f] = (data[f] + [rollout(learner, scenario, args.envs, args.horizon,
                                           args.seed * 100_000 + it + 1000 * f, share,
-                                          args.keep_right, gen, teacher_view)])[-KEEP:]
+                                          args.keep_right, gen, teacher_view,
+                                          teacher_path)])[-KEEP:]
         pooled = [tuple(torch.cat(x) for x in zip(*d, strict=True)) for d in data]
         total = hits = labelled = 0.0
         for _ in range(args.steps):

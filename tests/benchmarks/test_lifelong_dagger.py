@@ -184,6 +184,50 @@ def test_the_local_teacher_gives_each_idle_agv_an_open_order_from_its_view() -> 
     assert dagger.LocalTeacher(view=10**9).view == 10**9  # wider than any floor: all in view
 
 
+def test_the_path_priced_local_teacher_prices_by_the_floors_distances() -> None:
+    """``LocalTeacher(path=True)``: each idle AGV's share of the least-cost assignment among
+    its view (the straight-line nearest pickups and idle AGVs), the costs the floor's travel
+    distances round the shelves; on the same states it sometimes chooses otherwise than the
+    straight-line teacher."""
+    from scipy.optimize import linear_sum_assignment
+
+    from sim.orders import IDLE
+
+    env = sim.make_env("warehouse-20", num_envs=2, seed=3)
+    teacher, straight = dagger.LocalTeacher(view=4, path=True), dagger.LocalTeacher(view=4)
+    teacher.reset(env)
+    straight.reset(env)
+    checked = differs = 0
+    for _ in range(30):
+        action, _, _ = teacher.teach(env)
+        straight.teach(env)
+        status, st = env.agent_status.numpy(), env.orders.status.numpy()
+        pos, pickup = env.agent_pos.double().numpy(), env.orders.pickup.double().numpy()
+        for b in range(2):
+            idle = np.flatnonzero(status[b] == IDLE)
+            open_ = np.flatnonzero(st[b] == OPEN)
+            if len(open_) == 0:
+                continue
+            cost = teacher.distances.distance(pos[b, idle], pickup[b, open_])
+            for k, i in enumerate(idle):
+                near = np.argsort(np.linalg.norm(pickup[b, open_] - pos[b, i], axis=-1),
+                                  kind="stable")[:4]
+                gap = np.linalg.norm(pos[b, idle] - pos[b, i], axis=-1)
+                gap[k] = np.inf
+                rivals = np.argsort(gap, kind="stable")[:min(4, len(idle) - 1)]
+                rows, cols = linear_sum_assignment(cost[np.concatenate([[k], rivals])][:, near])
+                mine = cols[rows == 0]
+                want = near[mine[0]] if len(mine) else near[np.argmin(cost[k, near])]
+                assert teacher.plan[b, i] == open_[want]
+                checked += 1
+                differs += int(teacher.plan[b, i] != straight.plan[b, i])
+        env.step(action)
+    assert checked > 50 and differs > 0
+    for bad in (1, None, "yes"):
+        with pytest.raises(ValueError, match="path must be a bool"):
+            dagger.LocalTeacher(view=4, path=bad)
+
+
 def test_main_teaches_the_local_teachers_choice_to_a_waypoint_drive_student(
         tmp_path: Path) -> None:
     """``--teacher local --view K --waypoint-drive``: the student sees K slots, is taught the
