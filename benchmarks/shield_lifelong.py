@@ -239,7 +239,7 @@ class _Recorder:
 
 
 BASELINES = ("path-follower", "hungarian", "fifo", "auction", "auction-3", "hungarian-shield",
-             "hungarian-plan", "local-plan")
+             "hungarian-plan", "local-plan", "local-path-plan")
 """The reference rows (``--baselines``): the shielded path follower, the classical
 dispatchers driven by SafeDriver (``auction``: unlimited radio range, ``auction-3``: 3.0),
 ``hungarian-shield``: Hungarian's choices driven by :class:`ShieldedIntent` at the first
@@ -248,8 +248,9 @@ dispatchers driven by SafeDriver (``auction``: unlimited radio range, ``auction-
 Hungarian's plan kept to itself, the orders claimed by reaching them, as a decentralized
 policy claims them) behind :class:`allocator.SafetyShield` with the same lanes, and
 ``local-plan``: ``lifelong_dagger.LocalTeacher``, each AGV's share of the assignment among
-the 16 open pickups and 16 idle AGVs nearest to it, behind the same shield (the last three
-not in the default set)."""
+the 16 open pickups and 16 idle AGVs nearest to it, behind the same shield, and
+``local-path-plan``: the same priced by the floor's travel distances (the last four not in
+the default set)."""
 DEFAULT_BASELINES = BASELINES[:5]
 
 
@@ -275,12 +276,15 @@ def _baseline(name: str, keep_right: float = 0.0) -> list[tuple[str, str, Any]]:
         return [("hungarian's plan, not assigned (the DAgger teacher) + shield",
                  f"on, lanes {keep_right:g} rad",
                  allocator.SafetyShield(TeacherDriver(), keep_right=keep_right))]
-    if name == "local-plan":
+    if name in ("local-plan", "local-path-plan"):
         from lifelong_dagger import LOCAL_VIEW, TeacherDriver
 
-        return [(f"each AGV's local assignment, {LOCAL_VIEW} nearest (a teacher) + shield",
+        path = name == "local-path-plan"
+        priced = ", priced by path" if path else ""
+        return [(f"each AGV's local assignment, {LOCAL_VIEW} nearest{priced} (a teacher) + shield",
                  f"on, lanes {keep_right:g} rad",
-                 allocator.SafetyShield(TeacherDriver(view=LOCAL_VIEW), keep_right=keep_right))]
+                 allocator.SafetyShield(TeacherDriver(view=LOCAL_VIEW, path=path),
+                                        keep_right=keep_right))]
     if name == "hungarian":
         ctl = allocator.HungarianDispatcher(driver=allocator.SafeDriver())
     elif name == "fifo":

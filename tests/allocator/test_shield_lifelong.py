@@ -245,10 +245,12 @@ def test_the_benchmark_runs_the_local_teacher_behind_the_shield(tmp_path) -> Non
     bench = _bench()
     out = tmp_path / "t.md"
     table = bench.main(["--floor", "warehouse-20", "--steps", "120", "--seeds", "0",
-                        "--baselines", "local-plan", "--keep-right", "0.5", "--out", str(out)])
+                        "--baselines", "local-plan", "local-path-plan", "--keep-right", "0.5",
+                        "--out", str(out)])
     assert [r["method"] for r in table] == [
-        "each AGV's local assignment, 16 nearest (a teacher) + shield"]
-    assert table[0]["overlaps"] == 0 and table[0]["throughput"] > 0
+        "each AGV's local assignment, 16 nearest (a teacher) + shield",
+        "each AGV's local assignment, 16 nearest, priced by path (a teacher) + shield"]
+    assert all(r["overlaps"] == 0 and r["throughput"] > 0 for r in table)
 
 
 def test_view_widens_the_policy_files_rows_only(tmp_path, monkeypatch) -> None:
