@@ -274,7 +274,8 @@ def lifelong_tokens(obs: Tensor, layout: LifelongObsLayout, floor: FloorWaypoint
     Returns
     -------
     Tokens
-        With ``target``, ``target_mask``, ``obstacle`` and ``obstacle_mask`` set.
+        With ``target``, ``target_mask``, ``obstacle``, ``obstacle_mask``, ``pos`` and
+        ``floor`` set.
     """
     B, N, _ = obs.shape
     kt, ka = layout.k_pickups, layout.k_agents
@@ -1313,10 +1314,9 @@ class EntityLearner(ActorCritic):
         widened for networks with it: a zero column for the bit in every AGV token layer
         (actor, critic and their targets), so the networks compute what the checkpoint's did
         (with ``idle_token`` the pickups' margin counts the idle AGVs only, which changes
-        them); in the Adam moments
-        of that layer, a zero first moment and, as second moment, the mean of the row's other
-        columns (the new weights then take steps of the size the others take). Tensors whose
-        AGV token layer already fits are returned unchanged.
+        them); in the Adam moments of that layer, a zero first moment and, as second moment,
+        the mean of the row's other columns (the new weights then take steps of the size the
+        others take). Tensors whose AGV token layer already fits are returned unchanged.
 
         Raises
         ------
