@@ -144,38 +144,45 @@ def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:
         dagger.main([*bad, "--out", str(tmp_path)])
 
 
+def _taught_floors(teachers: list, steps: int = 30):
+    """Two warehouse-20 floors driven by the first teacher for ``steps`` steps; after every
+    teacher has taught each step, yields (floor, idle AGVs, open orders, positions, pickups)
+    for each floor with an open order."""
+    from sim.orders import IDLE
+
+    env = sim.make_env("warehouse-20", num_envs=2, seed=3)
+    for teacher in teachers:
+        teacher.reset(env)
+    for _ in range(steps):
+        action = teachers[0].teach(env)[0]
+        for teacher in teachers[1:]:
+            teacher.teach(env)
+        status, st = env.agent_status.numpy(), env.orders.status.numpy()
+        pos, pickup = env.agent_pos.double().numpy(), env.orders.pickup.double().numpy()
+        for b in range(2):
+            open_ = np.flatnonzero(st[b] == OPEN)
+            if len(open_):
+                yield b, np.flatnonzero(status[b] == IDLE), open_, pos, pickup
+        assert action.abs().max() <= 1.0 + 1e-6
+        env.step(action)
+
+
 def test_the_local_teacher_gives_each_idle_agv_an_open_order_from_its_view() -> None:
     """``LocalTeacher``: every idle AGV gets an open order among its ``view`` nearest; with a
     view wide enough to see each other, no pickup point is aimed at by more idle AGVs than it
     has open orders; a view of 1 is each AGV's nearest open pickup."""
-    from sim.orders import IDLE
-
-    env = sim.make_env("warehouse-20", num_envs=2, seed=3)
     wide, narrow = dagger.LocalTeacher(view=40), dagger.LocalTeacher(view=1)
-    wide.reset(env)
-    narrow.reset(env)
-    for _ in range(30):
-        action, _, _ = wide.teach(env)
-        narrow.teach(env)
-        status, st = env.agent_status.numpy(), env.orders.status.numpy()
-        pos, pickup = env.agent_pos.double().numpy(), env.orders.pickup.double().numpy()
-        for b in range(2):
-            idle = np.flatnonzero(status[b] == IDLE)
-            open_ = np.flatnonzero(st[b] == OPEN)
-            if len(open_) == 0:
-                continue
-            assert (wide.plan[b, idle] >= 0).all() and np.isin(wide.plan[b, idle], open_).all()
-            if len(open_) >= len(idle):  # no pickup point is aimed at by more idle AGVs
-                # than it has open orders (orders that share a point are ties, broken
-                # differently by each AGV's own assignment: harmless, there is one for each)
-                aimed = [tuple(pickup[b, j].round(6)) for j in wide.plan[b, idle]]
-                held = [tuple(pickup[b, j].round(6)) for j in open_]
-                assert all(aimed.count(x) <= held.count(x) for x in set(aimed))
-            for i in idle:  # view 1: the nearest open pickup
-                d = np.linalg.norm(pickup[b, open_] - pos[b, i], axis=-1)
-                assert narrow.plan[b, i] == open_[np.argmin(d)]
-        assert action.abs().max() <= 1.0 + 1e-6
-        env.step(action)
+    for b, idle, open_, pos, pickup in _taught_floors([wide, narrow]):
+        assert (wide.plan[b, idle] >= 0).all() and np.isin(wide.plan[b, idle], open_).all()
+        if len(open_) >= len(idle):  # no pickup point is aimed at by more idle AGVs
+            # than it has open orders (orders that share a point are ties, broken
+            # differently by each AGV's own assignment: harmless, there is one for each)
+            aimed = [tuple(pickup[b, j].round(6)) for j in wide.plan[b, idle]]
+            held = [tuple(pickup[b, j].round(6)) for j in open_]
+            assert all(aimed.count(x) <= held.count(x) for x in set(aimed))
+        for i in idle:  # view 1: the nearest open pickup
+            d = np.linalg.norm(pickup[b, open_] - pos[b, i], axis=-1)
+            assert narrow.plan[b, i] == open_[np.argmin(d)]
     with pytest.raises(ValueError, match="view must be an integer >= 1"):
         dagger.LocalTeacher(view=0)
     for bad in (2.5, float("nan"), "16", None, True, -3):
@@ -191,37 +198,22 @@ def test_the_path_priced_local_teacher_prices_by_the_floors_distances() -> None:
     straight-line teacher."""
     from scipy.optimize import linear_sum_assignment
 
-    from sim.orders import IDLE
-
-    env = sim.make_env("warehouse-20", num_envs=2, seed=3)
     teacher, straight = dagger.LocalTeacher(view=4, path=True), dagger.LocalTeacher(view=4)
-    teacher.reset(env)
-    straight.reset(env)
     checked = differs = 0
-    for _ in range(30):
-        action, _, _ = teacher.teach(env)
-        straight.teach(env)
-        status, st = env.agent_status.numpy(), env.orders.status.numpy()
-        pos, pickup = env.agent_pos.double().numpy(), env.orders.pickup.double().numpy()
-        for b in range(2):
-            idle = np.flatnonzero(status[b] == IDLE)
-            open_ = np.flatnonzero(st[b] == OPEN)
-            if len(open_) == 0:
-                continue
-            cost = teacher.distances.distance(pos[b, idle], pickup[b, open_])
-            for k, i in enumerate(idle):
-                near = np.argsort(np.linalg.norm(pickup[b, open_] - pos[b, i], axis=-1),
-                                  kind="stable")[:4]
-                gap = np.linalg.norm(pos[b, idle] - pos[b, i], axis=-1)
-                gap[k] = np.inf
-                rivals = np.argsort(gap, kind="stable")[:min(4, len(idle) - 1)]
-                rows, cols = linear_sum_assignment(cost[np.concatenate([[k], rivals])][:, near])
-                mine = cols[rows == 0]
-                want = near[mine[0]] if len(mine) else near[np.argmin(cost[k, near])]
-                assert teacher.plan[b, i] == open_[want]
-                checked += 1
-                differs += int(teacher.plan[b, i] != straight.plan[b, i])
-        env.step(action)
+    for b, idle, open_, pos, pickup in _taught_floors([teacher, straight]):
+        cost = teacher.distances.distance(pos[b, idle], pickup[b, open_])
+        for k, i in enumerate(idle):
+            near = np.argsort(np.linalg.norm(pickup[b, open_] - pos[b, i], axis=-1),
+                              kind="stable")[:4]
+            gap = np.linalg.norm(pos[b, idle] - pos[b, i], axis=-1)
+            gap[k] = np.inf
+            rivals = np.argsort(gap, kind="stable")[:min(4, len(idle) - 1)]
+            rows, cols = linear_sum_assignment(cost[np.concatenate([[k], rivals])][:, near])
+            mine = cols[rows == 0]
+            want = near[mine[0]] if len(mine) else near[np.argmin(cost[k, near])]
+            assert teacher.plan[b, i] == open_[want]
+            checked += 1
+            differs += int(teacher.plan[b, i] != straight.plan[b, i])
     assert checked > 50 and differs > 0
     for bad in (1, None, "yes"):
         with pytest.raises(ValueError, match="path must be a bool"):
@@ -248,11 +240,16 @@ def test_main_teaches_the_local_teachers_choice_to_a_waypoint_drive_student(
         meta = read_metadata(tmp_path / name)
         assert meta["config"]["waypoint_drive"] is True
         assert meta["config"]["shield_keep_right"] == 0.5  # the lanes it was taught behind
+    _served_without_overlaps(tmp_path / "best.safetensors")
+
+
+def _served_without_overlaps(path: Path) -> None:
+    """The policy file runs through the allocator behind the shield on warehouse-20 (an
+    8-slot view) for 20 steps without an overlap."""
     scen = sim.get_scenario("warehouse-20", k_pickups=8, k_agents=8)
-    solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
-                            weights=tmp_path / "best.safetensors", shield=True)
-    m = sim.evaluate_lifelong(solver, scen, steps=20, seed=0)
-    assert m.collisions_per_1000 == 0
+    solver = allocator.make("maddpg-greedy", scenario="warehouse-20", weights=path,
+                            shield=True)
+    assert sim.evaluate_lifelong(solver, scen, steps=20, seed=0).collisions_per_1000 == 0
 
 
 def test_main_teaches_an_idle_token_student_from_a_start_without_it(tmp_path: Path) -> None:
@@ -270,11 +267,7 @@ def test_main_teaches_an_idle_token_student_from_a_start_without_it(tmp_path: Pa
     tensors, meta = load_checkpoint(tmp_path / "best.safetensors", kind="policy")
     assert meta["config"]["idle_token"] is True and meta["config"]["drive_sight"] is True
     assert tensors["actor.encoder.agent.0.weight"].shape[-1] == 6
-    scen = sim.get_scenario("warehouse-20", k_pickups=8, k_agents=8)
-    solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
-                            weights=tmp_path / "best.safetensors", shield=True)
-    m = sim.evaluate_lifelong(solver, scen, steps=20, seed=0)
-    assert m.collisions_per_1000 == 0
+    _served_without_overlaps(tmp_path / "best.safetensors")
 
 
 def test_main_teaches_on_several_floors(tmp_path: Path) -> None:
