@@ -61,7 +61,7 @@ from torch import Tensor
 import allocator
 import sim
 from allocator.distances import FloorDistances
-from allocator.learned import scenario_to_run
+from allocator.learned import TAUGHT_NAMES, scenario_to_run
 from sim.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -187,21 +187,14 @@ class ShieldedIntent:
         return self.shield.filter(self.intent(env))
 
 
-def taught_names() -> tuple[str, ...]:
-    """The taught families (``allocator.learned.TAUGHT_NAMES``), which ``--weights`` may
-    name."""
-    from allocator.learned import TAUGHT_NAMES
-
-    return TAUGHT_NAMES
-
-
 def _learned(weights: str, floor: str, liveness: bool | None, keep_right: float = 0.0) -> Any:
     """The learned policy of ``weights`` (a policy file or run folder, or the name of a
-    taught family, :func:`taught_names`, with its shipped weights) with ``shield=True``, its
-    shield's liveness set (``None``: no shield at all) and its lane angle ``keep_right``."""
+    taught family, ``allocator.learned.TAUGHT_NAMES``, with its shipped weights) with
+    ``shield=True``, its shield's liveness set (``None``: no shield at all) and its lane
+    angle ``keep_right``."""
     from learners.checkpoint import read_metadata
 
-    if weights in taught_names():
+    if weights in TAUGHT_NAMES:
         ctl = allocator.make(weights, scenario=floor, shield=liveness is not None)
     else:
         meta = read_metadata(weights)
@@ -434,7 +427,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                    help="seeds of the floor and orders, one run each (default 0)")
     p.add_argument("--weights", nargs="*", default=[], metavar="RUN_DIR_OR_FILE",
                    help="lifelong entity run folders or policy files, or a taught family's "
-                        f"name ({', '.join(taught_names())}: its shipped weights at its own "
+                        f"name ({', '.join(TAUGHT_NAMES)}: its shipped weights at its own "
                         "view) (none: no learned rows)")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
                    metavar="V", help=f"learned rows, any of {' '.join(VARIANTS)} (default all)")
@@ -467,9 +460,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         p.error(f"--view must be at most the floor's fleet ({scenario.num_agents} on "
                 f"{args.floor}), got {args.view}")
     for entry in args.weights:
-        if entry not in taught_names() and not Path(entry).exists():
+        if entry not in TAUGHT_NAMES and not Path(entry).exists():
             p.error(f"--weights {entry}: no such file or folder (nor a taught family: "
-                    f"{', '.join(taught_names())})")
+                    f"{', '.join(TAUGHT_NAMES)})")
     table = rows(args.floor, args.steps, args.seeds, args.weights, args.baselines,
                  args.variants, args.keep_right, args.view)
     command = recorded_command(__file__, argv)
