@@ -383,11 +383,11 @@ def main(argv: list[str] | None = None) -> None:
     # the student is served behind the lanes it was taught behind
     config = dict(meta["config"], shield_keep_right=args.keep_right,
                   **{k: getattr(args, k) or meta["config"].get(k, False) for k in flags})
-    if config["drive_sight"] and not config["waypoint_drive"]:
-        parser.error("--drive-sight chooses where the waypoint drive heads: pass "
-                     "--waypoint-drive too (the start has no waypoint drive)")
-    learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
-                           meta["num_agents"], config)
+    try:  # the config's own checks (e.g. --drive-sight without a waypoint drive)
+        learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
+                               meta["num_agents"], config)
+    except ValueError as err:
+        parser.error(str(err))
     learner.load_policy_tensors(learner.adapt_init_tensors(tensors))
     opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -401,7 +401,14 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     checks = dict(steps=args.validation_steps, seeds=tuple(args.validation_seeds),
                   runs=args.validation_runs)
-    start = [validate(learner, sc, args.keep_right, **checks) for sc in scenarios]
+
+    def on(f: int) -> Any:
+        """Floor ``f``'s scenario, with the learner reading that floor's kept waypoints
+        (so that ``reset`` on it keeps them rather than planning the floor again)."""
+        learner.set_layout(*reading[f])
+        return scenarios[f]
+
+    start = [validate(learner, on(f), args.keep_right, **checks) for f in range(len(scenarios))]
     ceiling = [validate(TeacherDriver(teacher_view, teacher_path), sc, args.keep_right,
                         **checks)
                for sc in scenarios]
@@ -420,8 +427,8 @@ def main(argv: list[str] | None = None) -> None:
           flush=True)
     for it in range(args.iterations):
         share = 1.0 if it == 0 else TEACHER_SHARE
-        for f, scenario in enumerate(scenarios):
-            data[f] = (data[f] + [rollout(learner, scenario, args.envs, args.horizon,
+        for f in range(len(scenarios)):
+            data[f] = (data[f] + [rollout(learner, on(f), args.envs, args.horizon,
                                           args.seed * 100_000 + it + 1000 * f, share,
                                           args.keep_right, gen, teacher_view,
                                           teacher_path)])[-KEEP:]
@@ -449,8 +456,8 @@ def main(argv: list[str] | None = None) -> None:
                                    labelled=round(float((seen >= 0).float().mean()), 3),
                                    seconds=round(time.perf_counter() - t0, 1))
         if it % 2 == 1 or it == args.iterations - 1:
-            row.update(columns([validate(learner, sc, args.keep_right, **checks)
-                                for sc in scenarios]))
+            row.update(columns([validate(learner, on(f), args.keep_right, **checks)
+                                for f in range(len(scenarios))]))
             save_policy(learner, meta, args.out / "dagger.safetensors", args.seed)
             if best is None or row["share"] > best["share"]:
                 best = row

@@ -524,11 +524,12 @@ class WaypointHead(nn.Module):
         w = _masked_softmax(logits.squeeze(-1) + prior, mask)
         if self.drive:
             pick = nn.functional.one_hot(w.argmax(-1), w.shape[-1]).to(w.dtype) * mask
-            goal = (pick.unsqueeze(-1) * wp).sum(-2).detach()  # 0 (brake) with none in view
-            if self.sight:
-                if tok.floor is None or tok.pos is None:
-                    raise ValueError("a sight-line drive needs tokens read on a floor "
-                                     "(lifelong_tokens)")
+            if not self.sight:
+                goal = (pick.unsqueeze(-1) * wp).sum(-2).detach()  # 0 (brake): none in view
+            elif tok.floor is None or tok.pos is None:
+                raise ValueError("a sight-line drive needs tokens read on a floor "
+                                 "(lifelong_tokens)")
+            else:  # the chosen candidate's straight offset, then its path's first corner
                 off = torch.cat([tok.target[..., 4:6], tok.task[..., 0:2]], dim=-2)
                 off = (pick.unsqueeze(-1) * off).sum(-2).detach()
                 at = tok.pos.detach()
