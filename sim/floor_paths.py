@@ -239,13 +239,17 @@ class FloorWaypoints:
         Raises
         ------
         ValueError
-            If the shapes differ or do not end in 2, or for a ``reach`` below 1.
+            If the shapes differ or do not end in 2, or for a ``reach`` that is not an
+            integer from 1 to the floor's number of cells.
         """
         if points.shape != targets.shape or points.shape[-1:] != (2,):
             raise ValueError(f"points and targets must have the same shape (..., 2), got "
                              f"{tuple(points.shape)} and {tuple(targets.shape)}")
         if isinstance(reach, bool) or not isinstance(reach, int) or reach < 1:
             raise ValueError(f"reach must be an integer >= 1, got {reach!r}")
+        if reach > self.width * self.height:
+            raise ValueError(f"reach must be at most the floor's {self.width * self.height} "
+                             f"cells (no path is longer), got {reach}")
         shape = points.shape[:-1]
         if mask is not None and mask.shape != shape:
             raise ValueError(f"mask must have shape {tuple(shape)}, got {tuple(mask.shape)}")

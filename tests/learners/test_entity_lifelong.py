@@ -102,8 +102,11 @@ def test_sight_gives_the_paths_first_corner(floor):
     far = torch.tensor([[9.5, 0.3], [9.5, 7.7]])
     assert torch.equal(floor.sight(pts, far, torch.zeros(2, dtype=torch.bool)), far)
     assert floor.cached_targets == n
-    with pytest.raises(ValueError, match="reach must be an integer >= 1"):
-        floor.sight(pts, far, reach=0)
+    for bad in (0, -3, 2.5, float("nan"), "8", None, True):
+        with pytest.raises(ValueError, match="reach must be an integer >= 1"):
+            floor.sight(pts, far, reach=bad)
+    with pytest.raises(ValueError, match="reach must be at most the floor's"):
+        floor.sight(pts, far, reach=10**12)  # refused before any walk
     with pytest.raises(ValueError, match="same shape"):
         floor.sight(pts, far[:1])
     with pytest.raises(ValueError, match="mask must have shape"):
