@@ -193,14 +193,7 @@ class FloorWaypoints:
         ValueError
             If the shapes differ or do not end in 2.
         """
-        if points.shape != targets.shape or points.shape[-1:] != (2,):
-            raise ValueError(f"points and targets must have the same shape (..., 2), got "
-                             f"{tuple(points.shape)} and {tuple(targets.shape)}")
-        shape = points.shape[:-1]
-        if mask is not None and mask.shape != shape:
-            raise ValueError(f"mask must have shape {tuple(shape)}, got {tuple(mask.shape)}")
-        p = points.reshape(-1, 2).float()
-        t = targets.reshape(-1, 2).float()
+        shape, p, t = _pairs(points, targets, mask)
         if mask is not None:
             keep = mask.reshape(-1)
             wp = t.clone()
@@ -242,19 +235,12 @@ class FloorWaypoints:
             If the shapes differ or do not end in 2, or for a ``reach`` that is not an
             integer from 1 to the floor's number of cells.
         """
-        if points.shape != targets.shape or points.shape[-1:] != (2,):
-            raise ValueError(f"points and targets must have the same shape (..., 2), got "
-                             f"{tuple(points.shape)} and {tuple(targets.shape)}")
+        shape, p, t = _pairs(points, targets, mask)
         if isinstance(reach, bool) or not isinstance(reach, int) or reach < 1:
             raise ValueError(f"reach must be an integer >= 1, got {reach!r}")
         if reach > self.width * self.height:
             raise ValueError(f"reach must be at most the floor's {self.width * self.height} "
                              f"cells (no path is longer), got {reach}")
-        shape = points.shape[:-1]
-        if mask is not None and mask.shape != shape:
-            raise ValueError(f"mask must have shape {tuple(shape)}, got {tuple(mask.shape)}")
-        p = points.reshape(-1, 2).float()
-        t = targets.reshape(-1, 2).float()
         out = t.clone()
         todo = torch.ones(len(p), dtype=torch.bool) if mask is None else mask.reshape(-1).clone()
         if bool(todo.any()):
@@ -299,6 +285,19 @@ class FloorWaypoints:
         wp = torch.where(near.unsqueeze(-1), t, cen[wp_cell])
         length = torch.where(reach, torch.maximum(length, straight), straight)
         return wp, length
+
+
+def _pairs(points: Tensor, targets: Tensor, mask: Tensor | None
+           ) -> tuple[torch.Size, Tensor, Tensor]:
+    """The checked batch shape of (point, target) pairs and both flattened to (P, 2) float32
+    (:meth:`FloorWaypoints.query` and :meth:`FloorWaypoints.sight`)."""
+    if points.shape != targets.shape or points.shape[-1:] != (2,):
+        raise ValueError(f"points and targets must have the same shape (..., 2), got "
+                         f"{tuple(points.shape)} and {tuple(targets.shape)}")
+    shape = points.shape[:-1]
+    if mask is not None and mask.shape != shape:
+        raise ValueError(f"mask must have shape {tuple(shape)}, got {tuple(mask.shape)}")
+    return shape, points.reshape(-1, 2).float(), targets.reshape(-1, 2).float()
 
 
 def _grid_graph(free: np.ndarray, res: float) -> sp.csr_matrix:
