@@ -9,8 +9,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["as_actions", "check_count", "check_device", "check_env_ids", "check_seed",
-           "real_array"]
+__all__ = ["MAX_SLOTS", "as_actions", "check_count", "check_device", "check_env_ids",
+           "check_seed", "check_slots", "real_array"]
+
+MAX_SLOTS = 1024
+"""The most entity slots of one kind an observation may have (``k_tasks``, ``k_pickups``,
+``k_agents``): the nearest 1024 are more than any floor here fills, and far more would only
+be padding that fills memory (a billion slots asked for 60 GB before this bound)."""
 
 
 def check_count(name: str, value: Any) -> int:
@@ -18,6 +23,14 @@ def check_count(name: str, value: Any) -> int:
     if (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))
             or value < 1):
         raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def check_slots(name: str, value: Any) -> int:
+    """``value`` as an int in [0, :data:`MAX_SLOTS`] (bool, float and str refused)."""
+    if (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))
+            or not 0 <= value <= MAX_SLOTS):
+        raise ValueError(f"{name} must be an integer in [0, {MAX_SLOTS}], got {value!r}")
     return int(value)
 
 

@@ -34,6 +34,7 @@ from sim.checks import (
     check_device,
     check_env_ids,
     check_seed,
+    check_slots,
     real_array,
 )
 from sim.native import pointer
@@ -106,7 +107,8 @@ class LifelongScenario:
         Truncation horizon of a run (``done`` turns True there; lifelong operation itself has
         none). Default 1000.
     k_pickups, k_agents : int
-        Open pickups and other AGVs in an observation (the nearest ones).
+        Open pickups and other AGVs in an observation (the nearest ones), each in
+        [0, :data:`sim.checks.MAX_SLOTS`].
     sensing_range : float
         Entities farther than this are masked out of observations.
     """
@@ -133,11 +135,12 @@ class LifelongScenario:
         object.__setattr__(self, "num_agents", n)
         for attr in ("max_steps",):
             object.__setattr__(self, attr, check_count(attr, getattr(self, attr)))
-        for attr in ("service_steps", "k_pickups", "k_agents"):
-            v = getattr(self, attr)
-            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise ValueError(f"{attr} must be an integer >= 0, got {v!r}")
-            object.__setattr__(self, attr, int(v))
+        v = self.service_steps
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise ValueError(f"service_steps must be an integer >= 0, got {v!r}")
+        object.__setattr__(self, "service_steps", int(v))
+        for attr in ("k_pickups", "k_agents"):
+            object.__setattr__(self, attr, check_slots(attr, getattr(self, attr)))
         if not (isinstance(self.sensing_range, (int, float)) and self.sensing_range > 0):
             raise ValueError(f"sensing_range must be positive, got {self.sensing_range!r}")
         arrivals = self.arrivals if self.arrivals is not None else Backlog(math.ceil(1.5 * n))

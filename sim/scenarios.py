@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sim.checks import check_slots
 from sim.lifelong import LifelongScenario
 from sim.spawn import Sampler, place_entities, uniform_sampler
 from sim.world import World
@@ -39,7 +40,8 @@ class Scenario:
     max_steps : int
         Step limit of an episode.
     k_tasks, k_agents : int
-        How many nearest tasks / other AGVs an observation holds.
+        How many nearest tasks / other AGVs an observation holds, each in
+        [0, :data:`sim.checks.MAX_SLOTS`].
     sensing_range : float
         Entities farther than this are masked out of observations.
     agent_sampler, task_sampler : callable, optional
@@ -67,9 +69,7 @@ class Scenario:
             if not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{attr} must be a positive integer, got {v!r}")
         for attr in ("k_tasks", "k_agents"):
-            v = getattr(self, attr)
-            if not isinstance(v, (int, np.integer)) or v < 0:
-                raise ValueError(f"{attr} must be a non-negative integer, got {v!r}")
+            object.__setattr__(self, attr, check_slots(attr, getattr(self, attr)))
         if not (self.sensing_range > 0):
             raise ValueError(f"sensing_range must be positive, got {self.sensing_range!r}")
         if self.scene is None:

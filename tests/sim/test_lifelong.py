@@ -586,6 +586,17 @@ def test_bad_lifelong_env_arguments() -> None:
         sim.AGVEnv(sim.get_scenario("warehouse-20"))
 
 
+@pytest.mark.parametrize("name, field", [("warehouse-5", "k_pickups"), ("warehouse-5", "k_agents"),
+                                         ("3v3", "k_tasks"), ("3v3", "k_agents")])
+@pytest.mark.parametrize("value", [-1, 1025, 10**9, 2.5, True, "4"])
+def test_observation_slots_are_bounded(name, field, value) -> None:
+    """A billion slots asked for 60 GB deep in torch; now any count outside [0, 1024] is
+    named before a tensor is made, and the bound itself is served (padded slots)."""
+    with pytest.raises(ValueError, match=rf"{field} must be an integer in \[0, 1024\]"):
+        sim.get_scenario(name, **{field: value})
+    assert getattr(sim.get_scenario(name, **{field: 1024}), field) == 1024
+
+
 @pytest.mark.parametrize("reward, arrivals", [
     ("minidist", Poisson(0.4)), ("greedy", Poisson(0.4)),
     ("minidist", Backlog(30)),
