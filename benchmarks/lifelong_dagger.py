@@ -3,6 +3,7 @@ warehouse floor (DAgger).
 
     python benchmarks/lifelong_dagger.py --start POLICY.safetensors [--floor warehouse-50 ...]
         [--teacher plan|local] [--view K] [--waypoint-drive] [--drive-sight] [--idle-token]
+        [--hidden H]
         [--iterations 8] [--envs 4] [--horizon 300] [--steps 300] [--lr 1e-3]
         [--choice-weight 1.0] [--action-weight 1.0] [--keep-right 0.5]
         [--validation-steps 1000] [--validation-seeds 4242 ...] [--validation-runs 2]
@@ -36,7 +37,10 @@ as the teacher does (``EntityConfig.waypoint_drive``), so only the choice is tau
 (``--action-weight 0``); ``--drive-sight`` heads for the path's first corner, as the
 teacher's driver does (``EntityConfig.drive_sight``). ``--idle-token``: the student's AGV
 tokens carry each seen AGV's idle bit (``EntityConfig.idle_token``), which the teacher's
-choice depends on (its rivals are the idle AGVs).
+choice depends on (its rivals are the idle AGVs). ``--hidden H``: the student starts afresh
+at width H (``EntityConfig.hidden``) with the start file's other settings; the file's weights
+are then not loaded (the untrained head drives to the own target, or when idle toward the
+nearest open pickup by path).
 
 DAgger (Ross et al., 2011): iteration 0 rolls the teacher out, later ones a mix (each floor
 driven by the teacher with probability 0.3, else by the student), every rollout through
@@ -146,6 +150,10 @@ class PlanTeacher(HungarianDispatcher):
         action /= np.maximum(1.0, np.abs(action).max(-1, keepdims=True))
         return torch.as_tensor(action, dtype=torch.float32), goal - pos, kind
 
+
+MAX_HIDDEN = 1024
+"""The widest student ``--hidden`` builds (wider would only fill memory on this floor's
+batches)."""
 
 LOCAL_VIEW = 16
 """The view of :class:`LocalTeacher` (pickups and AGVs), chosen on the validation seeds 10-14
@@ -332,6 +340,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="the student's AGV tokens carry the idle bit each AGV tells the "
                              "AGVs that see it (EntityConfig.idle_token); the start may lack "
                              "it (its new weights start at zero)")
+    parser.add_argument("--hidden", type=int, default=None,
+                        help="start the student afresh at this width (EntityConfig.hidden), "
+                             "with the start file's other settings (its weights not loaded)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -345,6 +356,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--validation-seeds must be >= 0, got {args.validation_seeds}")
     if args.view is not None and args.view < 1:
         parser.error(f"--view must be >= 1, got {args.view}")
+    if args.hidden is not None and not 1 <= args.hidden <= MAX_HIDDEN:
+        parser.error(f"--hidden must be in [1, {MAX_HIDDEN}], got {args.hidden}")
     if args.waypoint_drive and args.action_weight:
         parser.error("--waypoint-drive teaches the choice alone (no gradient reaches its "
                      "action): pass --action-weight 0")
@@ -383,12 +396,15 @@ def main(argv: list[str] | None = None) -> None:
     # the student is served behind the lanes it was taught behind
     config = dict(meta["config"], shield_keep_right=args.keep_right,
                   **{k: getattr(args, k) or meta["config"].get(k, False) for k in flags})
+    if args.hidden is not None:
+        config["hidden"] = args.hidden
     try:  # the config's own checks (e.g. --drive-sight without a waypoint drive)
         learner = make_learner(meta["algo"], meta["obs_dim"], meta["state_dim"],
                                meta["num_agents"], config)
     except ValueError as err:
         parser.error(str(err))
-    learner.load_policy_tensors(learner.adapt_init_tensors(tensors))
+    if args.hidden is None:
+        learner.load_policy_tensors(learner.adapt_init_tensors(tensors))
     opt = torch.optim.Adam(learner.actor.parameters(), lr=args.lr)
     args.out.mkdir(parents=True, exist_ok=True)
     data: list[list[tuple[torch.Tensor, ...]]] = [[] for _ in scenarios]
@@ -476,6 +492,7 @@ def main(argv: list[str] | None = None) -> None:
          "validation_steps": args.validation_steps,
          "validation_seeds": args.validation_seeds, "validation_runs": args.validation_runs,
          "teacher": args.teacher, "teacher_view": teacher_view, "view": args.view,
+         "hidden": config["hidden"], "fresh": args.hidden is not None,
          **{k: config[k] for k in flags},
          "teacher_share": TEACHER_SHARE, "keep": KEEP, "batch": BATCH,
          "start_throughput": start[0], "teacher_throughput": ceiling[0],

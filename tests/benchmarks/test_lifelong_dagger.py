@@ -113,6 +113,30 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     assert m.collisions_per_1000 == 0
 
 
+def test_hidden_starts_a_fresh_student_of_that_width(tmp_path: Path) -> None:
+    """``--hidden 8``: the student is built afresh at width 8 with the start file's other
+    settings (not its weights), and the allocator serves what it writes."""
+    from learners.checkpoint import load_checkpoint
+
+    dagger.main(["--start", str(SHIPPED), "--floor", "warehouse-20", "--iterations", "1",
+                 "--envs", "1", "--horizon", "6", "--steps", "2", "--validation-steps", "5",
+                 "--action-weight", "0", "--hidden", "8", "--out", str(tmp_path)])
+    probe = json.loads((tmp_path / "dagger.probe.json").read_text())
+    assert probe["hidden"] == 8 and probe["fresh"] is True
+    tensors, meta = load_checkpoint(tmp_path / "dagger.safetensors", kind="policy")
+    start, start_meta = load_checkpoint(SHIPPED, kind="policy")
+    assert meta["config"]["hidden"] == 8 != start_meta["config"]["hidden"]
+    assert tensors["actor.steer.score.0.weight"].shape[0] == 8
+    assert start["actor.steer.score.0.weight"].shape[0] != 8
+    for key, value in start_meta["config"].items():  # the start's other settings
+        if key not in ("hidden", "shield_keep_right"):
+            assert meta["config"][key] == value, key
+    solver = allocator.make("maddpg-greedy", scenario="warehouse-20",
+                            weights=tmp_path / "dagger.safetensors", shield=True)
+    m = sim.evaluate_lifelong(solver, "warehouse-20", steps=10, seed=0)
+    assert m.collisions_per_1000 == 0
+
+
 @pytest.mark.parametrize("bad", [
     ["--start", str(ROOT / "allocator/weights/6v6/bicnet-ipf.safetensors")],
     ["--start", str(SHIPPED), "--floor", "6v6"],
@@ -138,6 +162,10 @@ def test_main_writes_a_policy_the_allocator_serves(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--floor", "warehouse-20", "warehouse-20"],
     ["--start", str(SHIPPED), "--floor", "warehouse-20", "6v6"],
     ["--start", str(SHIPPED), "--floor", "warehouse-50", "warehouse-20", "--view", "30"],
+    ["--start", str(SHIPPED), "--hidden", "0"],
+    ["--start", str(SHIPPED), "--hidden", "-8"],
+    ["--start", str(SHIPPED), "--hidden", "2.5"],
+    ["--start", str(SHIPPED), "--hidden", str(10**9)],  # no network that fills memory
 ])
 def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
