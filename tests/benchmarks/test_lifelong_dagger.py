@@ -165,6 +165,8 @@ def test_hidden_starts_a_fresh_student_of_that_width(tmp_path: Path) -> None:
     ["--start", str(SHIPPED), "--hidden", "0"],
     ["--start", str(SHIPPED), "--hidden", "-8"],
     ["--start", str(SHIPPED), "--hidden", "2.5"],
+    ["--start", str(SHIPPED), "--hidden", "nan"],
+    ["--start", str(SHIPPED), "--hidden", ""],
     ["--start", str(SHIPPED), "--hidden", str(10**9)],  # no network that fills memory
 ])
 def test_bad_input_is_refused(bad: list[str], tmp_path: Path) -> None:

@@ -588,7 +588,7 @@ def test_bad_lifelong_env_arguments() -> None:
 
 @pytest.mark.parametrize("name, field", [("warehouse-5", "k_pickups"), ("warehouse-5", "k_agents"),
                                          ("3v3", "k_tasks"), ("3v3", "k_agents")])
-@pytest.mark.parametrize("value", [-1, 1025, 10**9, 2.5, True, "4"])
+@pytest.mark.parametrize("value", [-1, 1025, 10**9, 2.5, float("nan"), True, "4", "", None])
 def test_observation_slots_are_bounded(name, field, value) -> None:
     """A billion slots asked for 60 GB deep in torch; now any count outside [0, 1024] is
     named before a tensor is made, and the bound itself is served (padded slots)."""
